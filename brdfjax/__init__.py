@@ -1,0 +1,43 @@
+"""brdfjax: differentiable near-specular BRDF models and CCD scatterometer frames in JAX.
+
+Public names are re-exported here from their modules; see the README for a tour.
+"""
+
+from . import distributions as distributions
+from .detector import Detector as Detector, PixelGrid as PixelGrid, incident_direction as incident_direction
+from .distributions import (
+    AbstractDistribution as AbstractDistribution,
+    AshikhminShirley as AshikhminShirley,
+    BeardMaxwell as BeardMaxwell,
+    Beckmann as Beckmann,
+    BeckmannAniso as BeckmannAniso,
+    CosineLobe as CosineLobe,
+    GGX as GGX,
+    GGXAniso as GGXAniso,
+    GTR as GTR,
+    HyperCauchy as HyperCauchy,
+    Ribardiere as Ribardiere,
+    StudentT as StudentT,
+    StudentTAniso as StudentTAniso,
+)
+from .fresnel import fresnel as fresnel, q_factor as q_factor
+from .geometry import Directions as Directions, direction as direction, zenith_azimuth as zenith_azimuth
+from .render import (
+    Frame as Frame,
+    evaluate_pixels as evaluate_pixels,
+    render as render,
+    render_geometry as render_geometry,
+    sample_directions as sample_directions,
+)
+from .terms import (
+    SOLAR_CELL_SEED as SOLAR_CELL_SEED,
+    AbstractTerm as AbstractTerm,
+    Diffraction as Diffraction,
+    Lambertian as Lambertian,
+    Model as Model,
+    OffsetNormal as OffsetNormal,
+    Specular as Specular,
+    solar_cell as solar_cell,
+)
+
+__version__ = "0.1.0"

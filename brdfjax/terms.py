@@ -1,0 +1,324 @@
+"""BRDF terms and models (seed Eq 70, 112-115; Chapter VI).
+
+A term is a small ``equinox`` module whose fields are its parameters and whose
+call ``term(dirs, wavelength) -> sr^-1`` evaluates it on
+:class:`~brdfjax.geometry.Directions` expressed in the **sample frame** (the
+frame is rotated by ``-phi_ref`` about the normal before any term sees it, see
+:func:`brdfjax.render.sample_directions`).  A :class:`Model` is a named sum of
+terms; wrappers (:class:`OffsetNormal`) wrap any term.
+
+Parameters are addressed by flat names ``"<term>.<parameter>"`` (the
+distribution's parameters and a wrapped term's parameters are lifted into the
+term's namespace, e.g. ``"offset.m"``), or by aliases a model declares (the
+solar-cell preset exposes the seed's names ``m1, rho_s1, ...``).
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike
+
+from ._params import check_param, param
+from .distributions import AbstractDistribution, Beckmann
+from .fresnel import q_factor
+from .geometry import Directions, Ry, Rz
+
+__all__ = [
+    "AbstractTerm",
+    "Specular",
+    "Lambertian",
+    "OffsetNormal",
+    "Diffraction",
+    "Model",
+    "solar_cell",
+    "SOLAR_CELL_SEED",
+]
+
+
+class AbstractTerm(eqx.Module):
+    """One additive BRDF contribution, in sr^-1."""
+
+    kind: ClassVar[str]
+
+    @abc.abstractmethod
+    def __call__(self, dirs: Directions, wavelength: ArrayLike) -> Array:
+        raise NotImplementedError
+
+
+def _both_above(dirs: Directions) -> Array:
+    return (dirs.cos_theta_i > 0) & (dirs.cos_theta_s > 0)
+
+
+class Specular(AbstractTerm):
+    """Microfacet specular term of Eq 70 with any distribution D and the Q factor of Eq 69.
+
+    ``f = rho_s D(w_h) Q(n + i k, w_i, w_s) / (2 (cos theta_i + cos theta_s)^2)``.
+    """
+
+    kind: ClassVar[str] = "specular"
+    distribution: AbstractDistribution
+    rho_s: Array = param("1", "specular weight")
+    n: Array = param("1", "real part of the refractive index")
+    k: Array = param("1", "imaginary part of the refractive index", default=0.0)
+
+    def __check_init__(self):
+        check_param("specular", "rho_s", self.rho_s, lambda v: v >= 0, "rho_s >= 0")
+        check_param("specular", "n", self.n, lambda v: v > 0, "n > 0")
+        check_param("specular", "k", self.k, lambda v: v >= 0, "k >= 0")
+
+    def __call__(self, dirs, wavelength):
+        tx2, ty2, upper = dirs.half_slopes()
+        D = jnp.where(upper, self.distribution(tx2, ty2), 0.0)
+        Q = q_factor(self.n, dirs, self.k)
+        ci, cs = dirs.cos_theta_i, dirs.cos_theta_s
+        f = self.rho_s * D * Q / (2.0 * jnp.square(ci + cs))
+        return jnp.where(_both_above(dirs), f, 0.0)
+
+
+class Lambertian(AbstractTerm):
+    """Perfectly diffuse term ``rho_d / pi`` (Eq 50, 70)."""
+
+    kind: ClassVar[str] = "lambertian"
+    rho_d: Array = param("1", "diffuse reflectance")
+
+    def __check_init__(self):
+        check_param("lambertian", "rho_d", self.rho_d, lambda v: v >= 0, "rho_d >= 0")
+
+    def __call__(self, dirs, wavelength):
+        return jnp.where(_both_above(dirs), self.rho_d / np.pi, 0.0)
+
+
+class OffsetNormal(AbstractTerm):
+    """A term evaluated about a tilted surface normal (Eq 112-113).
+
+    Both directions (and their sum) are rotated by ``Ry(-dtheta) Rz(-dphi0)``
+    in the sample frame, i.e. ``Ry(-dtheta) Rz(-dphi0 - phi_ref)`` in the
+    scatter frame, and the wrapped term is evaluated there.  ``dphi0`` is
+    measured from +x toward +y.
+    """
+
+    kind: ClassVar[str] = "offset_normal"
+    term: AbstractTerm
+    dtheta: Array = param("rad", "zenith tilt of the second normal")
+    dphi0: Array = param("rad", "azimuth of the tilt, from +x toward +y")
+
+    def rotation(self) -> Array:
+        return Ry(-self.dtheta) @ Rz(-self.dphi0)
+
+    def __call__(self, dirs, wavelength):
+        return jnp.where(_both_above(dirs), self.term(dirs.rotated(self.rotation()), wavelength), 0.0)
+
+
+class Diffraction(AbstractTerm):
+    """Fraunhofer diffraction by two bars of spacing a and width b (Eq 114-115).
+
+    With the unit half vector h in the sample frame, ``ybar/zbar = h_y`` and
+    ``xbar = distance * h_x``::
+
+        f = rho cos^2(2 pi a h_y cos(theta_i) / lambda)
+                sinc^2(2 b h_y cos(theta_i) / lambda) exp(-(distance h_x)^2 / c^2)
+
+    ``sinc`` is the normalised sinc.  ``distance`` is the nominal 0.325 m of
+    the seed (it does not cancel in the Gaussian, where c is in metres); it is
+    a fixed constant, not a fitted parameter.  ``grating_factor=False`` drops
+    the seed's ``2 cos(theta_i)`` factor (then the plain two-slit pattern
+    ``cos^2(pi a ybar / (lambda zbar)) sinc^2(b ybar / (lambda zbar))``).
+    """
+
+    kind: ClassVar[str] = "diffraction"
+    rho: Array = param("sr^-1", "peak magnitude (rho_s3)")
+    a: Array = param("m", "bar spacing")
+    b: Array = param("m", "bar width")
+    c: Array = param("m", "Gaussian half-width of the band along the bars")
+    distance: float = eqx.field(static=True, default=0.325)
+    grating_factor: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        check_param("diffraction", "rho", self.rho, lambda v: v >= 0, "rho >= 0 (sr^-1)")
+        for f in ("a", "b", "c"):
+            check_param("diffraction", f, getattr(self, f), lambda v: v > 0, f"{f} > 0 (metres)")
+
+    def __call__(self, dirs, wavelength):
+        h = dirs.half_vector()
+        hx, hy = h[..., 0], h[..., 1]
+        scale = 2.0 * dirs.cos_theta_i if self.grating_factor else 1.0
+        u = hy * scale / wavelength  # = 2 ybar cos(theta_i) / (lambda zbar) with the grating factor
+        f = (
+            self.rho
+            * jnp.square(jnp.cos(np.pi * self.a * u))
+            * jnp.square(jnp.sinc(self.b * u))
+            * jnp.exp(-jnp.square(self.distance * hx / self.c))
+        )
+        return jnp.where(_both_above(dirs), f, 0.0)
+
+
+# --- models and parameter naming ---------------------------------------------------------
+
+
+def _param_fields(module: eqx.Module) -> list[dataclasses.Field]:
+    return [f for f in dataclasses.fields(module) if "unit" in f.metadata]
+
+
+def _child_fields(module: eqx.Module) -> list[dataclasses.Field]:
+    return [
+        f
+        for f in dataclasses.fields(module)
+        if not f.metadata.get("static", False) and isinstance(getattr(module, f.name), eqx.Module)
+    ]
+
+
+def _term_paths(module: eqx.Module, prefix: tuple[str, ...] = ()) -> dict[str, tuple[tuple[str, ...], str]]:
+    """Flat parameter name -> (attribute path, unit), lifting nested modules' parameters."""
+    out: dict[str, tuple[tuple[str, ...], str]] = {}
+    for child in _child_fields(module):
+        for name, entry in _term_paths(getattr(module, child.name), prefix + (child.name,)).items():
+            out[name] = entry
+    for f in _param_fields(module):
+        out[f.name] = (prefix + (f.name,), f.metadata["unit"])
+    return out
+
+
+def _get_path(obj: Any, path: tuple[str, ...]) -> Any:
+    for p in path:
+        obj = obj[p] if isinstance(obj, Mapping) else getattr(obj, p)
+    return obj
+
+
+class Model(AbstractTerm):
+    """A named sum of terms: ``f = sum_k terms[k](dirs, wavelength)``.
+
+    ``aliases`` maps user-facing names to flat names, e.g. ``("m1", "center.m")``.
+    """
+
+    kind: ClassVar[str] = "model"
+    terms: dict[str, AbstractTerm]
+    aliases: tuple[tuple[str, str], ...] = eqx.field(static=True, default=())
+
+    def __check_init__(self):
+        if not self.terms:
+            raise ValueError("Model: needs at least one term")
+        for name, term in self.terms.items():
+            if not isinstance(term, AbstractTerm):
+                raise TypeError(f"Model: term '{name}' is a {type(term).__name__}, not a brdfjax term")
+            if "." in name:
+                raise ValueError(f"Model: term name '{name}' must not contain '.'")
+
+    def __call__(self, dirs, wavelength):
+        values = [t(dirs, wavelength) for t in self.terms.values()]
+        return sum(values[1:], values[0])
+
+    def term_values(self, dirs: Directions, wavelength: ArrayLike) -> dict[str, Array]:
+        """Each term's contribution separately."""
+        return {name: t(dirs, wavelength) for name, t in self.terms.items()}
+
+    # parameters -------------------------------------------------------------------------
+    def _paths(self) -> dict[str, tuple[tuple[str, ...], str]]:
+        out = {}
+        for tname, term in self.terms.items():
+            for pname, (path, unit) in _term_paths(term).items():
+                out[f"{tname}.{pname}"] = (("terms", tname) + path, unit)
+        return out
+
+    def _resolve(self, name: str) -> str:
+        paths = self._paths()
+        alias = dict(self.aliases)
+        flat = alias.get(name, name)
+        if flat not in paths:
+            known = sorted(set(alias) | (set(paths) - set(alias.values())))
+            raise KeyError(f"unknown parameter '{name}'; known: {', '.join(known)}")
+        return flat
+
+    def parameter_units(self) -> dict[str, str]:
+        """Public parameter name -> unit ('rad', 'm', '1', 'sr^-1')."""
+        back = {v: k for k, v in self.aliases}
+        return {back.get(n, n): unit for n, (_, unit) in self._paths().items()}
+
+    def params(self) -> dict[str, Array]:
+        """Public parameter name -> value (aliases where declared, else ``term.param``)."""
+        back = {v: k for k, v in self.aliases}
+        return {back.get(n, n): _get_path(self, path) for n, (path, _) in self._paths().items()}
+
+    def with_params(self, values: Mapping[str, ArrayLike]) -> "Model":
+        """A copy with some parameters replaced (names as in :meth:`params`); differentiable."""
+        if not values:
+            return self
+        paths = self._paths()
+        flat = [paths[self._resolve(k)][0] for k in values]
+        new = [v if hasattr(v, "dtype") else np.asarray(v, dtype=np.float64) for v in values.values()]
+
+        def where(m):
+            return tuple(_get_path(m, p) for p in flat)
+
+        return eqx.tree_at(where, self, tuple(new))
+
+
+def _deg(x: float) -> float:
+    return float(np.deg2rad(x))
+
+
+#: Seed §6.4 parameters of the solar-cell model (radians and metres).
+SOLAR_CELL_SEED: dict[str, float] = {
+    "m1": 2e-4,
+    "rho_s1": 0.015,
+    "n1": 3.6,
+    "m2": 2e-4,
+    "rho_s2": 0.7,
+    "n2": 1.4,
+    "dtheta": _deg(0.5),
+    "dphi0": _deg(45.0),
+    "a": 8e-4,
+    "b": 1e-5,
+    "c": 4e-5,
+    "rho_s3": 300.0,
+}
+
+_SOLAR_ALIASES = (
+    ("m1", "center.m"),
+    ("rho_s1", "center.rho_s"),
+    ("n1", "center.n"),
+    ("m2", "offset.m"),
+    ("rho_s2", "offset.rho_s"),
+    ("n2", "offset.n"),
+    ("dtheta", "offset.dtheta"),
+    ("dphi0", "offset.dphi0"),
+    ("a", "bars.a"),
+    ("b", "bars.b"),
+    ("c", "bars.c"),
+    ("rho_s3", "bars.rho"),
+)
+
+
+def solar_cell(**overrides: float) -> Model:
+    """The seed's three-term solar-cell model (Chapter VI) with the §6.4 parameters.
+
+    Terms: ``center`` (Beckmann specular, Eq 111), ``offset`` (offset-normal
+    Beckmann specular, Eq 112-113) and ``bars`` (diffraction, Eq 114-115).
+    Parameters use the seed's names ``m1, rho_s1, n1, m2, rho_s2, n2, dtheta,
+    dphi0, a, b, c, rho_s3`` (angles in radians); keyword overrides replace
+    the seed values.  ``theta_i`` and ``phi_ref`` belong to the frame.
+    """
+    unknown = set(overrides) - set(SOLAR_CELL_SEED)
+    if unknown:
+        raise KeyError(
+            f"solar_cell: unknown parameter(s) {sorted(unknown)}; known: {', '.join(SOLAR_CELL_SEED)}"
+        )
+    p = {**SOLAR_CELL_SEED, **overrides}
+    return Model(
+        terms={
+            "center": Specular(Beckmann(p["m1"]), rho_s=p["rho_s1"], n=p["n1"]),
+            "offset": OffsetNormal(
+                Specular(Beckmann(p["m2"]), rho_s=p["rho_s2"], n=p["n2"]),
+                dtheta=p["dtheta"],
+                dphi0=p["dphi0"],
+            ),
+            "bars": Diffraction(rho=p["rho_s3"], a=p["a"], b=p["b"], c=p["c"]),
+        },
+        aliases=_SOLAR_ALIASES,
+    )
