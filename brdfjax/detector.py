@@ -161,6 +161,7 @@ class Detector(eqx.Module):
             tc = theta_i
         return jnp.asarray(tc)
 
+    @eqx.filter_jit
     def scatter_directions(self, n_h: ArrayLike, n_v: ArrayLike, theta_c: ArrayLike | None = None) -> Array:
         """Unit scatter directions ``w_s`` of pixels (Eq 78/105 normalised), (..., 3)."""
         alpha = self._alpha(self._arm(theta_c, None))
@@ -168,6 +169,7 @@ class Detector(eqx.Module):
         base = jnp.stack([jnp.sin(alpha), jnp.zeros_like(alpha), jnp.cos(alpha)], -1)
         return base + rotate(Ry(alpha), e)
 
+    @eqx.filter_jit
     def directions(self, n_h: ArrayLike, n_v: ArrayLike, theta_i: ArrayLike) -> Directions:
         """Incident and scattered directions for pixels, with ``w_i + w_s`` free of cancellation."""
         theta_i = jnp.asarray(theta_i)
@@ -188,10 +190,12 @@ class Detector(eqx.Module):
         )
         return Directions(w_i, w_s, base_sum + e_rot)
 
+    @eqx.filter_jit
     def angles(self, n_h: ArrayLike, n_v: ArrayLike, theta_c: ArrayLike | None = None) -> tuple[Array, Array]:
         """``(theta_s, phi_s)`` in radians (Eq 80; azimuth from -x, in [0, 2 pi))."""
         return zenith_azimuth(self.scatter_directions(n_h, n_v, theta_c))
 
+    @eqx.filter_jit
     def solid_angle(self, n_h: ArrayLike, n_v: ArrayLike) -> Array:
         """Solid angle of each pixel, sr (Eq 86 aligned; Eq 109 with misalignment).
 
@@ -204,6 +208,7 @@ class Detector(eqx.Module):
         norm_u = safe_sqrt(jnp.sum(jnp.square(u), -1))
         return self.pixel_pitch * self.pixel_pitch_v * jnp.einsum("...i,i->...", u, normal) / norm_u**3
 
+    @eqx.filter_jit
     def pixel_of(
         self, theta_s: ArrayLike, phi_s: ArrayLike, theta_c: ArrayLike | None = None
     ) -> tuple[Array, Array]:
@@ -252,22 +257,24 @@ class Detector(eqx.Module):
         th_deg = np.rad2deg(th)
         ph_deg = np.rad2deg(ph)
         # azimuths near 0/360 (theta_c ~ 0) wrap: work in (-180, 180] about the array centre's azimuth.
-        centre = float(np.rad2deg(self.angles(0.0, 0.0, theta_c)[1]))
+        centre = float(np.rad2deg(np.asarray(self.angles(np.zeros(1), np.zeros(1), theta_c)[1])[0]))
         ph_rel = (ph_deg - centre + 180.0) % 360.0 - 180.0
         if theta_s_deg is None:
             theta_s_deg = _nice_levels(th_deg.min(), th_deg.max())
         if phi_s_deg is None:
             phi_s_deg = (centre + _nice_levels(ph_rel.min(), ph_rel.max())) % 360.0
-        lines = []
         s = np.linspace(0.0, 1.0, n_points)
-        for lev in np.atleast_1d(theta_s_deg):
-            phis = centre + ph_rel.min() + s * (ph_rel.max() - ph_rel.min())
-            nh, nv = self.pixel_of(np.deg2rad(lev) * np.ones_like(phis), np.deg2rad(phis), theta_c)
-            lines.append(self._clip("theta_s", float(lev), nh, nv))
-        for lev in np.atleast_1d(phi_s_deg):
-            ths = th_deg.min() + s * (th_deg.max() - th_deg.min())
-            nh, nv = self.pixel_of(np.deg2rad(ths), np.deg2rad(lev) * np.ones_like(ths), theta_c)
-            lines.append(self._clip("phi_s", float(lev), nh, nv))
+        th_levels = np.atleast_1d(np.asarray(theta_s_deg, dtype=float))
+        ph_levels = np.atleast_1d(np.asarray(phi_s_deg, dtype=float))
+        phis = centre + ph_rel.min() + s * (ph_rel.max() - ph_rel.min())
+        ths = th_deg.min() + s * (th_deg.max() - th_deg.min())
+        # One batched call for every level: (levels, points) arrays of angles.
+        th_all = np.concatenate([np.repeat(th_levels[:, None], n_points, 1), np.tile(ths, (ph_levels.size, 1))])
+        ph_all = np.concatenate([np.tile(phis, (th_levels.size, 1)), np.repeat(ph_levels[:, None], n_points, 1)])
+        nh, nv = (np.asarray(a) for a in self.pixel_of(np.deg2rad(th_all), np.deg2rad(ph_all), theta_c))
+        kinds = ["theta_s"] * th_levels.size + ["phi_s"] * ph_levels.size
+        levels = list(th_levels) + list(ph_levels)
+        lines = [self._clip(k, float(lev), nh[i], nv[i]) for i, (k, lev) in enumerate(zip(kinds, levels))]
         return [ln for ln in lines if np.isfinite(ln["n_h"]).sum() >= 2]
 
     def _clip(self, kind: str, level: float, nh: Array, nv: Array) -> dict:

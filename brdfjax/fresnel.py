@@ -14,7 +14,7 @@ __all__ = ["complex_index", "fresnel", "q_factor"]
 def complex_index(n: ArrayLike, k: ArrayLike = 0.0) -> Array:
     """``n + i k`` as complex64 or complex128 to match the real dtype."""
     n, k = jnp.broadcast_arrays(jnp.asarray(n), jnp.asarray(k))
-    dtype = jnp.result_type(n, k, jnp.float32)
+    dtype = jnp.promote_types(jnp.result_type(n, k), jnp.float32)
     return jax.lax.complex(n.astype(dtype), k.astype(dtype))
 
 
