@@ -1,0 +1,342 @@
+"""The ``brdfjax`` command line: ``brdfjax <subcommand> ...``.
+
+Subcommands are entries of :data:`COMMANDS` (a name, a help line, a function
+adding its arguments and a function running it), so that new ones (fit,
+sample, diagnose, capture) slot in without touching :func:`main`.
+
+``brdfjax simulate [CONFIG] --out DIR [--step K] [--precision P] [--no-plot]``
+renders every frame of a TOML config (see :mod:`brdfjax.config`; without
+CONFIG the packaged default job) and writes, per frame, ``<name>.exr``
+(BRDF, theta_s, phi_s, solid angle; see :mod:`brdfjax.io.exr`) and
+``<name>.png`` (see :mod:`brdfjax.plotting`), plus ``summary.json``.
+
+Exit codes: 0 success, 1 failure while running (e.g. an output that cannot be
+written), 2 bad usage or a bad config (the message names the file and key).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "COMMANDS",
+    "Command",
+    "FrameResult",
+    "build_parser",
+    "main",
+    "run_simulate",
+    "simulate_frame",
+]
+
+EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
+
+
+# --- the simulate pipeline (also used by experiments/reproduce_seed.py) --------------------------
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One rendered frame in memory: ``(rows, cols)`` NumPy arrays of the grid and timings."""
+
+    stem: str
+    frame: Any  # brdfjax.Frame
+    grid: Any  # brdfjax.PixelGrid
+    brdf: np.ndarray  # sr^-1
+    terms: dict[str, np.ndarray]  # sr^-1, each term of the model
+    geometry: dict[str, np.ndarray]  # theta_s, phi_s (rad), omega (sr)
+    render_s: float
+    files: dict[str, str] = field(default_factory=dict)
+    write_s: float = 0.0
+
+    def argmax(self, image: np.ndarray | None = None) -> tuple[int, int]:
+        """``(n_h, n_v)`` pixel indices of the maximum of ``image`` (default: the BRDF)."""
+        a = self.brdf if image is None else image
+        r, c = np.unravel_index(int(np.nanargmax(a)), a.shape)
+        return int(self.grid.n_h[c]), int(self.grid.n_v[r])
+
+    def at(self, image: np.ndarray, n_h: int, n_v: int) -> float:
+        """Value of ``image`` at pixel ``(n_h, n_v)`` (which must be on the grid)."""
+        c = int(np.flatnonzero(self.grid.n_h == n_h)[0])
+        r = int(np.flatnonzero(self.grid.n_v == n_v)[0])
+        return float(image[r, c])
+
+
+def simulate_frame(model, frame, detector, grid, precision: str = "float32", stem: str = "frame") -> FrameResult:
+    """Render ``model`` and the pixel geometry on ``grid``; returns NumPy arrays (blocks until done).
+
+    The BRDF is the sum of the per-term images (the same sum, in the same
+    order, as evaluating the model), so one pass gives both.
+    """
+    from .render import render, render_geometry
+
+    t0 = time.perf_counter()
+    per_term = render(model, frame, detector, grid=grid, precision=precision, per_term=True)
+    terms = {k: np.asarray(v) for k, v in per_term.items()}
+    values = list(terms.values())
+    brdf = sum(values[1:], values[0]).copy()
+    geometry = {k: np.asarray(v) for k, v in render_geometry(frame, detector, grid=grid, precision=precision).items()}
+    return FrameResult(stem, frame, grid, brdf, terms, geometry, time.perf_counter() - t0)
+
+
+def _frame_attrs(cfg, detector, frame, stem: str) -> dict[str, Any]:
+    from . import __version__
+
+    h0, h1, v0, v1 = cfg.roi if cfg.roi is not None else detector.index_range
+    theta_c = frame.theta_i if detector.theta_c is None else detector.theta_c
+    return {
+        "theta_i": float(frame.theta_i),
+        "theta_c": float(theta_c),
+        "phi_ref": float(frame.phi_ref),
+        "wavelength": float(frame.wavelength),
+        "R": float(detector.distance),
+        "pixel_pitch": float(detector.pixel_pitch),
+        "pixel_pitch_v": float(detector.pixel_pitch_v),
+        "roll": float(detector.roll),
+        "yaw": float(detector.yaw),
+        "pitch": float(detector.pitch),
+        "m_h": float(detector.m_h),
+        "m_v": float(detector.m_v),
+        "step": int(cfg.grid.step),
+        "roi": (int(h0), int(h1), int(v0), int(v1)),
+        "model": cfg.describe_model(),
+        "precision": cfg.precision,
+        "frame": stem,
+        "brdfjax_version": __version__,
+    }
+
+
+def _frame_summary(cfg, res: FrameResult, fcfg) -> dict[str, Any]:
+    def peak(image: np.ndarray) -> dict[str, Any]:
+        n_h, n_v = res.argmax(image)
+        return {"value": float(np.nanmax(image)), "pixel": [n_h, n_v]}
+
+    n_h, n_v = res.argmax()
+    th = res.at(res.geometry["theta_s"], n_h, n_v)
+    ph = res.at(res.geometry["phi_s"], n_h, n_v)
+    return {
+        "name": res.stem,
+        "theta_i_deg": fcfg.theta_i_deg,
+        "phi_ref_deg": fcfg.phi_ref_deg,
+        "wavelength_nm": fcfg.wavelength_nm,
+        "max_brdf": float(np.nanmax(res.brdf)),
+        "max_pixel": [n_h, n_v],
+        "max_theta_s_deg": float(np.rad2deg(th)),
+        "max_phi_s_deg": float(np.rad2deg(ph)),
+        "term_max": {k: peak(v) for k, v in res.terms.items()},
+        "grid_shape": list(res.brdf.shape),
+        "step": cfg.grid.step,
+        "roi": cfg.roi,
+        "precision": cfg.precision,
+        "config": cfg.source,
+        "render_s": round(res.render_s, 4),
+        "write_s": round(res.write_s, 4),
+        "wall_s": round(res.render_s + res.write_s, 4),
+        "files": res.files,
+    }
+
+
+def _write_json_atomic(path: Path, data: Any) -> None:
+    from .io import atomic_output
+
+    with atomic_output(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+
+
+def run_simulate(
+    cfg,
+    out: str | os.PathLike,
+    *,
+    plot: bool = True,
+    console: Any = None,
+    on_frame: Callable[[FrameResult], None] | None = None,
+) -> dict[str, Any]:
+    """Render every frame of a :class:`~brdfjax.config.SimulateConfig` into ``out``.
+
+    Writes ``<stem>.exr``, ``<stem>.png`` (unless ``plot=False``) and
+    ``summary.json``; returns the summary.  ``on_frame`` receives each
+    :class:`FrameResult` (full arrays) before it is dropped.  ``console`` is a
+    ``rich`` console for one status line per frame (``None``: silent).
+    A config with ``precision = "float64"`` needs ``jax_enable_x64`` on; the
+    CLI turns it on, library callers decide for themselves.
+    """
+    from . import __version__
+    from .io.exr import write_frame_exr
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    detector = cfg.build_detector()
+    grid = cfg.build_grid(detector)
+    model = cfg.build_model()
+    frames = cfg.build_frames()
+    if plot:
+        from .plotting import plot_frame
+
+    t_start = time.perf_counter()
+    entries = []
+    for (stem, frame), fcfg in zip(frames, cfg.frames, strict=True):
+        status = console.status(f"rendering {stem} ({grid.shape[0]} x {grid.shape[1]} pixels)") if console else None
+        if status:
+            status.start()
+        try:
+            res = simulate_frame(model, frame, detector, grid, cfg.precision, stem)
+            t0 = time.perf_counter()
+            exr = write_frame_exr(
+                out / f"{stem}.exr",
+                res.brdf,
+                res.geometry["theta_s"],
+                res.geometry["phi_s"],
+                res.geometry["omega"],
+                _frame_attrs(cfg, detector, frame, stem),
+            )
+            files = {"exr": exr.name}
+            if plot:
+                files["png"] = plot_frame(res.brdf, grid, detector, frame, out / f"{stem}.png").name
+            res = FrameResult(**{**res.__dict__, "files": files, "write_s": time.perf_counter() - t0})
+        finally:
+            if status:
+                status.stop()
+        entry = _frame_summary(cfg, res, fcfg)
+        entries.append(entry)
+        if console is not None:
+            n_h, n_v = entry["max_pixel"]
+            console.print(
+                f"[green]done[/] {stem}: {res.brdf.shape[0]} x {res.brdf.shape[1]} px, "
+                f"max {entry['max_brdf']:.4g} sr^-1 at (n_h, n_v) = ({n_h}, {n_v}), "
+                f"render {res.render_s:.2f} s, write {res.write_s:.2f} s -> {', '.join(files.values())}",
+                highlight=False,
+            )
+        if on_frame is not None:
+            on_frame(res)
+        del res
+
+    summary = {
+        "brdfjax_version": __version__,
+        "config": cfg.source,
+        "precision": cfg.precision,
+        "step": cfg.grid.step,
+        "roi": cfg.roi,
+        "grid_shape": list(grid.shape),
+        "detector": {**cfg.detector.resolved(), "theta_c_deg": cfg.detector.theta_c_deg},
+        "model": cfg.describe_model(),
+        "wall_s": round(time.perf_counter() - t_start, 4),
+        "frames": entries,
+    }
+    _write_json_atomic(out / "summary.json", summary)
+    return summary
+
+
+# --- subcommands -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Command:
+    """A subcommand: ``add_arguments(parser)`` declares its options, ``run(args) -> exit code`` runs it."""
+
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+def _simulate_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "config",
+        nargs="?",
+        default=None,
+        metavar="CONFIG",
+        help="TOML config (default: the packaged default job, brdfjax/data/default.toml)",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
+    p.add_argument("--step", type=int, default=None, metavar="K", help="evaluate every K-th pixel (overrides grid.step)")
+    p.add_argument(
+        "--precision", choices=("float32", "float64"), default=None, help="floating-point precision (overrides precision)"
+    )
+    p.add_argument("--no-plot", action="store_true", help="write the EXR files and summary only, no PNG figures")
+
+
+def _error(prog: str, message: str) -> None:
+    sys.stderr.write(f"{prog}: error: {message}\n")
+
+
+def _run_simulate(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from .config import ConfigError, load_simulate_config
+
+    prog = "brdfjax simulate"
+    try:
+        cfg = load_simulate_config(args.config)
+        if args.step is not None or args.precision is not None:
+            cfg = cfg.with_overrides(step=args.step, precision=args.precision)
+    except ConfigError as e:
+        _error(prog, str(e))
+        return EXIT_USAGE
+    if cfg.precision == "float64":
+        import jax
+
+        # An edge may flip the process-wide switch; the library never does.
+        jax.config.update("jax_enable_x64", True)
+
+    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    grid_note = f"every {cfg.grid.step}th pixel" if cfg.grid.step > 1 else "every pixel"
+    console.print(
+        f"brdfjax simulate: {cfg.source} -> {args.out}: {len(cfg.frames)} frame(s), {grid_note}"
+        + (f" of roi {cfg.roi}" if cfg.roi else "")
+        + f", {cfg.precision}",
+        markup=False,
+    )
+    try:
+        summary = run_simulate(cfg, args.out, plot=not args.no_plot, console=console)
+    except (OSError, ValueError) as e:
+        _error(prog, str(e))
+        return EXIT_FAILURE
+    console.print(f"wrote {Path(args.out) / 'summary.json'} ({summary['wall_s']:.1f} s)", markup=False)
+    return EXIT_OK
+
+
+#: Subcommands by name; later issues add fit, sample, diagnose and capture here.
+COMMANDS: dict[str, Command] = {
+    "simulate": Command(
+        "simulate",
+        "render the frames of a config to OpenEXR + PNG + summary.json",
+        _simulate_arguments,
+        _run_simulate,
+    ),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="brdfjax",
+        description="Differentiable near-specular BRDF models and CCD scatterometer frames in JAX.",
+    )
+    parser.add_argument("--version", action="version", version=f"brdfjax {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for cmd in COMMANDS.values():
+        p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
+        cmd.add_arguments(p)
+        p.set_defaults(_run=cmd.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``brdfjax`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    return args._run(args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
