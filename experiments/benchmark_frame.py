@@ -1,0 +1,396 @@
+"""Benchmark: one full solar-cell frame with the jit-compiled JAX core vs the NumPy float64 oracle.
+
+What is timed
+    ``bj.render(bj.solar_cell(), bj.Frame.from_degrees(theta_i), bj.Detector.seed())``
+    -- the seed's three-term solar-cell model (Chapter VI, §6.4 parameters) on
+    every pixel of the seed's 3296 x 2472 detector (``--step k`` keeps every
+    k-th pixel for quick runs) -- against
+    ``brdfjax.reference.solar_cell_frame(theta_i)``, the plain vectorised
+    NumPy float64 implementation (128 rows at a time).
+
+How
+    Each configuration runs in its own subprocess (``--path jax`` /
+    ``--path numpy``, driven by the parent) so that peak-memory figures do not
+    mix and each JAX precision gets a fresh process (float64 is enabled there
+    with ``jax.config.update("jax_enable_x64", True)``; brdfjax never flips it).
+
+    * JAX: the first call (trace + compile + run) is timed separately; the
+      steady state is the median of ``--repeats`` further calls, each ended by
+      ``block_until_ready()``.
+    * NumPy: median of ``--numpy-repeats`` calls.
+    * Peak memory: increase of the process's resident set (RSS) high-water mark
+      over its RSS just before the timed work, read from ``VmHWM`` / ``VmRSS``
+      in ``/proc/self/status``; the high-water mark is reset (``clear_refs``)
+      after the first JAX call so that "steady" excludes the compiler.  It
+      counts the output frame (33 MB in float32, 65 MB in float64) and all
+      temporaries.  Where ``/proc`` is unavailable the figure is
+      ``ru_maxrss`` minus the RSS baseline and includes the first call.  On an
+      accelerator the host RSS is not the memory that matters, so the
+      device's own ``peak_bytes_in_use`` is printed too when the backend
+      reports it (GPU does, CPU does not).
+    * Accuracy: ``max |f_jax - f_numpy| / f_numpy`` over the pixels where the
+      NumPy frame exceeds 1e-3 of its maximum.
+
+Nothing here is CPU-specific: the same command runs on a GPU machine.
+
+Usage::
+
+    python experiments/benchmark_frame.py                 # full frame, ~2 min on 2 CPU cores
+    python experiments/benchmark_frame.py --step 8        # quick check
+    python experiments/benchmark_frame.py --json out/benchmark.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_CHUNK = 1 << 20  # brdfjax.render's default chunk_pixels
+RELATIVE_FLOOR = 1e-3  # compare where BRDF > RELATIVE_FLOOR * max
+
+
+# --- memory helpers (worker side) -----------------------------------------------------------
+
+
+def _status_kib(key: str) -> int | None:
+    try:
+        text = Path("/proc/self/status").read_text()
+    except OSError:
+        return None
+    m = re.search(rf"^{key}:\s+(\d+)\s+kB", text, re.MULTILINE)
+    return int(m.group(1)) if m else None
+
+
+def _reset_high_water_mark() -> bool:
+    """Reset VmHWM to the current RSS (Linux >= 4.0); False where that is not possible."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return False
+    return True
+
+
+class PeakRSS:
+    """RSS high-water-mark increase (MiB) over the RSS at ``start()``."""
+
+    def __init__(self) -> None:
+        self.can_reset = _status_kib("VmHWM") is not None and _reset_high_water_mark()
+        self.method = (
+            "VmHWM - VmRSS (/proc/self/status, reset via clear_refs)"
+            if self.can_reset
+            else "ru_maxrss - RSS baseline (not resettable: includes the first call)"
+        )
+        self.base_kib = 0
+
+    def start(self) -> None:
+        if self.can_reset:
+            _reset_high_water_mark()
+            self.base_kib = _status_kib("VmRSS") or 0
+        elif not self.base_kib:
+            rss = _status_kib("VmRSS")
+            self.base_kib = rss if rss is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+    def peak_mib(self) -> float:
+        hwm = _status_kib("VmHWM") if self.can_reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return max(0, hwm - self.base_kib) / 1024.0
+
+
+# --- workers ---------------------------------------------------------------------------------
+
+
+def _worker_numpy(args) -> dict:
+    from brdfjax import reference
+
+    theta_i = np.deg2rad(args.theta_i)
+    mem = PeakRSS()
+    times, peaks = [], []
+    out = None
+    for _ in range(args.numpy_repeats):
+        out = None
+        mem.start()
+        t0 = time.perf_counter()
+        out = reference.solar_cell_frame(theta_i, step=args.step)
+        times.append(time.perf_counter() - t0)
+        peaks.append(mem.peak_mib())
+    if args.save:
+        np.save(args.save, out)
+    return {
+        "path": "numpy",
+        "precision": "float64",
+        "chunk": "128 rows",
+        "shape": list(out.shape),
+        "times_s": times,
+        "steady_s": float(np.median(times)),
+        "peak_rss_mib": float(max(peaks)),
+        "memory_method": mem.method,
+        "max_brdf": float(out.max()),
+    }
+
+
+def _worker_jax(args) -> dict:
+    import jax
+
+    if args.precision == "float64":
+        jax.config.update("jax_enable_x64", True)
+    import brdfjax as bj
+
+    model = bj.solar_cell()
+    frame = bj.Frame.from_degrees(args.theta_i)
+    detector = bj.Detector.seed()
+
+    def run():
+        return bj.render(
+            model, frame, detector, step=args.step, precision=args.precision, chunk_pixels=args.chunk_pixels
+        ).block_until_ready()
+
+    mem = PeakRSS()
+    mem.start()
+    t0 = time.perf_counter()
+    out = run()
+    first = time.perf_counter() - t0
+    peak_first = mem.peak_mib()
+
+    times, peaks = [], []
+    for _ in range(args.repeats):
+        del out
+        mem.start()
+        t0 = time.perf_counter()
+        out = run()
+        times.append(time.perf_counter() - t0)
+        peaks.append(mem.peak_mib())
+
+    device = out.devices().pop() if hasattr(out, "devices") else jax.devices()[0]
+    stats = device.memory_stats() or {}
+    host = np.asarray(out)
+    if args.save:
+        np.save(args.save, host)
+    return {
+        "path": "jax",
+        "precision": args.precision,
+        "chunk": args.chunk_pixels,
+        "shape": list(host.shape),
+        "first_call_s": first,
+        "times_s": times,
+        "steady_s": float(np.median(times)),
+        "peak_rss_first_mib": peak_first,
+        "peak_rss_mib": float(max(peaks)),
+        "device_peak_mib": stats["peak_bytes_in_use"] / 2**20 if "peak_bytes_in_use" in stats else None,
+        "memory_method": mem.method,
+        "max_brdf": float(host.max()),
+        "jax_version": jax.__version__,
+        "devices": [str(d) for d in jax.devices()],
+        "device_kind": device.device_kind,
+        "platform": device.platform,
+    }
+
+
+# --- parent ----------------------------------------------------------------------------------
+
+
+def _spawn(argv: list[str], tmp: Path, tag: str) -> dict:
+    result = tmp / f"{tag}.json"
+    cmd = [sys.executable, str(Path(__file__).resolve()), *argv, "--worker-json", str(result)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0 or not result.exists():
+        sys.stderr.write(proc.stdout + proc.stderr)
+        raise SystemExit(f"benchmark worker '{tag}' failed (exit {proc.returncode}); its output is above")
+    return json.loads(result.read_text())
+
+
+def _max_rel_diff(test: np.ndarray, ref: np.ndarray) -> float:
+    mask = ref > RELATIVE_FLOOR * ref.max()
+    return float(np.max(np.abs(test[mask].astype(np.float64) - ref[mask]) / ref[mask]))
+
+
+def _chunk_label(chunk) -> str:
+    if isinstance(chunk, int):
+        e = int(np.log2(chunk))
+        return f"2^{e}" if 1 << e == chunk else str(chunk)
+    return str(chunk)
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _table(rows: list[dict], n_pixels: int) -> str:
+    head = ["path", "precision", "chunk_pixels", "compile+1st [s]", "steady [s]", "Mpix/s", "peak RSS [MiB]",
+            "device peak [MiB]", "max rel diff", "NumPy/JAX"]
+    body = []
+    for r in rows:
+        body.append([
+            "NumPy oracle" if r["path"] == "numpy" else "JAX jit",
+            r["precision"],
+            _chunk_label(r["chunk"]),
+            f"{r['first_call_s']:.2f}" if "first_call_s" in r else "-",
+            f"{r['steady_s']:.3f}",
+            f"{n_pixels / r['steady_s'] / 1e6:.1f}",
+            f"{r['peak_rss_mib']:.0f}",
+            f"{r['device_peak_mib']:.0f}" if r.get("device_peak_mib") is not None else "-",
+            f"{r['max_rel_diff']:.1e}" if r.get("max_rel_diff") is not None else "-",
+            f"{r['speedup']:.1f}x" if r.get("speedup") is not None else "-",
+        ])
+    widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
+    fmt = lambda cells: "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"  # noqa: E731
+    lines = [fmt(head), "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
+    lines += [fmt(b) for b in body]
+    return "\n".join(lines)
+
+
+def _parent(args) -> dict:
+    chunks = sorted({*args.chunks, DEFAULT_CHUNK})
+    configs = [("float32", DEFAULT_CHUNK), ("float64", DEFAULT_CHUNK)]
+    configs += [("float32", c) for c in chunks if c != DEFAULT_CHUNK]
+    common = ["--theta-i", str(args.theta_i), "--step", str(args.step)]
+
+    with tempfile.TemporaryDirectory(prefix="brdfjax_bench_") as tmpdir:
+        tmp = Path(tmpdir)
+        rows = []
+        ref = None
+        if not args.skip_numpy:
+            print("running NumPy float64 oracle ...", file=sys.stderr, flush=True)
+            r = _spawn(["--path", "numpy", "--numpy-repeats", str(args.numpy_repeats), *common,
+                        "--save", str(tmp / "numpy.npy")], tmp, "numpy")
+            ref = np.load(tmp / "numpy.npy")
+            rows.append(r)
+        for precision, chunk in configs:
+            tag = f"jax_{precision}_{chunk}"
+            print(f"running JAX {precision}, chunk_pixels={_chunk_label(chunk)} ...", file=sys.stderr, flush=True)
+            r = _spawn(["--path", "jax", "--precision", precision, "--chunk-pixels", str(chunk),
+                        "--repeats", str(args.repeats), *common, "--save", str(tmp / f"{tag}.npy")], tmp, tag)
+            if ref is not None:
+                r["max_rel_diff"] = _max_rel_diff(np.load(tmp / f"{tag}.npy"), ref)
+            rows.append(r)
+        # float64 again at the fastest float32 chunk size, if that is not the default.
+        best = min((r for r in rows if r["path"] == "jax" and r["precision"] == "float32"), key=lambda r: r["steady_s"])
+        if best["chunk"] != DEFAULT_CHUNK:
+            chunk = best["chunk"]
+            tag = f"jax_float64_{chunk}"
+            print(f"running JAX float64, chunk_pixels={_chunk_label(chunk)} ...", file=sys.stderr, flush=True)
+            r = _spawn(["--path", "jax", "--precision", "float64", "--chunk-pixels", str(chunk),
+                        "--repeats", str(args.repeats), *common, "--save", str(tmp / f"{tag}.npy")], tmp, tag)
+            if ref is not None:
+                r["max_rel_diff"] = _max_rel_diff(np.load(tmp / f"{tag}.npy"), ref)
+            rows.append(r)
+
+    numpy_s = rows[0]["steady_s"] if ref is not None else None
+    for r in rows:
+        r["speedup"] = numpy_s / r["steady_s"] if numpy_s is not None else None
+    shape = rows[-1]["shape"]
+    jax_row = next(r for r in rows if r["path"] == "jax")
+    return {
+        "model": "solar_cell() seed §6.4 parameters",
+        "theta_i_deg": args.theta_i,
+        "phi_ref_deg": 0.0,
+        "step": args.step,
+        "shape": shape,
+        "n_pixels": int(np.prod(shape)),
+        "repeats": args.repeats,
+        "numpy_repeats": args.numpy_repeats,
+        "relative_floor": RELATIVE_FLOOR,
+        "jax_version": jax_row["jax_version"],
+        "devices": jax_row["devices"],
+        "device_kind": jax_row["device_kind"],
+        "host_cpu": _cpu_name(),
+        "host_cpu_count": os.cpu_count(),
+        "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None,
+        "memory_method": jax_row["memory_method"],
+        "rows": rows,
+    }
+
+
+def _report(res: dict) -> str:
+    n = res["n_pixels"]
+    rows_sorted = res["rows"]
+    lines = [
+        f"brdfjax frame benchmark: solar_cell() (seed §6.4), theta_i = {res['theta_i_deg']:g} deg, phi_ref = 0, "
+        f"{res['shape'][1]} x {res['shape'][0]} = {n:,} pixels (step {res['step']})",
+        f"JAX {res['jax_version']} devices: {', '.join(res['devices'])} ({res['device_kind']}); host: "
+        f"{res['host_cpu']}, {res['host_cpu_count']} CPUs, load average "
+        + (", ".join(f"{x:.1f}" for x in res["load_average"]) if res["load_average"] else "n/a"),
+        f"steady = median of {res['repeats']} JAX calls after the first / {res['numpy_repeats']} NumPy calls; "
+        f"max rel diff over pixels with BRDF > {res['relative_floor']:g} x max",
+        f"peak RSS = {res['memory_method']}",
+        "",
+        _table(rows_sorted, n),
+    ]
+    if res["rows"][0]["path"] == "numpy":
+        best = min((r for r in res["rows"] if r["path"] == "jax"), key=lambda r: r["steady_s"])
+        default = next(r for r in res["rows"] if r["path"] == "jax" and r["chunk"] == DEFAULT_CHUNK)
+        lines += [
+            "",
+            f"NumPy/JAX (float32, default chunk_pixels 2^20): {default['speedup']:.1f}x; "
+            f"best: {best['speedup']:.1f}x ({best['precision']}, chunk_pixels {_chunk_label(best['chunk'])})",
+        ]
+    return "\n".join(lines)
+
+
+def _parse_chunks(text: str) -> list[int]:
+    """'2**18,2**20,1048576' -> [262144, 1048576, 1048576]."""
+    out = []
+    for item in text.split(","):
+        base, _, exp = item.strip().partition("**")
+        try:
+            value = int(base) ** int(exp) if exp else int(base)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"chunk_pixels must be integers or powers like 2**20, got {item!r}")
+        if value < 1:
+            raise argparse.ArgumentTypeError(f"chunk_pixels must be positive, got {item!r}")
+        out.append(value)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--step", type=int, default=1, help="evaluate every STEP-th pixel (1: full 3296 x 2472 frame)")
+    p.add_argument("--theta-i", type=float, default=20.0, help="incidence angle in degrees (default 20)")
+    p.add_argument("--repeats", type=int, default=3, help="steady-state JAX calls to take the median of (>= 3)")
+    p.add_argument("--numpy-repeats", type=int, default=2, help="NumPy calls to take the median of")
+    p.add_argument("--chunks", type=_parse_chunks,
+                   default=[1 << 12, 1 << 14, 1 << 16, 1 << 18, 1 << 20, 1 << 22],
+                   help="comma-separated chunk_pixels values for the float32 sweep, e.g. '2**18,2**20,2**22'")
+    p.add_argument("--skip-numpy", action="store_true", help="JAX rows only (no speed-up or accuracy columns)")
+    p.add_argument("--json", type=Path, help="also write all figures to this JSON file")
+    # internal: worker modes driven by the parent
+    p.add_argument("--path", choices=["jax", "numpy"], help=argparse.SUPPRESS)
+    p.add_argument("--precision", choices=["float32", "float64"], default="float32", help=argparse.SUPPRESS)
+    p.add_argument("--chunk-pixels", type=int, default=DEFAULT_CHUNK, help=argparse.SUPPRESS)
+    p.add_argument("--save", help=argparse.SUPPRESS)
+    p.add_argument("--worker-json", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.step < 1 or args.repeats < 1 or args.numpy_repeats < 1:
+        p.error("--step, --repeats and --numpy-repeats must be positive integers")
+
+    if args.path is not None:
+        res = _worker_jax(args) if args.path == "jax" else _worker_numpy(args)
+        Path(args.worker_json).write_text(json.dumps(res))
+        return 0
+
+    res = _parent(args)
+    print(_report(res))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(res, indent=2))
+        print(f"\nwrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
