@@ -15,18 +15,22 @@ Header attributes: the angles ``theta_i``, ``theta_c``, ``phi_ref``, ``roll``,
 **doubles** (the OpenEXR bindings store a Python float as a 32-bit float, so
 each is written as a float64 array of shape (1,)); ``step`` is an int,
 ``roi`` a box ``(h0, v0)-(h1, v1)`` of inclusive seed pixel indices; ``model``,
-``brdfjax_version``, ``precision`` and ``frame`` are strings.
+``brdfjax_version``, ``precision`` and ``frame`` are strings, and ``checksum``
+is a CRC-32 of the four channels' float32 pixels.
 
 Files are written atomically (a temporary file in the same folder, then
 ``os.replace``), so a reader never sees half a frame.  A damaged file whose
 header is intact does not make the OpenEXR bindings raise (they warn and drop
 the pixel data): :func:`read_frame_exr` checks that every expected channel
-came back with the header's shape and raises :class:`ExrError` naming the file.
+came back with the header's shape, and that the pixels match the stored
+checksum (small or incompressible chunks are stored raw, so damage there
+decodes without any complaint), and raises :class:`ExrError` naming the file.
 """
 
 from __future__ import annotations
 
 import os
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -42,6 +46,7 @@ __all__ = [
     "REQUIRED_ATTRS",
     "ExrError",
     "FrameData",
+    "pixel_checksum",
     "write_frame_exr",
     "read_frame_exr",
 ]
@@ -108,6 +113,14 @@ class FrameData(NamedTuple):
     attrs: dict[str, Any]
 
 
+def pixel_checksum(channels: Mapping[str, np.ndarray]) -> str:
+    """``"crc32:<hex>"`` over the float32 pixels of :data:`CHANNELS`, in order."""
+    crc = 0
+    for name in CHANNELS:
+        crc = zlib.crc32(np.ascontiguousarray(channels[name], dtype=np.float32).data, crc)
+    return f"crc32:{crc:08x}"
+
+
 def _openexr():
     import OpenEXR  # the official bindings (3.x API)
 
@@ -170,6 +183,7 @@ def write_frame_exr(
     header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update({k: _header_value(path, k, v) for k, v in attrs.items()})
     header.setdefault("channel_units", ", ".join(f"{k}: {u}" for k, u in CHANNEL_UNITS.items()))
+    header["checksum"] = pixel_checksum(channels)
 
     try:
         with atomic_output(path) as tmp:
@@ -241,5 +255,8 @@ def read_frame_exr(path: str | os.PathLike) -> FrameData:
                 "the file is damaged or was not written by brdfjax"
             )
         arrays[c] = px
+    stored = header.get("checksum")
+    if isinstance(stored, str) and stored.startswith("crc32:") and stored != pixel_checksum(arrays):
+        raise ExrError(f"{path}: the pixel data does not match its checksum; the file is damaged")
     attrs = {k: _attr_value(k, v) for k, v in header.items() if k not in _STANDARD}
     return FrameData(attrs=attrs, **arrays)
