@@ -1,0 +1,173 @@
+"""``brdfjax simulate`` end to end on small decimated grids."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from brdfjax import __version__
+from brdfjax.cli import COMMANDS, main
+from brdfjax.io import CHANNELS, read_frame_exr
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Every 16th pixel of a 321 x 321 window about the alignment pixel (0, 0), which is on the
+# grid; the offset peak (near (731, 684) at 20 deg) lies outside, so the maximum is the
+# centre peak of Fig 33.
+SMALL = """
+precision = "float32"
+[grid]
+step = 16
+roi = [-160, 160, -160, 160]
+[model]
+preset = "solar_cell"
+[[frames]]
+name = "ti20"
+theta_i_deg = 20.0
+[[frames]]
+name = "ti60"
+theta_i_deg = 60.0
+"""
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli")
+    config = root / "small.toml"
+    config.write_text(SMALL)
+    out = root / "out"
+    rc = main(["simulate", str(config), "--out", str(out)])
+    return rc, config, out
+
+
+def test_simulate_writes_exr_png_summary(small_run):
+    rc, _, out = small_run
+    assert rc == 0
+    assert sorted(os.listdir(out)) == ["summary.json", "ti20.exr", "ti20.png", "ti60.exr", "ti60.png"]
+    for stem in ("ti20", "ti60"):
+        assert (out / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_exr_channels_and_attributes(small_run):
+    _, _, out = small_run
+    data = read_frame_exr(out / "ti20.exr")
+    for name in CHANNELS:
+        arr = getattr(data, name)
+        assert arr.dtype == np.float32 and arr.shape == (21, 21)
+    a = data.attrs
+    assert a["theta_i"] == np.deg2rad(20.0) and a["theta_c"] == np.deg2rad(20.0)  # exact doubles
+    assert a["phi_ref"] == 0.0 and a["wavelength"] == pytest.approx(632.8e-9, rel=1e-15)
+    assert a["R"] == 0.325 and a["pixel_pitch"] == pytest.approx(5.5e-6, rel=1e-15)
+    assert a["step"] == 16 and a["roi"] == (-160, 160, -160, 160)
+    assert a["model"] == "preset solar_cell" and a["brdfjax_version"] == __version__
+    # Geometry at the centre pixel (row 10, column 10): theta_s = theta_i, phi_s = 180 deg, Table 3 solid angle.
+    assert np.rad2deg(data.theta_s[10, 10]) == pytest.approx(20.0, abs=1e-4)
+    assert np.rad2deg(data.phi_s[10, 10]) == pytest.approx(180.0, abs=1e-4)
+    assert data.omega[10, 10] == pytest.approx(2.864e-10, rel=1e-3)
+    assert np.all(data.brdf >= 0) and np.all(np.isfinite(data.brdf))
+
+
+def test_summary_numbers_match_fig33(small_run):
+    _, config, out = small_run
+    s = json.loads((out / "summary.json").read_text())
+    assert s["config"] == str(config) and s["precision"] == "float32" and s["grid_shape"] == [21, 21]
+    f20, f60 = s["frames"]
+    # Seed Fig 33: maximum near the centre peak 1.11e4 (20 deg) and 3.91e4 (60 deg) sr^-1.
+    assert f20["max_brdf"] == pytest.approx(1.11e4, rel=0.01)
+    assert f60["max_brdf"] == pytest.approx(3.91e4, rel=0.01)
+    for f in (f20, f60):
+        assert f["max_pixel"] == [0, 0]
+        assert set(f["term_max"]) == {"center", "offset", "bars"}
+        assert f["term_max"]["bars"]["value"] == pytest.approx(300.0, rel=1e-4)
+        assert f["term_max"]["bars"]["pixel"] == [0, 0]
+        assert f["grid_shape"] == [21, 21] and f["precision"] == "float32" and f["config"] == str(config)
+        assert f["wall_s"] > 0 and f["files"] == {"exr": f"{f['name']}.exr", "png": f"{f['name']}.png"}
+    assert f20["max_theta_s_deg"] == pytest.approx(20.0, abs=1e-4)
+    # The max equals the EXR's max (same numbers, float32).
+    data = read_frame_exr(out / "ti60.exr")
+    assert float(data.brdf.max()) == pytest.approx(f60["max_brdf"], rel=1e-7)
+
+
+def test_step_flag_overrides_config(small_run, tmp_path, capsys):
+    _, config, _ = small_run
+    out = tmp_path / "o"
+    assert main(["simulate", str(config), "--out", str(out), "--step", "32", "--no-plot"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["step"] == 32 and s["grid_shape"] == [11, 11]
+    assert sorted(os.listdir(out)) == ["summary.json", "ti20.exr", "ti60.exr"]
+    err = capsys.readouterr().err
+    assert "done ti20" in err and "done ti60" in err  # one status line per frame
+
+
+@pytest.mark.parametrize(
+    "text, key, expect",
+    [
+        (SMALL.replace('theta_i_deg = 60.0', 'theta_i_deg = 95.0'), "frames[1].theta_i_deg", "0 <= theta_i_deg < 90"),
+        (SMALL.replace("step = 16", "stride = 16"), "grid.stride", "allowed keys"),
+        (SMALL.replace('"solar_cell"', '"solar"'), "model.preset", "known: solar_cell"),
+        (SMALL + "[model.params]\nm1 = -1.0\n", "model.params.m1", "m > 0"),
+    ],
+)
+def test_bad_config_exits_2_naming_file_and_key(tmp_path, capsys, text, key, expect):
+    config = tmp_path / "bad.toml"
+    config.write_text(text)
+    rc = main(["simulate", str(config), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert str(config) in err and key in err and expect in err
+    assert "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_config_exits_2(tmp_path, capsys):
+    rc = main(["simulate", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "nope.toml: config file not found" in err
+
+
+def test_bad_flag_value_exits_2(small_run, tmp_path, capsys):
+    _, config, _ = small_run
+    rc = main(["simulate", str(config), "--out", str(tmp_path / "o"), "--step", "0"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "grid.step" in err
+
+
+def test_usage_errors(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["simulate"])  # --out is required
+    assert info.value.code == 2 and "--out" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main([])
+    assert info.value.code == 2
+    assert "simulate" in COMMANDS
+
+
+def test_default_config_when_none_given(tmp_path):
+    out = tmp_path / "d"
+    assert main(["simulate", "--out", str(out), "--step", "128", "--no-plot"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["config"].endswith(os.path.join("brdfjax", "data", "default.toml"))
+    assert [f["name"] for f in s["frames"]] == ["ti20", "ti60"]
+
+
+def test_python_m_brdfjax_float64(small_run, tmp_path):
+    # A fresh process: precision = float64 flips jax_enable_x64 there, not in this test session.
+    _, config, _ = small_run
+    out = tmp_path / "f64"
+    proc = subprocess.run(
+        [sys.executable, "-m", "brdfjax", "simulate", str(config), "--out", str(out), "--precision", "float64", "--no-plot"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert s["precision"] == "float64"
+    assert s["frames"][0]["max_brdf"] == pytest.approx(1.11e4, rel=0.01)
