@@ -17,6 +17,7 @@ written), 2 bad usage or a bad config (the message names the file and key).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -201,7 +202,7 @@ def run_simulate(
             files = {"exr": exr.name}
             if plot:
                 files["png"] = plot_frame(res.brdf, grid, detector, frame, out / f"{stem}.png").name
-            res = FrameResult(**{**res.__dict__, "files": files, "write_s": time.perf_counter() - t0})
+            res = dataclasses.replace(res, files=files, write_s=time.perf_counter() - t0)
         finally:
             if status:
                 status.stop()
@@ -272,6 +273,7 @@ def _run_simulate(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from .config import ConfigError, load_simulate_config
+    from .io import ExrError
 
     prog = "brdfjax simulate"
     try:
@@ -297,9 +299,12 @@ def _run_simulate(args: argparse.Namespace) -> int:
     )
     try:
         summary = run_simulate(cfg, args.out, plot=not args.no_plot, console=console)
-    except (OSError, ValueError) as e:
+    except (OSError, ExrError) as e:
         _error(prog, str(e))
         return EXIT_FAILURE
+    except ConfigError as e:  # e.g. a ROI that only fails once the detector is built
+        _error(prog, str(e))
+        return EXIT_USAGE
     console.print(f"wrote {Path(args.out) / 'summary.json'} ({summary['wall_s']:.1f} s)", markup=False)
     return EXIT_OK
 

@@ -104,7 +104,7 @@ class Beckmann(AbstractDistribution):
     def __call__(self, tx2, ty2):
         m2 = jnp.square(self.m)
         t2 = tx2 + ty2
-        return jnp.exp(-t2 / m2 + 2.0 * jnp.log1p(t2)) / (_PI * m2)
+        return jnp.exp(-t2 / m2) * jnp.square(1.0 + t2) / (_PI * m2)
 
 
 class BeckmannAniso(AbstractDistribution):
@@ -121,7 +121,7 @@ class BeckmannAniso(AbstractDistribution):
 
     def __call__(self, tx2, ty2):
         e = tx2 / jnp.square(self.mx) + ty2 / jnp.square(self.my)
-        return jnp.exp(-e + 2.0 * _log1p_t2(tx2, ty2)) / (_PI * self.mx * self.my)
+        return jnp.exp(-e) * jnp.square(1.0 + tx2 + ty2) / (_PI * self.mx * self.my)
 
 
 class GGX(AbstractDistribution):

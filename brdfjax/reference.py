@@ -3,9 +3,10 @@
 This module is deliberately kept apart from the JAX core of brdfjax: it imports
 nothing but NumPy and nothing from the rest of the package, and it was derived
 directly from the dissertation (``shared/seed``) and the cleaned-up conventions
-in ``shared/design/physics.md``, not from the JAX code.  It is written in the
-plain textbook form (``tan``/``cos``/``acos``-free but otherwise unhardened),
-in float64 everywhere, so that it can serve
+in ``shared/design/physics.md``, not from the JAX code.  The distributions are
+written in their plain textbook form (``tan``, ``cos``; no log-space or other
+numerical hardening), zenith angles come from ``atan2(hypot(x, y), z)``, and
+everything is float64, so that it can serve
 
 * the tests, as an independent check of the JAX core, and
 * ``experiments/benchmark_frame.py``, as the straightforward vectorised NumPy
@@ -434,28 +435,32 @@ def beard_maxwell_norm(s):
     * s > 1 (k > 0):  int_0^1 dx/(1 + k x^2) = arctan(sqrt k)/sqrt k, so
       ``I = (1 - arctan(sqrt k)/sqrt k) / k``.
     * s < 1 (q = 1 - s^2 in (0, 1)):  int_0^1 dx/(1 - q x^2) = artanh(sqrt q)/sqrt q, so
-      ``I = (artanh(sqrt q)/sqrt q - 1) / q``.
+      ``I = (artanh(sqrt q)/sqrt q - 1) / q``, evaluated with
+      ``artanh(sqrt q) = ln((1 + sqrt q)/s)`` so tiny s keeps its digits.
     * s = 1: I = 1/3 (both branches tend to it: I = sum_n (-k)^n / (2n + 3)).
 
     Hence ``B = 1 / (2 pi I)``.  As s -> 0, I ~ ln(2/s) - 1 grows only
     logarithmically (the 1/theta tail of the Cauchy), so B -> 0 slowly; as
-    s -> inf, I ~ 1/s^2 and B ~ s^2/(2 pi).  Near s = 1 (|k| < 1e-3) the series
+    s -> inf, I ~ 1/s^2 and B ~ s^2/(2 pi).  Near s = 1 (|k| < 0.05) the series
     is used to avoid cancellation.
     """
     s = np.asarray(s, dtype=np.float64)
     k = s * s - 1.0
-    small = np.abs(k) < 1e-3
-    # series branch
+    small = np.abs(k) < 0.05
+    # series branch (0.05^24 / 51 is far below double precision)
     ks = np.where(small, k, 0.0)
-    i_series = sum((-ks) ** n / (2 * n + 3) for n in range(8))
+    i_series = sum((-ks) ** n / (2 * n + 3) for n in range(24))
     # s > 1 branch
     kp = np.where((k > 0) & ~small, k, 1.0)
     rk = np.sqrt(kp)
     i_pos = (1.0 - np.arctan(rk) / rk) / kp
     # s < 1 branch
-    q = np.where((k < 0) & ~small, -k, 0.5)
+    # artanh(sqrt q) = ln((1 + sqrt q) / s), written in s to avoid 1 - sqrt(1 - s^2)
+    neg = (k < 0) & ~small
+    q = np.where(neg, -k, 0.5)
     rq = np.sqrt(q)
-    i_neg = (np.arctanh(rq) / rq - 1.0) / q
+    atanh_rq = np.log((1.0 + rq) / np.where(neg, s, np.sqrt(0.5)))
+    i_neg = (atanh_rq / rq - 1.0) / q
     i = np.where(small, i_series, np.where(k > 0, i_pos, i_neg))
     return 1.0 / (TWO_PI * i)
 
@@ -560,13 +565,10 @@ def lambertian(rho_d):
 # ---------------------------------------------------------------------------
 
 
-def _specular_beckmann_from_vectors(wi, ws, m, rho_s, n):
-    """Eq 70 with Beckmann(m) for unit direction arrays wi, ws (..., 3)."""
-    ti, pi_ = zenith_azimuth(wi)
-    ts, ps = zenith_azimuth(ws)
-    th, _ = zenith_azimuth(wi + ws)
-    q = q_factor(n, ti, pi_, ts, ps)
-    return rho_s * beckmann(th, m) * q / (2.0 * (np.cos(ti) + np.cos(ts)) ** 2)
+def _specular_beckmann(theta_i, phi_i, theta_s, phi_s, theta_h, m, rho_s, n):
+    """Eq 70 with Beckmann(m), given the angles and the half-vector zenith."""
+    q = q_factor(n, theta_i, phi_i, theta_s, phi_s)
+    return rho_s * beckmann(theta_h, m) * q / (2.0 * (np.cos(theta_i) + np.cos(theta_s)) ** 2)
 
 
 def solar_cell(
@@ -613,19 +615,25 @@ def solar_cell(
     with keys ``"center"``, ``"offset"``, ``"diffraction"`` and ``"total"``.
     """
     theta_i = np.asarray(theta_i, dtype=np.float64)
-    wi = direction(theta_i, 0.0)
+    theta_s = np.asarray(theta_s, dtype=np.float64)
+    phi_s = np.asarray(phi_s, dtype=np.float64)
+    wi = direction(theta_i, 0.0)  # incident direction, phi_i = 0
     ws = direction(theta_s, phi_s)
-    wi, ws = np.broadcast_arrays(wi, ws)
+    th, ph = zenith_azimuth(wi + ws)  # half vector (Eq 52), unrotated frame
 
-    # 1. centre specular peak
-    f1 = _specular_beckmann_from_vectors(wi, ws, m1, rho_s1, n1)
+    # 1. centre specular peak (Eq 111)
+    f1 = _specular_beckmann(theta_i, 0.0, theta_s, phi_s, th, m1, rho_s1, n1)
 
-    # 2. offset specular peak: rotate into the frame of the second normal
+    # 2. offset specular peak (Eq 112-113): rotate into the second normal's frame
     M = rot_y(-dtheta) @ rot_z(-dphi0 - phi_ref)
-    f2 = _specular_beckmann_from_vectors(wi @ M.T, ws @ M.T, m2, rho_s2, n2)
+    wi2 = wi @ M.T
+    ws2 = ws @ M.T
+    ti2, pi2 = zenith_azimuth(wi2)
+    ts2, ps2 = zenith_azimuth(ws2)
+    th2, _ = zenith_azimuth(wi2 + ws2)
+    f2 = _specular_beckmann(ti2, pi2, ts2, ps2, th2, m2, rho_s2, n2)
 
-    # 3. diffraction pattern from the unrotated half vector
-    th, ph = zenith_azimuth(wi + ws)
+    # 3. diffraction pattern (Eq 114-115) from the unrotated half vector
     sth = np.sin(th)
     xbar = R * sth * np.cos(ph - phi_ref + np.pi)
     ybar = R * sth * np.sin(ph - phi_ref + np.pi)
@@ -665,11 +673,13 @@ def solar_cell_frame(
     benchmark: no compilation, no caching, no tricks.
     """
     R = params.get("R", R_NOMINAL)
-    nh, nv = pixel_indices(n_h, n_v, step)
-    out = np.empty(nh.shape, dtype=np.float64)
-    rows = nh.shape[0]
-    for r0 in range(0, rows, rows_per_chunk):
-        r1 = min(r0 + rows_per_chunk, rows)
-        ts, ps = pixel_angles(nh[r0:r1], nv[r0:r1], theta_i, R=R, d_h=d_h, d_v=d_v)
+    # the same indices as pixel_indices(n_h, n_v, step), built row chunk by row chunk
+    h = np.arange(n_h, dtype=np.int64)[::step] - (n_h // 2 - 1)
+    v = np.arange(n_v, dtype=np.int64)[::step] - (n_v // 2 - 1)
+    out = np.empty((v.size, h.size), dtype=np.float64)
+    for r0 in range(0, v.size, rows_per_chunk):
+        r1 = min(r0 + rows_per_chunk, v.size)
+        nh, nv = np.meshgrid(h, v[r0:r1], indexing="xy")
+        ts, ps = pixel_angles(nh, nv, theta_i, R=R, d_h=d_h, d_v=d_v)
         out[r0:r1] = solar_cell(theta_i, ts, ps, phi_ref, wavelength, **params)
     return out
