@@ -20,14 +20,22 @@ How
     * NumPy: median of ``--numpy-repeats`` calls.
     * Peak memory: increase of the process's resident set (RSS) high-water mark
       over its RSS just before the timed work, read from ``VmHWM`` / ``VmRSS``
-      in ``/proc/self/status``; the high-water mark is reset (``clear_refs``)
-      after the first JAX call so that "steady" excludes the compiler.  It
-      counts the output frame (33 MB in float32, 65 MB in float64) and all
-      temporaries.  Where ``/proc`` is unavailable the figure is
+      in ``/proc/self/status``.  NumPy: over all its calls.  JAX, first call:
+      tracing, XLA compilation and one run, over the RSS with the model built
+      and JAX initialised.  JAX, steady: the high-water mark is reset
+      (``clear_refs``) after the first call and its output freed, and the
+      increase is taken over the RSS at that point; memory that the allocator
+      kept from the first call and hands out again is therefore not counted
+      (for tiny ``--step`` runs the steady figure can read 0).  At full
+      resolution it is the output frame (31 MiB in float32, 62 MiB in float64)
+      plus the chunk temporaries.  Where ``/proc`` is unavailable the figure is
       ``ru_maxrss`` minus the RSS baseline and includes the first call.  On an
       accelerator the host RSS is not the memory that matters, so the
       device's own ``peak_bytes_in_use`` is printed too when the backend
       reports it (GPU does, CPU does not).
+    * XLA buffers: output + temporary buffer sizes of the compiled program,
+      from ``jax.jit(...).lower().compile().memory_analysis()`` (exact, and
+      the same on every backend; one extra, untimed compilation).
     * Accuracy: ``max |f_jax - f_numpy| / f_numpy`` over the pixels where the
       NumPy frame exceeds 1e-3 of its maximum.
 
@@ -82,7 +90,7 @@ def _reset_high_water_mark() -> bool:
 
 
 class PeakRSS:
-    """RSS high-water-mark increase (MiB) over the RSS at ``start()``."""
+    """RSS high-water-mark increase (MiB) over the RSS at the last ``start()``."""
 
     def __init__(self) -> None:
         self.can_reset = _status_kib("VmHWM") is not None and _reset_high_water_mark()
@@ -114,11 +122,11 @@ def _worker_numpy(args) -> dict:
 
     theta_i = np.deg2rad(args.theta_i)
     mem = PeakRSS()
+    mem.start()
     times, peaks = [], []
     out = None
     for _ in range(args.numpy_repeats):
         out = None
-        mem.start()
         t0 = time.perf_counter()
         out = reference.solar_cell_frame(theta_i, step=args.step)
         times.append(time.perf_counter() - t0)
@@ -162,17 +170,22 @@ def _worker_jax(args) -> dict:
     peak_first = mem.peak_mib()
 
     times, peaks = [], []
+    del out
+    mem.start()  # new baseline: the RSS after the first call, its output freed
     for _ in range(args.repeats):
-        del out
-        mem.start()
+        out = None
         t0 = time.perf_counter()
         out = run()
         times.append(time.perf_counter() - t0)
         peaks.append(mem.peak_mib())
 
-    device = out.devices().pop() if hasattr(out, "devices") else jax.devices()[0]
+    device = out.devices().pop()
     stats = device.memory_stats() or {}
     host = np.asarray(out)
+    del out
+    xla_mib = _xla_buffer_mib(lambda: bj.render(
+        model, frame, detector, step=args.step, precision=args.precision, chunk_pixels=args.chunk_pixels
+    ))
     if args.save:
         np.save(args.save, host)
     return {
@@ -186,6 +199,7 @@ def _worker_jax(args) -> dict:
         "peak_rss_first_mib": peak_first,
         "peak_rss_mib": float(max(peaks)),
         "device_peak_mib": stats["peak_bytes_in_use"] / 2**20 if "peak_bytes_in_use" in stats else None,
+        "xla_output_temp_mib": xla_mib,
         "memory_method": mem.method,
         "max_brdf": float(host.max()),
         "jax_version": jax.__version__,
@@ -193,6 +207,23 @@ def _worker_jax(args) -> dict:
         "device_kind": device.device_kind,
         "platform": device.platform,
     }
+
+
+def _xla_buffer_mib(fn) -> float | None:
+    """Output + temporary buffer size (MiB) of ``fn`` compiled by XLA (``Compiled.memory_analysis``).
+
+    Exact for the compiled program and the same on every backend; compiles
+    ``fn`` once more (not timed).  None where the backend does not report it.
+    """
+    import jax
+
+    try:
+        stats = jax.jit(fn).lower().compile().memory_analysis()
+    except Exception:  # noqa: BLE001 - a missing analysis must not fail the benchmark
+        return None
+    if stats is None:
+        return None
+    return (stats.output_size_in_bytes + stats.temp_size_in_bytes) / 2**20
 
 
 # --- parent ----------------------------------------------------------------------------------
@@ -231,8 +262,8 @@ def _cpu_name() -> str:
 
 
 def _table(rows: list[dict], n_pixels: int) -> str:
-    head = ["path", "precision", "chunk_pixels", "compile+1st [s]", "steady [s]", "Mpix/s", "peak RSS [MiB]",
-            "device peak [MiB]", "max rel diff", "NumPy/JAX"]
+    head = ["path", "precision", "chunk_pixels", "compile+1st [s]", "steady [s]", "Mpix/s",
+            "XLA out+temp [MiB]", "peak RSS 1st / steady [MiB]", "device peak [MiB]", "max rel diff", "NumPy/JAX"]
     body = []
     for r in rows:
         body.append([
@@ -242,7 +273,8 @@ def _table(rows: list[dict], n_pixels: int) -> str:
             f"{r['first_call_s']:.2f}" if "first_call_s" in r else "-",
             f"{r['steady_s']:.3f}",
             f"{n_pixels / r['steady_s'] / 1e6:.1f}",
-            f"{r['peak_rss_mib']:.0f}",
+            f"{r['xla_output_temp_mib']:.1f}" if r.get("xla_output_temp_mib") is not None else "-",
+            (f"{r['peak_rss_first_mib']:.0f} / " if "peak_rss_first_mib" in r else "") + f"{r['peak_rss_mib']:.0f}",
             f"{r['device_peak_mib']:.0f}" if r.get("device_peak_mib") is not None else "-",
             f"{r['max_rel_diff']:.1e}" if r.get("max_rel_diff") is not None else "-",
             f"{r['speedup']:.1f}x" if r.get("speedup") is not None else "-",
@@ -327,7 +359,10 @@ def _report(res: dict) -> str:
         + (", ".join(f"{x:.1f}" for x in res["load_average"]) if res["load_average"] else "n/a"),
         f"steady = median of {res['repeats']} JAX calls after the first / {res['numpy_repeats']} NumPy calls; "
         f"max rel diff over pixels with BRDF > {res['relative_floor']:g} x max",
-        f"peak RSS = {res['memory_method']}",
+        f"peak RSS = high-water-mark increase over the RSS before the calls, {res['memory_method']}; "
+        "1st: trace + compile + run, steady: after the 1st call (see the module docstring)",
+        "XLA out+temp = output + temporary buffers of the compiled program (Compiled.memory_analysis); "
+        "device peak = the accelerator's peak_bytes_in_use where the backend reports it (not on CPU)",
         "",
         _table(rows_sorted, n),
     ]
