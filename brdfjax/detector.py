@@ -135,23 +135,29 @@ class Detector(eqx.Module):
         return theta_c + self.m_h * self.pixel_pitch / self.distance
 
     def _offset_vector(self, n_h: ArrayLike, n_v: ArrayLike) -> tuple[Array, Array]:
-        """``p = R_CCD r_p + m_v d_v y`` (small) and ``u = p + R z`` for pixels, (..., 3)."""
-        n_h, n_v = jnp.broadcast_arrays(jnp.asarray(n_h), jnp.asarray(n_v))
-        r_p = jnp.stack([n_h * self.pixel_pitch, n_v * self.pixel_pitch_v, jnp.zeros_like(n_h * self.pixel_pitch)], -1)
-        p = rotate(self._ccd_rotation(), r_p)
-        p = p.at[..., 1].add(self.m_v * self.pixel_pitch_v)
-        return p, p.at[..., 2].add(self.distance)
+        """``p = R_CCD r_p + m_v d_v y`` (small) and ``u = p + R z`` for pixels, (..., 3).
+
+        Written component by component (no stacking, scatter-add or axis
+        reductions) so that XLA fuses the whole mapping into one loop.
+        """
+        x = jnp.asarray(n_h) * self.pixel_pitch
+        y = jnp.asarray(n_v) * self.pixel_pitch_v
+        M = self._ccd_rotation()
+        dy = self.m_v * self.pixel_pitch_v
+        p = (M[0, 0] * x + M[0, 1] * y, M[1, 0] * x + M[1, 1] * y + dy, M[2, 0] * x + M[2, 1] * y)
+        p = jnp.broadcast_arrays(*p)
+        u = (p[0], p[1], p[2] + self.distance)
+        return jnp.stack(p, -1), jnp.stack(u, -1)
 
     def _unit_offset(self, n_h, n_v) -> Array:
         """``e = u / |u| - z`` without cancellation, (..., 3)."""
-        p, u = self._offset_vector(n_h, n_v)
+        p, _ = self._offset_vector(n_h, n_v)
+        px, py, pz = p[..., 0], p[..., 1], p[..., 2]
         R = self.distance
-        q = jnp.sum(jnp.square(p), -1) + 2.0 * R * p[..., 2]  # |u|^2 - R^2
-        norm_u = safe_sqrt(jnp.sum(jnp.square(u), -1))
+        q = px * px + py * py + pz * pz + 2.0 * R * pz  # |u|^2 - R^2
+        norm_u = safe_sqrt(R * R + q)
         shrink = -q / (norm_u * (norm_u + R))  # R / |u| - 1
-        return p / norm_u[..., None] + jnp.stack(
-            [jnp.zeros_like(shrink), jnp.zeros_like(shrink), shrink], -1
-        )
+        return jnp.stack([px / norm_u, py / norm_u, pz / norm_u + shrink], -1)
 
     def _arm(self, theta_c: ArrayLike | None, theta_i: ArrayLike | None) -> Array:
         tc = self.theta_c if theta_c is None else theta_c
@@ -205,8 +211,9 @@ class Detector(eqx.Module):
         """
         _, u = self._offset_vector(n_h, n_v)
         normal = self._ccd_rotation()[:, 2]
-        norm_u = safe_sqrt(jnp.sum(jnp.square(u), -1))
-        return self.pixel_pitch * self.pixel_pitch_v * jnp.einsum("...i,i->...", u, normal) / norm_u**3
+        ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
+        norm_u = safe_sqrt(ux * ux + uy * uy + uz * uz)
+        return self.pixel_pitch * self.pixel_pitch_v * (ux * normal[0] + uy * normal[1] + uz * normal[2]) / norm_u**3
 
     @eqx.filter_jit
     def pixel_of(

@@ -154,7 +154,8 @@ class Directions(eqx.Module):
 
     def half_vector(self) -> Array:
         """Unit half vector ``w_h`` (Eq 52), (..., 3)."""
-        norm = safe_sqrt(jnp.sum(jnp.square(self.w_sum), -1))
+        sx, sy, sz = self.w_sum[..., 0], self.w_sum[..., 1], self.w_sum[..., 2]
+        norm = safe_sqrt(sx * sx + sy * sy + sz * sz)
         return self.w_sum / jnp.where(norm > 0, norm, 1.0)[..., None]
 
     def half_slopes(self) -> tuple[Array, Array, Array]:
