@@ -118,8 +118,8 @@ def plot_frame(
     Left: ``log10`` BRDF (sr^-1) over the pixel grid, ``n_h`` to the right and
     ``n_v`` increasing downward as in an image, with lines of constant
     ``theta_s`` (solid) and ``phi_s`` (dashed) labelled in degrees.  Right: the
-    BRDF along the pixel column through the brightest pixel, log scale
-    against ``n_v``.  ``brdf`` is the ``(rows, cols)`` image of ``grid``.
+    BRDF along the pixel column through the centre peak (``n_h = 0``) and the
+    column through the brightest pixel, log scale against ``n_v``.  ``brdf`` is the ``(rows, cols)`` image of ``grid``.
     """
     from matplotlib.figure import Figure
 
@@ -177,20 +177,28 @@ def plot_frame(
     ax.set_xlabel(r"$n_h$ (pixel)")
     ax.set_ylabel(r"$n_v$ (pixel)")
 
-    # Column through the brightest pixel.
+    # Seed Fig 33 style: the column through the centre (specular) peak, n_h = 0 when the
+    # detector is centred on it, and the column through the brightest pixel if that differs.
     finite = np.where(np.isfinite(b), b, -np.inf)
     r, c = np.unravel_index(int(np.argmax(finite)), b.shape)
-    col = b[:, c]
-    ax.axvline(n_h[c], color="white", lw=0.6, ls=":", alpha=0.8)
-    ax_col.semilogy(n_v, np.where(col > 0, col, np.nan), color="C0", lw=1.0)
-    ax_col.plot([n_v[r]], [b[r, c]], "o", ms=4, color="C3")
+    columns = []
+    if n_h[0] <= 0 <= n_h[-1]:
+        columns.append(int(np.argmin(np.abs(n_h))))
+    if c not in columns:
+        columns.append(c)
+    for k, ci in enumerate(columns):
+        col = b[:, ci]
+        ax.axvline(n_h[ci], color="white", lw=0.6, ls=":", alpha=0.8)
+        ax_col.semilogy(
+            n_v, np.where(col > 0, col, np.nan), color=f"C{k}", lw=1.0, label=f"column $n_h$ = {n_h[ci]}"
+        )
+    ax_col.plot([n_v[r]], [b[r, c]], "o", ms=4, color="C3", label=f"maximum {b[r, c]:.4g} sr$^{{-1}}$")
+    ax_col.legend(fontsize=8, loc="upper left")
     ax_col.set_ylim(10 ** vmin, 10 ** (vmax + 0.3))
     ax_col.set_xlim(box[2], box[3])
     ax_col.set_xlabel(r"$n_v$ (pixel)")
     ax_col.set_ylabel(r"BRDF (sr$^{-1}$)")
-    ax_col.set_title(
-        f"column $n_h$ = {n_h[c]}: maximum {b[r, c]:.4g} sr$^{{-1}}$ at $n_v$ = {n_v[r]}", fontsize=10
-    )
+    ax_col.set_title(f"pixel columns; maximum at ($n_h$, $n_v$) = ({n_h[c]}, {n_v[r]})", fontsize=10)
     ax_col.grid(True, which="major", alpha=0.3)
 
     if title is None:
@@ -199,6 +207,6 @@ def plot_frame(
             rf"$\phi_{{ref}}$ = {np.rad2deg(float(frame.phi_ref)):.4g}°, "
             rf"$\lambda$ = {float(frame.wavelength) * 1e9:.5g} nm"
         )
-    step_note = f"every {int(dh)}th pixel, " if dh > 1 else ""
+    step_note = f"every {int(dh)}-th pixel, " if dh > 1 else ""
     fig.suptitle(f"{title}   ({step_note}{grid.shape[0]} x {grid.shape[1]} grid)", fontsize=11)
     return _save_atomic(fig, Path(path), dpi)
