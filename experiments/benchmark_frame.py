@@ -18,24 +18,22 @@ How
       steady state is the median of ``--repeats`` further calls, each ended by
       ``block_until_ready()``.
     * NumPy: median of ``--numpy-repeats`` calls.
-    * Peak memory: increase of the process's resident set (RSS) high-water mark
-      over its RSS just before the timed work, read from ``VmHWM`` / ``VmRSS``
-      in ``/proc/self/status``.  NumPy: over all its calls.  JAX, first call:
-      tracing, XLA compilation and one run, over the RSS with the model built
-      and JAX initialised.  JAX, steady: the high-water mark is reset
-      (``clear_refs``) after the first call and its output freed, and the
-      increase is taken over the RSS at that point; memory that the allocator
-      kept from the first call and hands out again is therefore not counted
-      (for tiny ``--step`` runs the steady figure can read 0).  At full
-      resolution it is the output frame (31 MiB in float32, 62 MiB in float64)
-      plus the chunk temporaries.  Where ``/proc`` is unavailable the figure is
-      ``ru_maxrss`` minus the RSS baseline and includes the first call.  On an
+    * Peak RSS: increase of the process's resident-set high-water mark over
+      all its calls (for JAX the first call, i.e. tracing and XLA compilation,
+      included) over the RSS just before the first call (imports done, model,
+      frame and detector built), from ``VmHWM`` / ``VmRSS`` in
+      ``/proc/self/status`` with the high-water mark reset (``clear_refs``) at
+      that point.  Where that is unavailable: ``ru_maxrss`` minus the RSS
+      baseline.  It counts the output frame (31 MiB in float32, 62 MiB in
+      float64), temporaries and, for JAX, the compiler's memory; it is noisy
+      at the 10-50 MiB level (allocator caching).  On an
       accelerator the host RSS is not the memory that matters, so the
       device's own ``peak_bytes_in_use`` is printed too when the backend
       reports it (GPU does, CPU does not).
     * XLA buffers: output + temporary buffer sizes of the compiled program,
-      from ``jax.jit(...).lower().compile().memory_analysis()`` (exact, and
-      the same on every backend; one extra, untimed compilation).
+      from ``jax.jit(...).lower().compile().memory_analysis()`` -- the exact
+      steady-state working set of one call, reported the same way on every
+      backend (one extra, untimed compilation).
     * Accuracy: ``max |f_jax - f_numpy| / f_numpy`` over the pixels where the
       NumPy frame exceeds 1e-3 of its maximum.
 
@@ -64,8 +62,16 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_CHUNK = 1 << 20  # brdfjax.render's default chunk_pixels
 RELATIVE_FLOOR = 1e-3  # compare where BRDF > RELATIVE_FLOOR * max
+
+
+def render_default_chunk() -> int:
+    """``brdfjax.render``'s default ``chunk_pixels``, read from its signature so the table cannot drift."""
+    import inspect
+
+    import brdfjax
+
+    return int(inspect.signature(brdfjax.render).parameters["chunk_pixels"].default)
 
 
 # --- memory helpers (worker side) -----------------------------------------------------------
@@ -140,6 +146,7 @@ def _worker_numpy(args) -> dict:
         "shape": list(out.shape),
         "times_s": times,
         "steady_s": float(np.median(times)),
+        "min_s": float(np.min(times)),
         "peak_rss_mib": float(max(peaks)),
         "memory_method": mem.method,
         "max_brdf": float(out.max()),
@@ -153,6 +160,8 @@ def _worker_jax(args) -> dict:
         jax.config.update("jax_enable_x64", True)
     import brdfjax as bj
 
+    if args.chunk_pixels is None:
+        args.chunk_pixels = render_default_chunk()
     model = bj.solar_cell()
     frame = bj.Frame.from_degrees(args.theta_i)
     detector = bj.Detector.seed()
@@ -167,17 +176,14 @@ def _worker_jax(args) -> dict:
     t0 = time.perf_counter()
     out = run()
     first = time.perf_counter() - t0
-    peak_first = mem.peak_mib()
 
-    times, peaks = [], []
-    del out
-    mem.start()  # new baseline: the RSS after the first call, its output freed
+    times = []
     for _ in range(args.repeats):
         out = None
         t0 = time.perf_counter()
         out = run()
         times.append(time.perf_counter() - t0)
-        peaks.append(mem.peak_mib())
+    peak = mem.peak_mib()
 
     device = out.devices().pop()
     stats = device.memory_stats() or {}
@@ -196,8 +202,8 @@ def _worker_jax(args) -> dict:
         "first_call_s": first,
         "times_s": times,
         "steady_s": float(np.median(times)),
-        "peak_rss_first_mib": peak_first,
-        "peak_rss_mib": float(max(peaks)),
+        "min_s": float(np.min(times)),
+        "peak_rss_mib": peak,
         "device_peak_mib": stats["peak_bytes_in_use"] / 2**20 if "peak_bytes_in_use" in stats else None,
         "xla_output_temp_mib": xla_mib,
         "memory_method": mem.method,
@@ -263,7 +269,7 @@ def _cpu_name() -> str:
 
 def _table(rows: list[dict], n_pixels: int) -> str:
     head = ["path", "precision", "chunk_pixels", "compile+1st [s]", "steady [s]", "Mpix/s",
-            "XLA out+temp [MiB]", "peak RSS 1st / steady [MiB]", "device peak [MiB]", "max rel diff", "NumPy/JAX"]
+            "XLA out+temp [MiB]", "peak RSS [MiB]", "device peak [MiB]", "max rel diff", "NumPy/JAX"]
     body = []
     for r in rows:
         body.append([
@@ -274,7 +280,7 @@ def _table(rows: list[dict], n_pixels: int) -> str:
             f"{r['steady_s']:.3f}",
             f"{n_pixels / r['steady_s'] / 1e6:.1f}",
             f"{r['xla_output_temp_mib']:.1f}" if r.get("xla_output_temp_mib") is not None else "-",
-            (f"{r['peak_rss_first_mib']:.0f} / " if "peak_rss_first_mib" in r else "") + f"{r['peak_rss_mib']:.0f}",
+            f"{r['peak_rss_mib']:.0f}",
             f"{r['device_peak_mib']:.0f}" if r.get("device_peak_mib") is not None else "-",
             f"{r['max_rel_diff']:.1e}" if r.get("max_rel_diff") is not None else "-",
             f"{r['speedup']:.1f}x" if r.get("speedup") is not None else "-",
@@ -287,9 +293,10 @@ def _table(rows: list[dict], n_pixels: int) -> str:
 
 
 def _parent(args) -> dict:
-    chunks = sorted({*args.chunks, DEFAULT_CHUNK})
-    configs = [("float32", DEFAULT_CHUNK), ("float64", DEFAULT_CHUNK)]
-    configs += [("float32", c) for c in chunks if c != DEFAULT_CHUNK]
+    default_chunk = render_default_chunk()
+    chunks = sorted({*args.chunks, default_chunk})
+    configs = [("float32", default_chunk), ("float64", default_chunk)]
+    configs += [("float32", c) for c in chunks if c != default_chunk]
     common = ["--theta-i", str(args.theta_i), "--step", str(args.step)]
 
     with tempfile.TemporaryDirectory(prefix="brdfjax_bench_") as tmpdir:
@@ -312,7 +319,7 @@ def _parent(args) -> dict:
             rows.append(r)
         # float64 again at the fastest float32 chunk size, if that is not the default.
         best = min((r for r in rows if r["path"] == "jax" and r["precision"] == "float32"), key=lambda r: r["steady_s"])
-        if best["chunk"] != DEFAULT_CHUNK:
+        if best["chunk"] != default_chunk:
             chunk = best["chunk"]
             tag = f"jax_float64_{chunk}"
             print(f"running JAX float64, chunk_pixels={_chunk_label(chunk)} ...", file=sys.stderr, flush=True)
@@ -344,6 +351,7 @@ def _parent(args) -> dict:
         "host_cpu_count": os.cpu_count(),
         "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None,
         "memory_method": jax_row["memory_method"],
+        "default_chunk_pixels": default_chunk,
         "rows": rows,
     }
 
@@ -359,8 +367,8 @@ def _report(res: dict) -> str:
         + (", ".join(f"{x:.1f}" for x in res["load_average"]) if res["load_average"] else "n/a"),
         f"steady = median of {res['repeats']} JAX calls after the first / {res['numpy_repeats']} NumPy calls; "
         f"max rel diff over pixels with BRDF > {res['relative_floor']:g} x max",
-        f"peak RSS = high-water-mark increase over the RSS before the calls, {res['memory_method']}; "
-        "1st: trace + compile + run, steady: after the 1st call (see the module docstring)",
+        f"peak RSS = process high-water-mark increase over the RSS before the first call, over all calls "
+        f"(JAX: compilation included) [{res['memory_method']}]",
         "XLA out+temp = output + temporary buffers of the compiled program (Compiled.memory_analysis); "
         "device peak = the accelerator's peak_bytes_in_use where the backend reports it (not on CPU)",
         "",
@@ -368,11 +376,14 @@ def _report(res: dict) -> str:
     ]
     if res["rows"][0]["path"] == "numpy":
         best = min((r for r in res["rows"] if r["path"] == "jax"), key=lambda r: r["steady_s"])
-        default = next(r for r in res["rows"] if r["path"] == "jax" and r["chunk"] == DEFAULT_CHUNK)
+        default_chunk = res["default_chunk_pixels"]
+        default = next(r for r in res["rows"] if r["path"] == "jax" and r["chunk"] == default_chunk)
         lines += [
             "",
-            f"NumPy/JAX (float32, default chunk_pixels 2^20): {default['speedup']:.1f}x; "
-            f"best: {best['speedup']:.1f}x ({best['precision']}, chunk_pixels {_chunk_label(best['chunk'])})",
+            f"NumPy/JAX (float32, render's default chunk_pixels {_chunk_label(default_chunk)}): {default['speedup']:.1f}x; "
+            f"best: {best['speedup']:.1f}x ({best['precision']}, chunk_pixels {_chunk_label(best['chunk'])}); "
+            f"fastest single calls: NumPy {res['rows'][0]['min_s']:.3f} s, JAX {default['min_s']:.3f} s "
+            f"({res['rows'][0]['min_s'] / default['min_s']:.1f}x, a guide on a busy machine)",
         ]
     return "\n".join(lines)
 
@@ -396,8 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--step", type=int, default=1, help="evaluate every STEP-th pixel (1: full 3296 x 2472 frame)")
     p.add_argument("--theta-i", type=float, default=20.0, help="incidence angle in degrees (default 20)")
-    p.add_argument("--repeats", type=int, default=3, help="steady-state JAX calls to take the median of (>= 3)")
-    p.add_argument("--numpy-repeats", type=int, default=2, help="NumPy calls to take the median of")
+    p.add_argument("--repeats", type=int, default=3, help="steady-state JAX calls after the first, median taken (default 3)")
+    p.add_argument("--numpy-repeats", type=int, default=2, help="NumPy calls, median taken (default 2)")
     p.add_argument("--chunks", type=_parse_chunks,
                    default=[1 << 12, 1 << 14, 1 << 16, 1 << 18, 1 << 20, 1 << 22],
                    help="comma-separated chunk_pixels values for the float32 sweep, e.g. '2**18,2**20,2**22'")
@@ -406,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
     # internal: worker modes driven by the parent
     p.add_argument("--path", choices=["jax", "numpy"], help=argparse.SUPPRESS)
     p.add_argument("--precision", choices=["float32", "float64"], default="float32", help=argparse.SUPPRESS)
-    p.add_argument("--chunk-pixels", type=int, default=DEFAULT_CHUNK, help=argparse.SUPPRESS)
+    p.add_argument("--chunk-pixels", type=int, help=argparse.SUPPRESS)
     p.add_argument("--save", help=argparse.SUPPRESS)
     p.add_argument("--worker-json", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
