@@ -302,6 +302,9 @@ def _nice_levels(lo: float, hi: float, target: int = 5) -> np.ndarray:
     if not np.isfinite(span) or span <= 0:
         return np.array([lo])
     raw = span / target
-    mag = 10 ** np.floor(np.log10(raw))
-    step = min((m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw), default=10 * mag)
+    if raw > 10:  # wide angular spans (the arm near the normal): steps that divide 360 deg
+        step = min((m for m in (15, 30, 45, 90, 180) if m >= raw), default=180)
+    else:
+        mag = 10 ** np.floor(np.log10(raw))
+        step = min((m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw), default=10 * mag)
     return np.arange(np.ceil(lo / step) * step, hi + 1e-12, step)

@@ -85,8 +85,11 @@ def _resolve_dtype(precision: Precision | Any) -> Any:
     return jnp.float64 if name == "float64" else jnp.float32
 
 
-def _default_rows(n_cols: int, chunk_pixels: int) -> int:
-    return int(max(1, min(chunk_pixels // max(n_cols, 1), 1 << 16)))
+def _default_rows(n_rows: int, n_cols: int, chunk_pixels: int) -> int:
+    """Rows per chunk: at most ``chunk_pixels`` pixels, balanced so padding is under one row per chunk."""
+    rows = int(max(1, min(chunk_pixels // max(n_cols, 1), n_rows)))
+    n_chunks = -(-n_rows // rows)
+    return -(-n_rows // n_chunks)
 
 
 @eqx.filter_jit
@@ -144,7 +147,7 @@ def render(
     if per_term and not hasattr(model, "term_values"):
         raise TypeError("render(per_term=True) needs a brdfjax Model (a named sum of terms)")
     args = cast((model, frame, detector), dtype)
-    rows = _default_rows(grid.n_h.size, chunk_pixels)
+    rows = _default_rows(grid.n_v.size, grid.n_h.size, chunk_pixels)
     return _map_rows(
         _pixel_values,
         (*args, per_term),
@@ -177,5 +180,5 @@ def render_geometry(
     """Per-pixel ``theta_s``, ``phi_s`` (rad) and solid angle ``omega`` (sr) of a frame's grid."""
     detector, grid, dtype = _prepare(detector, grid, step, roi, precision)
     args = cast((frame, detector), dtype)
-    rows = _default_rows(grid.n_h.size, chunk_pixels)
+    rows = _default_rows(grid.n_v.size, grid.n_h.size, chunk_pixels)
     return _map_rows(_geometry_values, args, jnp.asarray(grid.n_h, dtype), jnp.asarray(grid.n_v, dtype), rows)
