@@ -1,0 +1,955 @@
+"""Reduction of raw exposure stacks to calibrated BRDF frames with per-pixel uncertainty (seed §3.3, §3.6-3.8, §4.2).
+
+Pipeline for a measurement set (:func:`reduce_measurement_set`):
+
+1. **Background subtraction**, exposure by exposure: ``d_k = counts_k(measurement)
+   - counts_k(background)`` (same exposure times; the black level, dark signal
+   and ambient light cancel).  The seed stitches first and subtracts the
+   stitched background (§3.8); subtracting per exposure keeps the black level
+   of a short exposure from being scaled by ``t_ref / t_k`` along with the
+   signal.
+2. **HDR stitching** to scaled digital counts (sDC: counts referred to the
+   stack's longest exposure ``t_ref``), with one of two merges:
+
+   - ``"replacement"`` -- the seed's scheme (§3.6): start from the longest
+     exposure; replace each saturated pixel by the next shorter unsaturated
+     exposure scaled by ``t_ref / t_k``; repeat.
+   - ``"weighted"`` -- inverse-variance weighting of every unsaturated
+     exposure, ``sum_k w_k d_k t_ref / t_k / sum_k w_k`` with ``w_k = 1 /
+     var(d_k t_ref / t_k)``.  The variances come from a noise model
+     evaluated at a pilot estimate (not from each pixel's own noisy counts,
+     which would bias the merge low): shot noise ``max(rate t_k, 0) / gain``
+     per frame plus the dark/ambient noise of the background stack at that
+     exposure (its ``counts_std`` if present, else its robust spatial
+     spread), for both the measurement and its background.  It lowers the
+     noise; seams caused by the camera's non-linearity stay unless the
+     optional taper is used (see :func:`stitch_weighted`).
+
+   A pixel is saturated in an exposure when its raw counts reach
+   ``saturation_fraction * full_scale`` (the mean of averaged frames
+   approaches full scale before every frame clips).
+3. **Incident flux** (§3.8): the stitched, background-subtracted beam
+   signature summed over the whole array, ``Phi_b`` (sDC), adjusted for the
+   ND filters by Eq 87, ``Phi_i = Phi_b 10^(OD_b - OD_m)``; the scatter flux
+   is multiplied by the exposure ratio ``t_ref(beam) / t_ref(measurement)``
+   (§3.8; unity when both stacks end at the same exposure).
+4. **BRDF** by Eq 45, ``f_r = Phi_s / (Phi_i cos(theta_s) Omega_d)``, with
+   each pixel's ``theta_s`` and ``Omega_d`` from the core pixel mapping of
+   the measurement's geometry attributes, misalignment (roll, yaw, pitch,
+   m_h, m_v) included.
+5. **Masks** (``mask`` = 1 usable, 0 excluded; ``flags`` says why, bits
+   OR-ed): 1 saturated in every exposure; 2 below the noise-equivalent BRDF;
+   4 below the artifact floor (the frame's peak ``10^-4.8``: stray-light
+   sub-peaks sit "more than 4.8 orders of magnitude below the main peak",
+   seed §4.6); 8 not finite; 16 signal-to-noise ratio under ``min_snr`` (3).
+   The seed's floor is the *mean* background (48 sDC) while the noise of a
+   background-subtracted pixel is about 33 sDC, so about 7 % of pixels with
+   no signal at all pass it; the SNR test removes them.
+6. **§4.2 figures**, computed from the inputs: the noise floor
+   ``Phi_s,low`` = mean (and std) of the measurement's background stitched
+   by the replacement scheme, black level included (seed: 48.05 sDC, std
+   23.11); ``Phi_s,high = full_scale t_ref / t_min`` (1.6383e7 sDC); the
+   noise-equivalent and maximum measurable BRDF (Eq 45 with Eq 87 at
+   ``cos theta_s = 1`` and the centre pixel's solid angle) and the dynamic
+   range ``log10(Phi_s,high / Phi_s,low)`` decades.  Per pixel, the
+   noise-equivalent BRDF uses the pixel's own ``cos theta_s`` and ``Omega_d``.
+7. **Uncertainty** (Chapter IV) per pixel from
+   :func:`brdfjax.instrument.uncertainty.brdf_uncertainty`, with the
+   stitched noise (``sqrt(var) / Phi_s``) passed as its ``scatter_noise``
+   contribution; ``sigma_rel`` is the quadrature total.
+
+Outputs: one BRDF frame file per sample (the frame format of
+:mod:`brdfjax.io.exr`: ``brdf``, ``theta_s``, ``phi_s``, ``omega``) plus the
+channels ``sigma_rel`` (total relative standard uncertainty), ``mask``,
+``flags``, ``noise_equivalent_brdf`` (sr^-1, per pixel) and the uncertainty
+contributions ``u_scatter_flux`` (with its parts ``u_scatter_nonlinearity``
+and ``u_scatter_noise``), ``u_incident_flux``, ``u_scatter_angle`` and
+``u_solid_angle`` (relative, dimensionless; ``detailed_uncertainty=True``
+adds every sub-contribution), with the §4.2 figures, the contributions that
+are equal on every pixel (``u_nd``, ``u_temporal``, ...) and the inputs'
+names in header attributes.  Files are written atomically; inputs are only
+read.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from ..detector import Detector, PixelGrid
+from ..io import atomic_output
+from ..io.exr import CHANNELS, DOUBLE_ATTRS, ExrError, pixel_checksum
+from ..render import render_geometry
+from .raw import Manifest, RawAttrs, RawFormatError, RawStack, read_manifest, read_raw_exr
+from .uncertainty import (
+    SEED_ARM_ANGLE_UNCERTAINTY,
+    SEED_DISTANCE_UNCERTAINTY,
+    SEED_ND_TOLERANCES,
+    SEED_PITCH_UNCERTAINTY,
+    SEED_SCATTER_NONLINEARITY,
+    brdf_eq45,
+    brdf_uncertainty,
+)
+
+__all__ = [
+    "MERGES",
+    "FLAG_SATURATED",
+    "FLAG_BELOW_NOISE",
+    "FLAG_BELOW_ARTIFACT_FLOOR",
+    "FLAG_NOT_FINITE",
+    "FLAG_LOW_SNR",
+    "ReductionError",
+    "Stitched",
+    "ReducedFrame",
+    "BeamSignature",
+    "beam_signature",
+    "stitch",
+    "stitch_replacement",
+    "stitch_weighted",
+    "stitch_raw",
+    "incident_flux",
+    "noise_equivalent_brdf",
+    "max_measurable_brdf",
+    "scatter_flux_high",
+    "dynamic_range_decades",
+    "SEED_CENTRE_SOLID_ANGLE",
+    "reduce_measurement",
+    "reduce_measurement_set",
+    "write_reduced_frame",
+    "read_reduced_frame",
+    "plot_merge_comparison",
+]
+
+MERGES = ("weighted", "replacement")
+#: Uncertainty contributions written as ``u_<name>`` channels (when they vary across the frame): the four
+#: terms of Eq 71 and the two parts of the scatter-flux term.
+PER_PIXEL_TERMS = (
+    "scatter_flux", "scatter_nonlinearity", "scatter_noise", "incident_flux", "scatter_angle", "solid_angle",
+)
+FLAG_SATURATED = 1
+FLAG_BELOW_NOISE = 2
+FLAG_BELOW_ARTIFACT_FLOOR = 4
+FLAG_NOT_FINITE = 8
+FLAG_LOW_SNR = 16
+
+#: Centre-pixel solid angle of the seed camera, sr (Eq 86, Table 3), used by the seed's §4.2 figures.
+SEED_CENTRE_SOLID_ANGLE = 2.864e-10
+#: Electrons per count of the seed's camera: the published full well (20000 e-) over the 14-bit range.
+SEED_GAIN = 20000.0 / 16383.0
+
+
+class ReductionError(ValueError):
+    """Inputs that cannot be reduced together; the message names the files and the problem."""
+
+
+# --- stitching ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Stitched:
+    """A stitched exposure stack: ``flux`` in sDC (counts referred to ``t_ref``), its variance, bookkeeping.
+
+    ``saturated`` is True where every exposure is saturated (``flux`` there is
+    the shortest exposure's scaled value, a lower bound); ``source`` is the
+    index of the exposure used (replacement) or the number of exposures
+    merged (weighted).
+    """
+
+    flux: np.ndarray
+    variance: np.ndarray
+    saturated: np.ndarray
+    source: np.ndarray
+    t_ref: float
+    merge: str
+
+
+def _robust_std(a: np.ndarray) -> float:
+    sample = a.reshape(-1)[:: max(1, a.size // 1_000_000)]
+    med = np.median(sample)
+    return float(1.4826 * np.median(np.abs(sample - med)))
+
+
+def _frame_noise_var(stack: RawStack, k: int) -> float:
+    """Per-frame variance (counts^2) of the dark/ambient noise of exposure ``k`` of a background stack."""
+    e = stack.exposures[k]
+    if e.counts_std is not None:
+        return float(np.median(e.counts_std)) ** 2
+    return _robust_std(e.counts) ** 2 * e.n_frames
+
+
+def _check_pair(stack: RawStack, background: RawStack) -> None:
+    name = f"{stack.path or 'measurement'} and its background {background.path or ''}"
+    if background.shape != stack.shape:
+        raise ReductionError(f"{name}: array shapes differ ({stack.shape} vs {background.shape})")
+    t_s, t_b = stack.exposure_times, background.exposure_times
+    if t_s.shape != t_b.shape or not np.allclose(t_s, t_b, rtol=1e-9, atol=0):
+        raise ReductionError(
+            f"{name}: exposure times differ ({t_s.tolist()} s vs {t_b.tolist()} s); "
+            "take the background with the same exposures"
+        )
+
+
+def _differences(stack: RawStack, background: RawStack, saturation_fraction: float, order=None):
+    """Yield ``(k, t_k, d_k, saturated_k)`` per exposure (in ``order``), float64 differences in counts.
+
+    One exposure at a time, so that a full frame never holds more than one difference array.
+    """
+    level = saturation_fraction * stack.attrs.full_scale
+    for k in range(len(stack.exposures)) if order is None else order:
+        e = stack.exposures[k]
+        b = background.exposures[k].counts
+        yield k, e.exposure_s, e.counts.astype(np.float64) - b, (e.counts >= level) | (b >= level)
+
+
+def stitch_replacement(
+    stack: RawStack, background: RawStack, *, saturation_fraction: float = 0.98,
+    gain_e_per_count: float = SEED_GAIN,
+) -> Stitched:
+    """The seed's replacement scheme (§3.6) on background-subtracted exposures; sDC referred to the longest."""
+    _check_pair(stack, background)
+    t_ref = float(stack.exposure_times[-1])
+    shape = stack.shape
+    flux = np.zeros(shape, np.float64)
+    source = np.full(shape, -1, np.int8)
+    todo = np.ones(shape, bool)
+    for k, t, d, sat in _differences(stack, background, saturation_fraction, order=range(len(stack.exposures))[::-1]):
+        take = todo & ~sat
+        flux[take] = d[take] * (t_ref / t)
+        source[take] = k
+        todo &= ~take
+        if k == 0:
+            flux[todo] = d[todo] * (t_ref / t)  # saturated in every exposure: a lower bound
+            source[todo] = 0
+        del d
+    var = _model_variance_for_source(stack, background, flux / t_ref, source, gain_e_per_count)
+    return Stitched(flux.astype(np.float32), var.astype(np.float32), todo, source, t_ref, "replacement")
+
+
+def _noise_terms(stack: RawStack, background: RawStack) -> list[float]:
+    """Per exposure: dark/ambient variance of the mean difference (counts^2), measurement and background.
+
+    Never below the rounding of both to integer counts (1/12 count^2 each), so that a noise-free
+    background cannot give infinite weights.
+    """
+    out = []
+    for k, e in enumerate(stack.exposures):
+        v = _frame_noise_var(background, k)
+        out.append(max(v / e.n_frames + v / background.exposures[k].n_frames, 2.0 / 12.0))
+    return out
+
+
+def _model_variance_for_source(stack, background, rate, source, gain) -> np.ndarray:
+    noise = _noise_terms(stack, background)
+    t_ref = float(stack.exposure_times[-1])
+    var = np.zeros(stack.shape, np.float64)
+    for k, e in enumerate(stack.exposures):
+        sel = source == k
+        if not np.any(sel):
+            continue
+        t = e.exposure_s
+        shot = np.maximum(rate[sel] * t, 0.0) / (gain * e.n_frames)
+        var[sel] = (shot + noise[k]) * (t_ref / t) ** 2
+    return var
+
+
+def stitch_weighted(
+    stack: RawStack,
+    background: RawStack,
+    *,
+    saturation_fraction: float = 0.98,
+    gain_e_per_count: float = SEED_GAIN,
+    taper_start: float | None = None,
+    iterations: int = 2,
+) -> Stitched:
+    """Inverse-variance merge of every unsaturated exposure (module docstring, step 2); sDC referred to the longest.
+
+    Weights ``w_k = 1 / var_k`` from the noise model (``gain_e_per_count``
+    electrons per count sets the shot noise) evaluated at the previous
+    estimate (the first pilot is the replacement scheme; ``iterations``
+    passes); the variance of the merge is ``sum w_k^2 var_k / (sum w_k)^2``
+    (``1 / sum w_k`` without taper).
+
+    The optimal weights favour the longest unsaturated exposure right up to
+    its saturation, so where the exposures of a pixel disagree -- the common
+    non-linearity of seed §4.2 differs by ~3 % between 90 % and 9 % of full
+    scale -- the merge keeps the seams of the replacement scheme.
+    ``taper_start`` (a fraction of full scale, e.g. 0.5) hands every
+    exposure but the shortest over gradually to the shorter ones as its
+    expected raw counts rise from ``taper_start`` to ``saturation_fraction``:
+    its share of the merge becomes its inverse-variance share times a
+    ``sin^2`` ramp from 1 to 0 (``tau = S W / (W + (1 - S) w)`` with ``W``
+    the shorter exposures' weight).  That removes the discontinuities, but
+    costs noise in the hand-over band wherever the shorter exposure is
+    dark-noise limited (the seed's dark noise hardly grows beyond 100 ms), so
+    it is off by default.
+    """
+    if taper_start is not None and not 0 <= taper_start < saturation_fraction:
+        raise ValueError(
+            f"taper_start = {taper_start!r} must be None or in [0, saturation_fraction = {saturation_fraction!r})"
+        )
+    pilot = stitch_replacement(stack, background, saturation_fraction=saturation_fraction,
+                               gain_e_per_count=gain_e_per_count)
+    t_ref = pilot.t_ref
+    fs = stack.attrs.full_scale
+    rate = pilot.flux.astype(np.float64) / t_ref
+    noise = _noise_terms(stack, background)
+    for _ in range(max(1, int(iterations))):
+        sw = np.zeros(stack.shape, np.float64)
+        swx = np.zeros(stack.shape, np.float64)
+        sw2v = np.zeros(stack.shape, np.float64)
+        w_below = np.zeros(stack.shape, np.float64)  # inverse-variance weight of the shorter exposures so far
+        count = np.zeros(stack.shape, np.int8)
+        for k, t, d, sat in _differences(stack, background, saturation_fraction):
+            n = stack.exposures[k].n_frames
+            light = np.maximum(rate * t, 0.0)
+            var = (light / (gain_e_per_count * n) + noise[k]) * (t_ref / t) ** 2
+            w = 1.0 / var
+            w[sat] = 0.0
+            w_eff = w
+            if k > 0 and taper_start is not None:
+                x = (light + background.exposures[k].counts) / fs
+                ramp = np.clip((saturation_fraction - x) / (saturation_fraction - taper_start), 0.0, 1.0)
+                s_ = np.sin(0.5 * np.pi * ramp) ** 2
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    tau = np.where(w_below > 0, s_ * w_below / (w_below + (1.0 - s_) * w), 1.0)
+                w_eff = w * tau
+            sw += w_eff
+            swx += w_eff * (d * (t_ref / t))
+            sw2v += w_eff * w_eff * var
+            w_below += w
+            count += (w_eff > 0).astype(np.int8)
+            del d, var, w, w_eff, light
+        ok = sw > 0
+        safe = np.where(ok, sw, 1.0)
+        flux = np.where(ok, swx / safe, pilot.flux)
+        rate = flux / t_ref
+    variance = np.where(ok, sw2v / safe**2, pilot.variance)
+    return Stitched(flux.astype(np.float32), variance.astype(np.float32), ~ok, count, t_ref, "weighted")
+
+
+def stitch(
+    stack: RawStack, background: RawStack, *, merge: str = "weighted", taper_start: float | None = None, **kw: Any
+) -> Stitched:
+    """Background-subtract and stitch with ``merge`` = ``"weighted"`` or ``"replacement"``.
+
+    ``taper_start`` applies to the weighted merge only; other keywords go to both.
+    """
+    if merge == "weighted":
+        return stitch_weighted(stack, background, taper_start=taper_start, **kw)
+    if merge == "replacement":
+        return stitch_replacement(stack, background, **kw)
+    raise ValueError(f"unknown merge {merge!r}; known: {', '.join(MERGES)}")
+
+
+def stitch_raw(stack: RawStack, *, saturation_fraction: float = 0.98) -> np.ndarray:
+    """The seed's stitching of *raw* counts (black level included), sDC float32 -- as §4.2 reports backgrounds."""
+    level = saturation_fraction * stack.attrs.full_scale
+    t_ref = float(stack.exposure_times[-1])
+    out = np.zeros(stack.shape, np.float64)
+    todo = np.ones(stack.shape, bool)
+    for e in reversed(stack.exposures):
+        take = todo & (e.counts < level)
+        out[take] = e.counts[take] * (t_ref / e.exposure_s)
+        todo &= ~take
+    e0 = stack.exposures[0]
+    out[todo] = e0.counts[todo] * (t_ref / e0.exposure_s)
+    return out.astype(np.float32)
+
+
+# --- §3.8 and §4.2 --------------------------------------------------------------------------------
+
+
+def incident_flux(beam_flux: float, od_beam: float, od_sample: float) -> float:
+    """Eq 87: ``Phi_i = Phi_b 10^(OD_b - OD_m)`` (units of ``beam_flux``)."""
+    return float(beam_flux) * 10.0 ** (float(od_beam) - float(od_sample))
+
+
+def _eq45_scalar(phi_s: float, phi_i: float, cos_theta_s: float, solid_angle: float) -> float:
+    return float(np.asarray(brdf_eq45(phi_s, phi_i, math.acos(cos_theta_s), solid_angle)))
+
+
+def noise_equivalent_brdf(
+    phi_s_low: float,
+    beam_flux: float,
+    od_beam: float,
+    od_sample: float,
+    *,
+    solid_angle: float = SEED_CENTRE_SOLID_ANGLE,
+    cos_theta_s: float = 1.0,
+    exposure_ratio: float = 1.0,
+) -> float:
+    """Noise-equivalent BRDF, sr^-1 (seed §4.2): Eq 45 with Eq 87 at the noise floor ``Phi_s,low`` (sDC).
+
+    Seed: ``noise_equivalent_brdf(48.05, 9.828e9, 5.2, 5.2)`` = 17.07 sr^-1;
+    1.36 at ``OD_b - OD_m = 1.1``; 1.08e-4 at ``OD_m = 0``.  Pass the floor's
+    standard deviation (23.11) as ``phi_s_low`` for the seed's std figures.
+    """
+    return _eq45_scalar(phi_s_low * exposure_ratio, incident_flux(beam_flux, od_beam, od_sample),
+                        cos_theta_s, solid_angle)
+
+
+def max_measurable_brdf(
+    phi_s_high: float,
+    beam_flux: float,
+    od_beam: float,
+    od_sample: float,
+    *,
+    solid_angle: float = SEED_CENTRE_SOLID_ANGLE,
+    cos_theta_s: float = 1.0,
+    exposure_ratio: float = 1.0,
+) -> float:
+    """Maximum measurable BRDF, sr^-1 (seed §4.2): Eq 45 with Eq 87 at ``Phi_s,high`` (sDC).
+
+    Seed: ``max_measurable_brdf(1.6383e7, 9.828e9, 5.2, 5.2)`` = 5.82e6;
+    4.62e5 at ``OD_b - OD_m = 1.1``; 36.7 at ``OD_m = 0``.
+    """
+    return _eq45_scalar(phi_s_high * exposure_ratio, incident_flux(beam_flux, od_beam, od_sample),
+                        cos_theta_s, solid_angle)
+
+
+def scatter_flux_high(full_scale: float, exposures_s: Sequence[float]) -> float:
+    """``Phi_s,high``, sDC: full scale at the shortest exposure referred to the longest (seed: 16383 x 1000)."""
+    t = np.asarray(exposures_s, dtype=np.float64)
+    return float(full_scale) * float(t.max() / t.min())
+
+
+def dynamic_range_decades(phi_s_high: float, phi_s_low: float) -> float:
+    """``log10(Phi_s,high / Phi_s,low)``: decades of BRDF in one stitched frame (seed §4.2: 5.53)."""
+    return math.log10(float(phi_s_high) / float(phi_s_low))
+
+
+# --- one measurement ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ReducedFrame:
+    """A reduced BRDF frame on a pixel grid: frame channels, extra channels and header attributes."""
+
+    brdf: np.ndarray
+    theta_s: np.ndarray
+    phi_s: np.ndarray
+    omega: np.ndarray
+    extra: Mapping[str, np.ndarray]
+    attrs: Mapping[str, Any]
+
+
+def _grid_slices(detector: Detector, grid: PixelGrid) -> tuple[np.ndarray, np.ndarray]:
+    h_min, _, v_min, _ = detector.index_range
+    return grid.n_v - v_min, grid.n_h - h_min
+
+
+def _aligned(detector: Detector) -> Detector:
+    return Detector(
+        shape=detector.shape,
+        pixel_pitch=detector.pixel_pitch,
+        pixel_pitch_v=detector.pixel_pitch_v,
+        distance=detector.distance,
+        theta_c=detector.theta_c,
+    )
+
+
+def _is_misaligned(detector: Detector) -> bool:
+    return any(float(np.asarray(getattr(detector, k))) != 0.0 for k in ("roll", "yaw", "pitch", "m_h", "m_v"))
+
+
+def _uncertainty_blocks(detector, theta_i, grid, nl, noise, kw, keep, block_rows=256):
+    """:func:`brdf_uncertainty` over blocks of rows (bounded memory).
+
+    Returns float32 ``(rows, cols)`` maps of the keys in ``keep`` (all relative
+    contributions if ``keep`` is None) and the value of every relative
+    contribution that is the same on every pixel.
+    """
+    rows, cols = grid.shape
+    block_rows = min(block_rows, rows)
+    maps: dict[str, np.ndarray] = {}
+    lo: dict[str, float] = {}
+    hi: dict[str, float] = {}
+    for r0 in range(0, rows, block_rows):
+        r1 = min(rows, r0 + block_rows)
+        # Pad the last block to the block size (repeating its last row) so that one compiled program serves all.
+        idx = np.minimum(np.arange(r0, r0 + block_rows), r1 - 1)
+        sub = PixelGrid(grid.n_h, grid.n_v[idx])
+        res = brdf_uncertainty(
+            detector, theta_i, sub,
+            scatter_nonlinearity=nl if np.ndim(nl) == 0 else nl[idx],
+            scatter_noise=noise[idx],
+            **kw,
+        )
+        for k, v in res.items():
+            if k.startswith("dphi_s") or k.startswith("dtheta_s"):
+                continue  # absolute angles, not relative contributions
+            v = np.broadcast_to(np.asarray(v, dtype=np.float32), (block_rows, cols))[: r1 - r0]
+            with np.errstate(invalid="ignore"):
+                lo[k] = min(lo.get(k, np.inf), float(np.nanmin(v)) if np.any(np.isfinite(v)) else np.nan)
+                hi[k] = max(hi.get(k, -np.inf), float(np.nanmax(v)) if np.any(np.isfinite(v)) else np.nan)
+            if keep is None or k in keep:
+                if k not in maps:
+                    maps[k] = np.empty((rows, cols), np.float32)
+                maps[k][r0:r1] = v
+        del res
+    uniform = {k: lo[k] for k in lo if lo[k] == hi[k]}
+    return maps, uniform
+
+
+@dataclass(frozen=True)
+class BeamSignature:
+    """What a reduction needs from the beam signature (§3.7-3.8): ``Phi_b`` and how it was measured.
+
+    ``flux`` is the stitched, background-subtracted beam summed over the
+    array (sDC referred to ``t_ref``, s), ``variance`` its noise variance,
+    ``attrs`` the beam file's attributes (``optical_density``, ``nd_filters``).
+    """
+
+    flux: float
+    variance: float
+    t_ref: float
+    attrs: RawAttrs
+    shape: tuple[int, int]
+    file: str = ""
+    background_file: str = ""
+
+
+def beam_signature(
+    beam: RawStack,
+    beam_background: RawStack,
+    *,
+    merge: Literal["weighted", "replacement"] = "weighted",
+    saturation_fraction: float = 0.98,
+    gain_e_per_count: float = SEED_GAIN,
+    taper_start: float | None = None,
+) -> BeamSignature:
+    """Stitch a beam signature and sum it over the array (§3.8): the incident flux ``Phi_b`` at ``OD_b``."""
+    if beam.attrs.kind != "beam":
+        raise ReductionError(f"{beam.path}: kind is {beam.attrs.kind!r}, expected 'beam' for a beam signature")
+    if beam_background.attrs.kind not in ("background", "dark"):
+        raise ReductionError(
+            f"{beam_background.path}: kind is {beam_background.attrs.kind!r}, expected 'background' (or 'dark')"
+        )
+    b = stitch(beam, beam_background, merge=merge, saturation_fraction=saturation_fraction,
+               gain_e_per_count=gain_e_per_count, taper_start=taper_start)
+    if np.any(b.saturated):
+        raise ReductionError(
+            f"{beam.path}: {int(b.saturated.sum())} pixel(s) of the beam signature are saturated even at the "
+            f"shortest exposure ({beam.exposure_times[0]:g} s); add ND filters or shorten the exposure"
+        )
+    return BeamSignature(
+        float(np.sum(b.flux, dtype=np.float64)),
+        float(np.sum(b.variance, dtype=np.float64)),
+        b.t_ref,
+        beam.attrs,
+        beam.shape,
+        beam.path.name if beam.path else "",
+        beam_background.path.name if beam_background.path else "",
+    )
+
+
+def reduce_measurement(
+    sample: RawStack,
+    sample_background: RawStack,
+    beam: BeamSignature,
+    *,
+    merge: Literal["weighted", "replacement"] = "weighted",
+    step: int = 1,
+    scatter_nonlinearity: float | np.ndarray = SEED_SCATTER_NONLINEARITY["mean"],
+    nd_tolerances: Mapping[Any, float] | None = None,
+    dR: float = SEED_DISTANCE_UNCERTAINTY,
+    dd: float = SEED_PITCH_UNCERTAINTY,
+    dtheta_c: float = SEED_ARM_ANGLE_UNCERTAINTY,
+    saturation_fraction: float = 0.98,
+    gain_e_per_count: float = SEED_GAIN,
+    artifact_decades: float = 4.8,
+    min_snr: float = 3.0,
+    taper_start: float | None = None,
+    detailed_uncertainty: bool = False,
+) -> ReducedFrame:
+    """Reduce one sample measurement against a beam signature (module docstring, steps 1-7).
+
+    ``beam`` comes from :func:`beam_signature`.  ``scatter_nonlinearity`` is
+    the per-pixel non-linearity dNL_s of the camera (Eq 92): a scalar
+    (default: the seed's array mean, 2.18 %) or a map of the raw array's
+    shape.  ``nd_tolerances`` maps nominal OD to its tolerance (default: the
+    seed's).  ``dR``, ``dd`` (m) and ``dtheta_c`` (rad) are the geometry's
+    standard uncertainties.  ``artifact_decades`` places the artifact floor
+    below the frame's peak; pixels whose stitched flux is under ``min_snr``
+    times its standard deviation are flagged too (0: off).  ``taper_start``
+    is the weighted merge's optional hand-over taper (:func:`stitch_weighted`).
+    ``detailed_uncertainty`` adds a channel for every sub-contribution of the
+    geometric terms (``u_theta_R``, ``u_solid_angle_d``, ...).
+    """
+    if merge not in MERGES:
+        raise ValueError(f"unknown merge {merge!r}; known: {', '.join(MERGES)}")
+    if sample.attrs.kind != "sample":
+        raise ReductionError(f"{sample.path}: kind is {sample.attrs.kind!r}, expected 'sample'")
+    if sample_background.attrs.kind not in ("background", "dark"):
+        raise ReductionError(
+            f"{sample_background.path}: kind is {sample_background.attrs.kind!r}, expected 'background' (or 'dark')"
+        )
+    _check_pair(sample, sample_background)
+    if beam.shape != sample.shape:
+        raise ReductionError(
+            f"{sample.path} and the beam signature {beam.file}: array shapes differ ({sample.shape} vs {beam.shape})"
+        )
+    a = sample.attrs
+    od_b, od_m = beam.attrs.optical_density, a.optical_density
+    beam_flux = beam.flux
+    phi_i = incident_flux(beam_flux, od_b, od_m)
+    s = stitch(sample, sample_background, merge=merge, saturation_fraction=saturation_fraction,
+               gain_e_per_count=gain_e_per_count, taper_start=taper_start)
+    exposure_ratio = float(beam.t_ref / sample.exposure_times[-1])
+
+    # Geometry of the measurement (misalignment included) on the output grid.
+    detector = sample.attrs.detector(sample.shape)
+    frame = sample.attrs.frame()
+    grid = detector.grid(step)
+    rr, cc = _grid_slices(detector, grid)
+    geom = {k: np.asarray(v) for k, v in render_geometry(frame, detector, grid=grid).items()}
+    theta_s, phi_s, omega = geom["theta_s"], geom["phi_s"], geom["omega"]
+    del geom
+    phi_s_flux = s.flux[np.ix_(rr, cc)].astype(np.float64) * exposure_ratio
+    phi_s_std = np.sqrt(s.variance[np.ix_(rr, cc)].astype(np.float64)) * exposure_ratio
+    saturated = s.saturated[np.ix_(rr, cc)]
+    del s
+    brdf = np.asarray(brdf_eq45(phi_s_flux, phi_i, theta_s, omega), dtype=np.float32)
+
+    # §4.2 figures from the inputs.
+    bg_raw = stitch_raw(sample_background, saturation_fraction=saturation_fraction)
+    phi_low = float(np.mean(bg_raw, dtype=np.float64))
+    phi_low_std = float(np.std(bg_raw, dtype=np.float64))
+    del bg_raw
+    phi_high = scatter_flux_high(sample.attrs.full_scale, sample.exposure_times)
+    omega_c = float(np.asarray(detector.solid_angle(0.0, 0.0)))
+    nominal = dict(solid_angle=omega_c, exposure_ratio=exposure_ratio)
+    neb = noise_equivalent_brdf(phi_low, beam_flux, od_b, od_m, **nominal)
+    neb_std = noise_equivalent_brdf(phi_low_std, beam_flux, od_b, od_m, **nominal)
+    f_max = max_measurable_brdf(phi_high, beam_flux, od_b, od_m, **nominal)
+    decades = dynamic_range_decades(phi_high, phi_low)
+    neb_map = np.asarray(brdf_eq45(phi_low * exposure_ratio, phi_i, theta_s, omega), dtype=np.float32)
+
+    # Masks.
+    flags = np.zeros(brdf.shape, np.uint8)
+    flags[saturated] |= FLAG_SATURATED
+    flags[brdf < neb_map] |= FLAG_BELOW_NOISE
+    finite = np.isfinite(brdf)
+    flags[~finite] |= FLAG_NOT_FINITE
+    good = finite & ~saturated & (brdf >= neb_map)
+    peak = float(brdf[good].max()) if np.any(good) else float("nan")
+    floor = peak * 10.0 ** (-artifact_decades) if math.isfinite(peak) else float("inf")
+    flags[brdf < floor] |= FLAG_BELOW_ARTIFACT_FLOOR
+    if min_snr > 0:
+        flags[phi_s_flux < min_snr * phi_s_std] |= FLAG_LOW_SNR
+    mask = (flags == 0).astype(np.float32)
+
+    # Uncertainty (Chapter IV) with the stitched noise as the scatter-noise contribution.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        noise_rel = np.where(phi_s_flux > 0, phi_s_std / phi_s_flux, np.nan)
+    nl = scatter_nonlinearity
+    if np.ndim(nl) != 0:
+        nl = np.asarray(nl, dtype=np.float64)
+        if nl.shape != sample.shape:
+            raise ValueError(
+                f"scatter_nonlinearity has shape {nl.shape}; expected a scalar or the raw array's {sample.shape}"
+            )
+        nl = nl[np.ix_(rr, cc)]
+    unc_kw: dict[str, Any] = dict(
+        dR=dR,
+        dd=dd,
+        dtheta_c=dtheta_c,
+        misaligned=_aligned(detector) if _is_misaligned(detector) else None,
+    )
+    if beam.attrs.filters or a.filters:
+        unc_kw.update(nd_beam=beam.attrs.nd_filters or None, nd_sample=a.nd_filters or None,
+                      nd_tolerances=nd_tolerances)
+    else:
+        unc_kw.update(nd=0.0)  # no filter anywhere: nothing to cancel or to doubt
+    unc, uniform = _uncertainty_blocks(
+        detector, sample.attrs.theta_i, grid, nl, noise_rel, unc_kw,
+        keep=None if detailed_uncertainty else {"total", *PER_PIXEL_TERMS},
+    )
+    sigma_rel = unc.pop("total")
+    uniform.pop("total", None)
+    # Contributions equal on every pixel also go in the header (u_nd, u_temporal, ...).
+    per_pixel = [k for k in PER_PIXEL_TERMS if k in unc]
+    if detailed_uncertainty:
+        per_pixel += [k for k in unc if k not in per_pixel]
+
+    extra = {
+        "sigma_rel": sigma_rel,
+        "mask": mask,
+        "flags": flags.astype(np.float32),
+        "noise_equivalent_brdf": neb_map,
+        **{f"u_{k}": unc[k] for k in per_pixel},
+    }
+    attrs = {
+        "theta_i": a.theta_i,
+        "theta_c": a.theta_c,
+        "phi_ref": a.phi_ref,
+        "wavelength": a.wavelength,
+        "R": a.R,
+        "pixel_pitch": a.pixel_pitch,
+        "pixel_pitch_v": a.pixel_pitch if a.pixel_pitch_v is None else a.pixel_pitch_v,
+        "roll": a.roll,
+        "yaw": a.yaw,
+        "pitch": a.pitch,
+        "m_h": a.m_h,
+        "m_v": a.m_v,
+        "step": int(step),
+        "roi": (int(grid.n_h[0]), int(grid.n_h[-1]), int(grid.n_v[0]), int(grid.n_v[-1])),
+        "model": f"measured: {a.sample}" if a.sample else "measured",
+        "frame": "reduced from raw exposure stacks (brdfjax.instrument.reduce)",
+        "merge": merge,
+        "sample_file": str(sample.path.name) if sample.path else "",
+        "sample_background_file": str(sample_background.path.name) if sample_background.path else "",
+        "beam_file": beam.file,
+        "beam_background_file": beam.background_file,
+        "nd_beam": beam.attrs.nd_filters,
+        "nd_sample": a.nd_filters,
+        "od_beam": od_b,
+        "od_sample": od_m,
+        "beam_flux_sdc": beam_flux,
+        "beam_flux_rel_std": math.sqrt(beam.variance) / beam_flux,
+        "incident_flux_sdc": phi_i,
+        "exposure_ratio": exposure_ratio,
+        "phi_s_low_sdc": phi_low,
+        "phi_s_low_std_sdc": phi_low_std,
+        "phi_s_high_sdc": phi_high,
+        "noise_equivalent_brdf": neb,
+        "noise_equivalent_brdf_std": neb_std,
+        "max_measurable_brdf": f_max,
+        "dynamic_range_decades": decades,
+        "peak_brdf": peak,
+        "artifact_floor": floor,
+        "artifact_decades": float(artifact_decades),
+        "saturation_fraction": float(saturation_fraction),
+        "min_snr": float(min_snr),
+        "taper_start": -1.0 if taper_start is None else float(taper_start),
+        **{f"u_{k}": v for k, v in sorted(uniform.items())},
+        "usable_fraction": float(mask.mean()),
+        "channel_units": "brdf: sr^-1, theta_s: rad, phi_s: rad, omega: sr, "
+        "noise_equivalent_brdf: sr^-1, sigma_rel and u_*: relative, mask: 1 usable / 0 excluded, "
+        "flags: 1 saturated, 2 below noise, 4 below artifact floor, 8 not finite, 16 low SNR; "
+        "u_* attributes: contributions equal on every pixel (also in the u_* channels)",
+    }
+    return ReducedFrame(brdf, theta_s.astype(np.float32), phi_s.astype(np.float32),
+                        omega.astype(np.float32), extra, attrs)
+
+
+# --- frame files with extra channels --------------------------------------------------------------
+
+
+def _header_value(path: Path, key: str, value: Any) -> Any:
+    # Same encoding as brdfjax.io.exr: numbers as doubles, roi as a box, ints, strings.
+    if key == "roi":
+        h0, h1, v0, v1 = (int(x) for x in value)
+        return (np.array([h0, v0], np.int32), np.array([h1, v1], np.int32))
+    if isinstance(value, bool | np.bool_ | int | np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        if key in DOUBLE_ATTRS and not math.isfinite(value):
+            raise ExrError(f"{path}: attribute '{key}' must be finite, got {value!r}")
+        return np.array([float(value)], np.float64)
+    if isinstance(value, str):
+        return value
+    raise ExrError(f"{path}: attribute '{key}' has unsupported type {type(value).__name__}")
+
+
+def write_reduced_frame(path: str | os.PathLike, frame: ReducedFrame) -> Path:
+    """Write a reduced frame atomically: the frame format of :mod:`brdfjax.io.exr` plus extra channels.
+
+    Readable by :func:`brdfjax.io.exr.read_frame_exr` (which returns the four
+    frame channels and checks their checksum); :func:`read_reduced_frame`
+    returns the extra channels too.  Interim: this will become a call to
+    ``write_frame_exr(..., extra_channels=...)`` once that accepts extra
+    channels.
+    """
+    import OpenEXR
+
+    path = Path(path)
+    channels = {
+        "brdf": frame.brdf, "theta_s": frame.theta_s, "phi_s": frame.phi_s, "omega": frame.omega,
+    }
+    channels = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    clash = set(frame.extra) & set(CHANNELS)
+    if clash:
+        raise ExrError(f"{path}: extra channel name(s) {sorted(clash)} clash with the frame channels")
+    for k, v in frame.extra.items():
+        channels[k] = np.ascontiguousarray(v, dtype=np.float32)
+        if channels[k].shape != channels["brdf"].shape:
+            raise ExrError(f"{path}: channel '{k}' has shape {channels[k].shape}, expected {channels['brdf'].shape}")
+    from .. import __version__
+
+    attrs = {"brdfjax_version": __version__, **frame.attrs}
+    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update({k: _header_value(path, k, v) for k, v in attrs.items()})
+    header["checksum"] = pixel_checksum(channels)
+    with atomic_output(path) as tmp:
+        OpenEXR.File(header, channels).write(str(tmp))
+    return path
+
+
+def read_reduced_frame(path: str | os.PathLike) -> ReducedFrame:
+    """Read a frame written by :func:`write_reduced_frame` (validated by ``read_frame_exr``) with its extra channels."""
+    import OpenEXR
+
+    from ..io.exr import read_frame_exr
+
+    fd = read_frame_exr(path)
+    f = OpenEXR.File(str(path), separate_channels=True)
+    extra = {k: np.asarray(c.pixels) for k, c in f.parts[0].channels.items() if k not in CHANNELS}
+    return ReducedFrame(fd.brdf, fd.theta_s, fd.phi_s, fd.omega, extra, fd.attrs)
+
+
+# --- measurement sets -----------------------------------------------------------------------------
+
+
+def _read(path: Path, what: str) -> RawStack:
+    try:
+        return read_raw_exr(path)
+    except RawFormatError:
+        raise
+    except FileNotFoundError as e:
+        raise ReductionError(f"{path}: {what} file not found") from e
+
+
+def reduce_measurement_set(
+    manifest_path: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    merge: Literal["weighted", "replacement"] = "weighted",
+    step: int = 1,
+    **options: Any,
+) -> list[Path]:
+    """Reduce every sample of a measurement set; returns the written frame paths (``<out_dir>/<name>.exr``).
+
+    ``manifest_path`` is a ``manifest.toml`` (or its folder); ``merge`` is
+    ``"weighted"`` (inverse-variance) or ``"replacement"`` (seed §3.6);
+    ``step`` keeps every ``step``-th pixel of the output frames.  Other
+    keyword options go to :func:`reduce_measurement` (``scatter_nonlinearity``,
+    ``nd_tolerances``, ``dR``, ``dd``, ``dtheta_c``, ``saturation_fraction``,
+    ``gain_e_per_count``, ``artifact_decades``, ``min_snr``, ``taper_start``,
+    ``detailed_uncertainty``); the manifest's optional
+    ``[calibration]`` table supplies ``scatter_nonlinearity`` and extra
+    ``nd_tolerances`` (added to the seed's table) unless given here.  Inputs are only read; each
+    output is written to a temporary name and renamed into place, so an
+    interrupted run leaves the old output or the new one.
+    """
+    if merge not in MERGES:
+        raise ValueError(f"unknown merge {merge!r}; known: {', '.join(MERGES)}")
+    if not (isinstance(step, int | np.integer) and step >= 1):
+        raise ValueError(f"step must be a positive integer, got {step!r}")
+    manifest: Manifest = read_manifest(manifest_path)
+    cal = manifest.calibration
+    if cal.scatter_nonlinearity is not None:
+        options.setdefault("scatter_nonlinearity", cal.scatter_nonlinearity)
+    if cal.nd_tolerances and options.get("nd_tolerances") is None:
+        options["nd_tolerances"] = {**SEED_ND_TOLERANCES, **cal.nd_tolerances}
+    out_dir = Path(out_dir)
+    inputs = {p.resolve() for p in manifest.files()} | {manifest.path}
+    stitch_kw = {k: options[k] for k in ("saturation_fraction", "gain_e_per_count", "taper_start") if k in options}
+    beam = beam_signature(
+        _read(manifest.beam.file, "beam signature"),
+        _read(manifest.beam.background, "beam background"),
+        merge=merge,
+        **stitch_kw,
+    )
+    written = []
+    for entry in manifest.samples:
+        target = (out_dir / f"{entry.name}.exr").resolve()
+        if target in inputs:
+            raise ReductionError(
+                f"{target}: the output would overwrite an input of {manifest.path}; choose another --out"
+            )
+        sample = _read(entry.file, f"sample '{entry.name}'")
+        sample_bg = _read(entry.background, f"background of sample '{entry.name}'")
+        reduced = reduce_measurement(sample, sample_bg, beam, merge=merge, step=int(step), **options)
+        del sample, sample_bg
+        written.append(write_reduced_frame(target, reduced))
+        del reduced
+    return written
+
+
+# --- figure ---------------------------------------------------------------------------------------
+
+
+def plot_merge_comparison(
+    stack: RawStack,
+    background: RawStack,
+    path: str | os.PathLike,
+    *,
+    row: int | None = None,
+    truth: np.ndarray | None = None,
+    taper_start: float | None = 0.5,
+    average_rows: bool = False,
+    saturation_fraction: float = 0.98,
+) -> Path:
+    """Figure: one row of a stack stitched by the replacement scheme (§3.6) and by the weighted merge.
+
+    Top: the stitched flux (sDC, log scale) of each merge along the row, each
+    exposure's scaled counts faint behind.  Bottom: relative error against
+    ``truth`` (expected sDC; without it, against the weighted merge), with
+    the replacement scheme's switching points marked -- its seams -- and
+    the weighted merge with the hand-over taper of ``taper_start`` (None:
+    left out).  ``row`` defaults to the row of the brightest pixel;
+    ``average_rows`` plots the bottom panel's errors averaged over all rows
+    (for a target constant down each column, so that seams stand out of the
+    noise).  Written atomically as PNG (matplotlib Agg).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    kw = dict(saturation_fraction=saturation_fraction)
+    merges = {"replacement (seed §3.6)": stitch_replacement(stack, background, **kw),
+              "inverse-variance weighted": stitch_weighted(stack, background, **kw)}
+    if taper_start is not None:
+        merges[f"weighted, hand-over taper from {taper_start:g} FS"] = stitch_weighted(
+            stack, background, taper_start=taper_start, **kw
+        )
+    rep, wei = list(merges.values())[:2]
+    if row is None:
+        row = int(np.unravel_index(np.argmax(wei.flux), wei.flux.shape)[0])
+    x = np.arange(stack.shape[1])
+    fig, (ax0, ax1) = plt.subplots(2, 1, figsize=(9, 7), sharex=True, height_ratios=(3, 2))
+    t_ref = rep.t_ref
+    for e, b in zip(stack.exposures, background.exposures):
+        d = (e.counts[row].astype(np.float64) - b.counts[row]) * (t_ref / e.exposure_s)
+        sat = e.counts[row] >= saturation_fraction * stack.attrs.full_scale
+        ax0.plot(x, np.where(sat | (d <= 0), np.nan, d), lw=0.6, alpha=0.4, label=f"{e.exposure_s * 1e3:g} ms, scaled")
+    styles = ["k-", "C3--", "C2-."]
+    for (name, m), st in zip(merges.items(), styles):
+        ax0.plot(x, np.where(m.flux[row] > 0, m.flux[row], np.nan), st, lw=1.0, label=name)
+    if truth is not None:
+        ax0.plot(x, truth[row], ":", color="0.3", lw=1.0, label="truth")
+    ax0.set_yscale("log")
+    ax0.set_ylabel("scatter flux (sDC)")
+    ax0.set_title(f"{stack.path.name if stack.path else 'stack'}: row {row}")
+    ax0.legend(fontsize=7, loc="best")
+    rows = slice(None) if average_rows else slice(row, row + 1)
+    ref = truth[rows] if truth is not None else wei.flux[rows]
+    ok = np.abs(ref) > 0
+    for (name, m), st in zip(merges.items(), styles):
+        if truth is None and m is wei:
+            continue
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.nanmean(np.where(ok, m.flux[rows] / ref - 1.0, np.nan), axis=0)
+        ax1.plot(x, 100 * rel, st, lw=0.8, label=name.split(" (")[0])
+    for s in np.nonzero(np.diff(rep.source[row].astype(int)))[0]:
+        ax1.axvline(s + 0.5, color="0.6", lw=0.5, ls=":")
+    ax1.axhline(0.0, color="0.8", lw=0.5)
+    ax1.set_ylim(-5, 5) if average_rows else ax1.set_ylim(-10, 10)
+    what = "relative error (%)" if truth is not None else "merge / weighted - 1 (%)"
+    ax1.set_ylabel(f"{what}, mean of {stack.shape[0]} rows" if average_rows else what)
+    ax1.set_xlabel("column (array offset); dotted: exposure switches of the replacement scheme")
+    ax1.legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+    return path
