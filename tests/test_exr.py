@@ -167,3 +167,20 @@ def test_missing_channel_and_attribute_named(tmp_path):
     OpenEXR.File(header, chans).write(str(p))
     with pytest.raises(ExrError, match=r"other\.exr: missing attribute\(s\) \['theta_c', 'phi_ref'"):
         read_frame_exr(p)
+
+
+def test_extra_channels_round_trip_and_checksum(tmp_path):
+    from brdfjax.io.exr import ExrError, read_frame_exr, write_frame_exr
+
+    a = np.arange(12, dtype=np.float32).reshape(3, 4)
+    attrs = {"theta_i": 0.3, "theta_c": 0.3, "phi_ref": 0.0, "wavelength": 6.328e-7, "R": 0.325,
+             "pixel_pitch": 5.5e-6, "step": 1, "roi": (0, 3, 0, 2)}
+    p = write_frame_exr(tmp_path / "f.exr", a, a, a, a, attrs, extra_channels={"sigma_rel": a / 10, "mask": a > 3})
+    fd = read_frame_exr(p)
+    assert set(fd.extra) == {"sigma_rel", "mask"}
+    np.testing.assert_array_equal(fd.extra["sigma_rel"], a / 10)
+    np.testing.assert_array_equal(fd.extra["mask"], (a > 3).astype(np.float32))
+    with pytest.raises(ExrError, match="clash with the frame channels"):
+        write_frame_exr(tmp_path / "g.exr", a, a, a, a, attrs, extra_channels={"brdf": a})
+    with pytest.raises(ExrError, match="channel 'mask' has shape"):
+        write_frame_exr(tmp_path / "h.exr", a, a, a, a, attrs, extra_channels={"mask": a[:2]})

@@ -84,7 +84,6 @@ import numpy as np
 
 from ..detector import Detector, PixelGrid
 from ..io import atomic_output
-from ..io.exr import CHANNELS, DOUBLE_ATTRS, ExrError, pixel_checksum
 from ..render import render_geometry
 from .raw import Manifest, RawAttrs, RawFormatError, RawStack, read_manifest, read_raw_exr
 from .uncertainty import (
@@ -742,66 +741,28 @@ def reduce_measurement(
 # --- frame files with extra channels --------------------------------------------------------------
 
 
-def _header_value(path: Path, key: str, value: Any) -> Any:
-    # Same encoding as brdfjax.io.exr: numbers as doubles, roi as a box, ints, strings.
-    if key == "roi":
-        h0, h1, v0, v1 = (int(x) for x in value)
-        return (np.array([h0, v0], np.int32), np.array([h1, v1], np.int32))
-    if isinstance(value, bool | np.bool_ | int | np.integer):
-        return int(value)
-    if isinstance(value, float | np.floating):
-        if key in DOUBLE_ATTRS and not math.isfinite(value):
-            raise ExrError(f"{path}: attribute '{key}' must be finite, got {value!r}")
-        return np.array([float(value)], np.float64)
-    if isinstance(value, str):
-        return value
-    raise ExrError(f"{path}: attribute '{key}' has unsupported type {type(value).__name__}")
-
-
 def write_reduced_frame(path: str | os.PathLike, frame: ReducedFrame) -> Path:
-    """Write a reduced frame atomically: the frame format of :mod:`brdfjax.io.exr` plus extra channels.
-
-    Readable by :func:`brdfjax.io.exr.read_frame_exr` (which returns the four
-    frame channels and checks their checksum); :func:`read_reduced_frame`
-    returns the extra channels too.  Interim: this will become a call to
-    ``write_frame_exr(..., extra_channels=...)`` once that accepts extra
-    channels.
-    """
-    import OpenEXR
-
-    path = Path(path)
-    channels = {
-        "brdf": frame.brdf, "theta_s": frame.theta_s, "phi_s": frame.phi_s, "omega": frame.omega,
-    }
-    channels = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
-    clash = set(frame.extra) & set(CHANNELS)
-    if clash:
-        raise ExrError(f"{path}: extra channel name(s) {sorted(clash)} clash with the frame channels")
-    for k, v in frame.extra.items():
-        channels[k] = np.ascontiguousarray(v, dtype=np.float32)
-        if channels[k].shape != channels["brdf"].shape:
-            raise ExrError(f"{path}: channel '{k}' has shape {channels[k].shape}, expected {channels['brdf'].shape}")
+    """Write a reduced frame atomically: the frame format of :mod:`brdfjax.io.exr` plus its extra channels."""
     from .. import __version__
+    from ..io.exr import write_frame_exr
 
-    attrs = {"brdfjax_version": __version__, **frame.attrs}
-    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    header.update({k: _header_value(path, k, v) for k, v in attrs.items()})
-    header["checksum"] = pixel_checksum(channels)
-    with atomic_output(path) as tmp:
-        OpenEXR.File(header, channels).write(str(tmp))
-    return path
+    return write_frame_exr(
+        path,
+        frame.brdf,
+        frame.theta_s,
+        frame.phi_s,
+        frame.omega,
+        {"brdfjax_version": __version__, **frame.attrs},
+        extra_channels=frame.extra,
+    )
 
 
 def read_reduced_frame(path: str | os.PathLike) -> ReducedFrame:
-    """Read a frame written by :func:`write_reduced_frame` (validated by ``read_frame_exr``) with its extra channels."""
-    import OpenEXR
-
+    """Read a frame written by :func:`write_reduced_frame`, with its extra channels."""
     from ..io.exr import read_frame_exr
 
     fd = read_frame_exr(path)
-    f = OpenEXR.File(str(path), separate_channels=True)
-    extra = {k: np.asarray(c.pixels) for k, c in f.parts[0].channels.items() if k not in CHANNELS}
-    return ReducedFrame(fd.brdf, fd.theta_s, fd.phi_s, fd.omega, extra, fd.attrs)
+    return ReducedFrame(fd.brdf, fd.theta_s, fd.phi_s, fd.omega, dict(fd.extra), fd.attrs)
 
 
 # --- measurement sets -----------------------------------------------------------------------------

@@ -33,6 +33,7 @@ import os
 import zlib
 from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -104,19 +105,24 @@ class ExrError(ValueError):
 
 
 class FrameData(NamedTuple):
-    """A frame read back: float32 ``(rows, cols)`` channels and the header attributes."""
+    """A frame read back: float32 ``(rows, cols)`` channels, the header attributes and any extra channels.
+
+    ``extra`` holds the channels beyond :data:`CHANNELS` by name (e.g. a
+    reduced frame's ``sigma_rel``, ``mask`` and uncertainty contributions).
+    """
 
     brdf: np.ndarray
     theta_s: np.ndarray
     phi_s: np.ndarray
     omega: np.ndarray
     attrs: dict[str, Any]
+    extra: Mapping[str, np.ndarray] = MappingProxyType({})
 
 
 def pixel_checksum(channels: Mapping[str, np.ndarray]) -> str:
-    """``"crc32:<hex>"`` over the float32 pixels of :data:`CHANNELS`, in order."""
+    """``"crc32:<hex>"`` over the float32 pixels of :data:`CHANNELS`, then any extra channels sorted by name."""
     crc = 0
-    for name in CHANNELS:
+    for name in (*CHANNELS, *sorted(set(channels) - set(CHANNELS))):
         crc = zlib.crc32(np.ascontiguousarray(channels[name], dtype=np.float32).data, crc)
     return f"crc32:{crc:08x}"
 
@@ -156,17 +162,25 @@ def write_frame_exr(
     phi_s: Any,
     omega: Any,
     attrs: Mapping[str, Any],
+    *,
+    extra_channels: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write one frame to ``path`` atomically; returns the path.
 
-    The four arrays must share one 2-D shape ``(rows, cols)`` and are stored
-    as float32.  ``attrs`` must hold :data:`REQUIRED_ATTRS` (``roi`` as
+    The four arrays (and any ``extra_channels``, e.g. ``sigma_rel`` and
+    ``mask`` of a reduced frame) must share one 2-D shape ``(rows, cols)``
+    and are stored as float32 in the same part, all covered by the checksum.  ``attrs`` must hold :data:`REQUIRED_ATTRS` (``roi`` as
     ``(h0, h1, v0, v1)``); floats in :data:`DOUBLE_ATTRS` are stored as doubles,
     other extra attributes may be ints, floats (stored as doubles) or strings.
     """
     OpenEXR = _openexr()
     path = Path(path)
     arrays = {"brdf": brdf, "theta_s": theta_s, "phi_s": phi_s, "omega": omega}
+    extra_channels = dict(extra_channels or {})
+    clash = sorted(set(extra_channels) & set(CHANNELS))
+    if clash:
+        raise ExrError(f"{path}: extra channel name(s) {clash} clash with the frame channels {', '.join(CHANNELS)}")
+    arrays.update(extra_channels)
     channels = {k: np.ascontiguousarray(np.asarray(v, dtype=np.float32)) for k, v in arrays.items()}
     shape = channels["brdf"].shape
     if len(shape) != 2 or 0 in shape:
@@ -247,7 +261,7 @@ def read_frame_exr(path: str | os.PathLike) -> FrameData:
             f"{path}: the pixel data of channel(s) {lost} could not be read; the file is damaged or truncated"
         )
     arrays = {}
-    for c in CHANNELS:
+    for c in (*CHANNELS, *sorted(set(got) - set(CHANNELS))):
         px = np.asarray(got[c].pixels)
         if px.dtype != np.float32 or px.shape != shape:
             raise ExrError(
@@ -259,4 +273,5 @@ def read_frame_exr(path: str | os.PathLike) -> FrameData:
     if isinstance(stored, str) and stored.startswith("crc32:") and stored != pixel_checksum(arrays):
         raise ExrError(f"{path}: the pixel data does not match its checksum; the file is damaged")
     attrs = {k: _attr_value(k, v) for k, v in header.items() if k not in _STANDARD}
-    return FrameData(attrs=attrs, **arrays)
+    extra = {k: arrays.pop(k) for k in list(arrays) if k not in CHANNELS}
+    return FrameData(attrs=attrs, extra=extra, **arrays)
