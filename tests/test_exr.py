@@ -174,7 +174,7 @@ def test_extra_channels_round_trip_and_checksum(tmp_path):
 
     a = np.arange(12, dtype=np.float32).reshape(3, 4)
     attrs = {"theta_i": 0.3, "theta_c": 0.3, "phi_ref": 0.0, "wavelength": 6.328e-7, "R": 0.325,
-             "pixel_pitch": 5.5e-6, "step": 1, "roi": (0, 3, 0, 2)}
+             "pixel_pitch": 5.5e-6, "step": 1, "roi": (0, 3, 0, 2), "model": "test", "brdfjax_version": "0"}
     p = write_frame_exr(tmp_path / "f.exr", a, a, a, a, attrs, extra_channels={"sigma_rel": a / 10, "mask": a > 3})
     fd = read_frame_exr(p)
     assert set(fd.extra) == {"sigma_rel", "mask"}
