@@ -309,6 +309,99 @@ def _run_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _reduce_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("manifest", metavar="MANIFEST", help="a measurement set's manifest.toml (or its folder)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
+    p.add_argument(
+        "--merge",
+        choices=("weighted", "replacement"),
+        default="weighted",
+        help="HDR merge: inverse-variance weighted (default) or the seed's replacement scheme (§3.6)",
+    )
+    p.add_argument("--step", type=int, default=1, metavar="K", help="keep every K-th pixel of the output frames")
+    p.add_argument("--no-plot", action="store_true", help="write the EXR files and summary only, no PNG figures")
+
+
+def _reduced_summary(path: Path, frame: Any) -> dict[str, Any]:
+    mask = np.asarray(frame.extra["mask"]) > 0
+    sig = np.asarray(frame.extra["sigma_rel"])
+    b = np.asarray(frame.brdf)
+    keys = (
+        "theta_i", "phi_ref", "nd_sample", "od_sample", "incident_flux_sdc", "noise_equivalent_brdf",
+        "max_measurable_brdf", "dynamic_range_decades", "usable_fraction", "merge",
+    )
+    out = {k: frame.attrs[k] for k in keys if k in frame.attrs}
+    out.update(
+        file=path.name,
+        shape=list(b.shape),
+        usable_pixels=int(mask.sum()),
+        max_brdf=float(np.max(np.where(mask, b, -np.inf))) if mask.any() else None,
+        median_sigma_rel=float(np.median(sig[mask])) if mask.any() else None,
+    )
+    return out
+
+
+def _run_reduce(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from .instrument.raw import ManifestError, RawFormatError
+    from .instrument.reduce import ReductionError, read_reduced_frame, reduce_measurement_set
+    from .io import ExrError
+
+    prog = "brdfjax reduce"
+    if args.step < 1:
+        _error(prog, f"--step must be a positive integer, got {args.step}")
+        return EXIT_USAGE
+    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    console.print(f"brdfjax reduce: {args.manifest} -> {args.out} ({args.merge} merge)", markup=False)
+    t0 = time.perf_counter()
+    try:
+        paths = reduce_measurement_set(args.manifest, args.out, merge=args.merge, step=args.step)
+    except (ManifestError, RawFormatError, FileNotFoundError) as e:
+        _error(prog, str(e))
+        return EXIT_USAGE
+    except (ReductionError, ExrError, OSError) as e:
+        _error(prog, str(e))
+        return EXIT_FAILURE
+    frames = []
+    for path in paths:
+        frame = read_reduced_frame(path)
+        entry = _reduced_summary(path, frame)
+        if not args.no_plot:
+            from .detector import Detector
+            from .plotting import plot_frame
+            from .render import Frame
+
+            from .detector import PixelGrid
+
+            a = frame.attrs
+            h0, h1, v0, v1 = a["roi"]
+            det = Detector(
+                shape=(v1 - v0 + 1, h1 - h0 + 1), pixel_pitch=a["pixel_pitch"],
+                pixel_pitch_v=a.get("pixel_pitch_v", a["pixel_pitch"]), distance=a["R"],
+                theta_c=a["theta_c"], **{k: a.get(k, 0.0) for k in ("roll", "yaw", "pitch", "m_h", "m_v")},
+            )
+            grid = PixelGrid(np.arange(h0, h1 + 1, a["step"]), np.arange(v0, v1 + 1, a["step"]))
+            shown = np.where(np.asarray(frame.extra["mask"]) > 0, frame.brdf, np.nan)
+            png = plot_frame(
+                shown, grid, det, Frame(a["theta_i"], a["phi_ref"], a["wavelength"]), path.with_suffix(".png"),
+                title=f"{path.stem} (reduced, masked pixels blank)",
+            )
+            entry["png"] = png.name
+        frames.append(entry)
+        console.print(
+            f"done {path.stem}: {entry['usable_pixels']} usable px, median sigma_rel "
+            f"{entry['median_sigma_rel']:.3g}, noise-equivalent BRDF "
+            f"{entry.get('noise_equivalent_brdf', float('nan')):.3g} sr^-1 -> {path.name}",
+            markup=False,
+        )
+    summary = {"manifest": str(args.manifest), "merge": args.merge, "step": args.step,
+               "frames": frames, "wall_s": time.perf_counter() - t0}
+    _write_json_atomic(Path(args.out) / "summary.json", summary)
+    console.print(f"wrote {Path(args.out) / 'summary.json'} ({summary['wall_s']:.1f} s)", markup=False)
+    return EXIT_OK
+
+
 #: Subcommands by name; later issues add fit, sample, diagnose and capture here.
 COMMANDS: dict[str, Command] = {
     "simulate": Command(
@@ -316,6 +409,12 @@ COMMANDS: dict[str, Command] = {
         "render the frames of a config to OpenEXR + PNG + summary.json",
         _simulate_arguments,
         _run_simulate,
+    ),
+    "reduce": Command(
+        "reduce",
+        "reduce a raw measurement set (manifest.toml) to calibrated BRDF frames with per-pixel uncertainty",
+        _reduce_arguments,
+        _run_reduce,
     ),
 }
 

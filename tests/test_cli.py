@@ -171,3 +171,53 @@ def test_python_m_brdfjax_float64(small_run, tmp_path):
     s = json.loads((out / "summary.json").read_text())
     assert s["precision"] == "float64"
     assert s["frames"][0]["max_brdf"] == pytest.approx(1.11e4, rel=0.01)
+
+
+# --- brdfjax reduce -------------------------------------------------------------------------------
+
+EXAMPLE_SET = Path(__file__).parent / "data" / "example_set"
+
+
+def test_reduce_example_set_writes_frames_with_uncertainty(tmp_path, capsys):
+    import hashlib
+
+    from brdfjax.cli import main
+    from brdfjax.io import read_frame_exr
+
+    before = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in EXAMPLE_SET.iterdir()}
+    assert main(["reduce", str(EXAMPLE_SET / "manifest.toml"), "--out", str(tmp_path)]) == 0
+    after = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in EXAMPLE_SET.iterdir()}
+    assert before == after  # inputs are never modified
+    fd = read_frame_exr(tmp_path / "solar_cell_20deg.exr")
+    assert {"sigma_rel", "mask", "u_scatter_flux", "u_incident_flux", "u_scatter_angle", "u_solid_angle"} <= set(fd.extra)
+    mask = fd.extra["mask"] > 0
+    assert 0 < mask.sum() < mask.size
+    assert np.all(np.isfinite(fd.brdf[mask])) and np.all(fd.extra["sigma_rel"][mask] > 0)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    (entry,) = summary["frames"]
+    assert entry["usable_pixels"] == int(mask.sum()) and entry["png"] == "solar_cell_20deg.png"
+    # The example sample is the seed solar cell at 20 deg seen by a coarse camera: its peak,
+    # blurred by the beam footprint, is thousands of sr^-1.
+    assert 1e3 < entry["max_brdf"] < 2e4
+    assert (tmp_path / "solar_cell_20deg.png").stat().st_size > 10_000
+
+
+def test_reduce_bad_manifest_exit_2(tmp_path, capsys):
+    from brdfjax.cli import main
+
+    bad = tmp_path / "manifest.toml"
+    bad.write_text('[beam]\nfile = "beam.exr"\n')
+    assert main(["reduce", str(bad), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "brdfjax reduce: error:" in err and "manifest.toml" in err and "Traceback" not in err
+
+
+def test_reduce_refuses_to_overwrite_inputs(tmp_path, capsys):
+    import shutil
+
+    from brdfjax.cli import main
+
+    work = tmp_path / "set"
+    shutil.copytree(EXAMPLE_SET, work)
+    assert main(["reduce", str(work), "--out", str(work), "--no-plot"]) == 1
+    assert "would overwrite an input" in capsys.readouterr().err
