@@ -327,6 +327,20 @@ class InstrumentConfig(_Strict):
     def enabled_effects(self) -> tuple[str, ...]:
         return tuple(e for e in EFFECTS if getattr(self, e).enabled)
 
+    def for_pixel_pitch(self, pixel_pitch: float, seed_pitch: float = 5.5e-6) -> "InstrumentConfig":
+        """The same physical instrument seen by a camera of another pixel pitch (metres).
+
+        The beam footprint and the stray-light offsets are fixed on the array
+        in metres, so their sizes in pixels scale by ``seed_pitch / pixel_pitch``;
+        the incident flux is unchanged (larger pixels collect more light, as
+        their solid angles say).  Compare :meth:`coarse`, which also keeps
+        per-pixel counts for fast tests.
+        """
+        if not pixel_pitch > 0:
+            raise ValueError(f"for_pixel_pitch: pixel_pitch must be a positive length in metres, got {pixel_pitch!r}")
+        k = pixel_pitch / seed_pitch
+        return self.coarse(k).model_copy(update={"incident_flux_cps": self.incident_flux_cps})
+
     def coarse(self, k: float) -> "InstrumentConfig":
         """The seed instrument on a camera whose pixels are ``k`` times larger (``k x k`` binning).
 
