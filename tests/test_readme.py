@@ -28,3 +28,15 @@ def test_readme_commands_match_ci():
     assert test_cmd in text
     for part in test_cmd.split(" && "):
         assert part.replace("python3 -m pip install", "python3 -m pip install -q") in ci or part in ci
+
+
+def test_readme_instrument_example_runs(tmp_path, monkeypatch):
+    from brdfjax.instrument.reduce import read_reduced_frame
+
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+    (block,) = [b for b in blocks if "SyntheticInstrument" in b]
+    monkeypatch.chdir(tmp_path)
+    ns: dict = {}
+    exec(compile(block, str(README), "exec"), ns)
+    frame = read_reduced_frame(ns["paths"][0])
+    assert frame.brdf.shape == (48, 64) and (frame.extra["mask"] > 0).sum() > 100
