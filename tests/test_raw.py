@@ -347,6 +347,13 @@ def test_manifest_write_read(tmp_path):
     m = read_manifest(p)
     assert [s.name for s in m.samples] == ["s1"]
     assert m.calibration == Calibration(0.02, {0.5: 0.02, 3.0: 0.15})
+    curve = ((0.0, -0.0172), (0.5, 0.0), (1.0, 0.0172))
+    p = write_manifest(
+        tmp_path / "manifest.toml", ("b.exr", "bb.exr"), [("s1", "s.exr", "sb.exr")],
+        Calibration(nd_tolerances={3.0: 0.15}, nonlinearity_curve=curve),
+    )
+    assert "nonlinearity_curve = [[0.0, -0.0172], [0.5, 0.0], [1.0, 0.0172]]" in p.read_text()
+    assert read_manifest(p).calibration == Calibration(None, {3.0: 0.15}, curve)
 
 
 @pytest.mark.parametrize(
@@ -360,6 +367,10 @@ def test_manifest_write_read(tmp_path):
         (GOOD.split("[[sample]]")[0], "missing [[sample]] tables"),
         (GOOD + "[calibration]\nscatter_nonlinearity = 2\n", "calibration.scatter_nonlinearity"),
         (GOOD + '[calibration.nd_tolerances]\n"three" = 0.1\n', "key 'three' is not a nominal OD"),
+        (GOOD + "[calibration]\nnonlinearity_curve = 0.02\n", "calibration.nonlinearity_curve: must be a non-empty"),
+        (GOOD + "[calibration]\nnonlinearity_curve = [[0.5, 0.01], [0.2, 0.0]]\n", "fractions must strictly increase"),
+        (GOOD + "[calibration]\nnonlinearity_curve = [[1.5, 0.01]]\n", "outside [0, 1]"),
+        (GOOD + "[calibration]\nnonlinearity_curve = [[0.5]]\n", "nonlinearity_curve[0]: must be a pair"),
         ("[beam\n", "not valid TOML"),
     ],
 )

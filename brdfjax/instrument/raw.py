@@ -86,8 +86,20 @@ about the instrument beyond the files::
 
     [calibration]
     scatter_nonlinearity = 0.0218          # per-pixel non-linearity dNL_s, relative (seed mean)
+    nonlinearity_curve = [[0.0, -0.0172], [0.5, 0.0], [1.0, 0.0172]]
     [calibration.nd_tolerances]            # +- OD of ND filters by nominal OD (added to the seed's table)
     "3.0" = 0.15
+
+``nonlinearity_curve`` (optional) is the camera's calibrated response curve:
+``[fraction, error]`` pairs, ``fraction`` the signal (counts above the black
+level) as a fraction of ``full_scale``, strictly increasing in [0, 1], and
+``error`` the relative error of a reading at that level against the linear
+response, ``reading / linear - 1`` (seed Eq 91, the array-average curve), in
+(-0.5, 0.5); linear in between, constant beyond the first and last points.
+The reduction weights (and, if asked, corrects) each exposure by it
+(:class:`brdfjax.instrument.reduce.NonlinearityCurve`); without it the
+reduction assumes the synthetic instrument's documented curve.  Readers that
+predate the key ignore it.
 
 More keys may be added by later versions; :func:`read_manifest` keeps keys it
 does not know in ``extra`` rather than rejecting them (unlike brdfjax
@@ -625,10 +637,12 @@ class SampleEntry:
 
 @dataclass(frozen=True)
 class Calibration:
-    """The optional ``[calibration]`` table: ``scatter_nonlinearity`` (relative) and ``nd_tolerances`` (OD -> +-OD)."""
+    """The optional ``[calibration]`` table: ``scatter_nonlinearity`` (relative), ``nd_tolerances`` (OD -> +-OD)
+    and ``nonlinearity_curve`` (``((fraction of full scale, relative error), ...)``; see the module docstring)."""
 
     scatter_nonlinearity: float | None = None
     nd_tolerances: Mapping[float, float] = field(default_factory=dict)
+    nonlinearity_curve: tuple[tuple[float, float], ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -733,7 +747,33 @@ def _calibration(path: Path, table: Any) -> Calibration:
         if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v >= 0):
             raise ManifestError(f"{path}: calibration.nd_tolerances.\"{k}\": must be a number >= 0, got {v!r}")
         tolerances[od] = float(v)
-    return Calibration(None if nl is None else float(nl), tolerances)
+    curve = table.get("nonlinearity_curve")
+    if curve is not None:
+        curve = _nonlinearity_curve(f"{path}: calibration.nonlinearity_curve", curve)
+    return Calibration(None if nl is None else float(nl), tolerances, curve)
+
+
+def _number(v: Any) -> bool:
+    return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
+
+
+def _nonlinearity_curve(where: str, curve: Any) -> tuple[tuple[float, float], ...]:
+    """Validate ``[[fraction, error], ...]`` (fractions strictly increasing in [0, 1], errors in (-0.5, 0.5))."""
+    if isinstance(curve, str | bytes) or not isinstance(curve, Sequence) or not curve:
+        raise ManifestError(f"{where}: must be a non-empty array of [fraction of full scale, relative error] pairs")
+    out = []
+    for i, pt in enumerate(curve):
+        if isinstance(pt, str | bytes) or not isinstance(pt, Sequence) or len(pt) != 2 or not all(map(_number, pt)):
+            raise ManifestError(f"{where}[{i}]: must be a pair of numbers [fraction, error], got {pt!r}")
+        x, e = float(pt[0]), float(pt[1])
+        if not 0.0 <= x <= 1.0:
+            raise ManifestError(f"{where}[{i}]: fraction of full scale {x!r} is outside [0, 1]")
+        if not -0.5 < e < 0.5:
+            raise ManifestError(f"{where}[{i}]: relative error {e!r} is outside (-0.5, 0.5)")
+        if out and x <= out[-1][0]:
+            raise ManifestError(f"{where}[{i}]: fractions must strictly increase ({out[-1][0]!r} then {x!r})")
+        out.append((x, e))
+    return tuple(out)
 
 
 def _toml_str(s: str) -> str:
@@ -761,6 +801,9 @@ def write_manifest(
         lines.append("[calibration]")
         if calibration.scatter_nonlinearity is not None:
             lines.append(f"scatter_nonlinearity = {float(calibration.scatter_nonlinearity)!r}")
+        if calibration.nonlinearity_curve is not None:
+            curve = _nonlinearity_curve(f"{path}: calibration.nonlinearity_curve", calibration.nonlinearity_curve)
+            lines.append("nonlinearity_curve = [" + ", ".join(f"[{x!r}, {e!r}]" for x, e in curve) + "]")
         if calibration.nd_tolerances:
             lines += ["", "[calibration.nd_tolerances]"]
             lines += [f'"{float(od)!r}" = {float(t)!r}' for od, t in sorted(calibration.nd_tolerances.items())]
