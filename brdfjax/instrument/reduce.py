@@ -16,14 +16,22 @@ Pipeline for a measurement set (:func:`reduce_measurement_set`):
      exposure scaled by ``t_ref / t_k``; repeat.
    - ``"weighted"`` -- inverse-variance weighting of every unsaturated
      exposure, ``sum_k w_k d_k t_ref / t_k / sum_k w_k`` with ``w_k = 1 /
-     var(d_k t_ref / t_k)``.  The variances come from a noise model
-     evaluated at a pilot estimate (not from each pixel's own noisy counts,
-     which would bias the merge low): shot noise ``max(rate t_k, 0) / gain``
-     per frame plus the dark/ambient noise of the background stack at that
-     exposure (its ``counts_std`` if present, else its robust spatial
-     spread), for both the measurement and its background.  It lowers the
-     noise; seams caused by the camera's non-linearity stay unless the
-     optional taper is used (see :func:`stitch_weighted`).
+     var_k``, ``var_k`` the *full* variance of the scaled reading: its noise
+     plus the square of its non-linearity error.  The noise comes from a
+     model evaluated at a pilot estimate (not from each pixel's own noisy
+     counts, which would bias the merge low): shot noise ``max(rate t_k, 0)
+     / gain`` per frame plus the dark/ambient noise of the background stack
+     at that exposure (its ``counts_std`` if present, else its robust
+     spatial spread; never below the rounding to integer counts), for both
+     the measurement and its background.  The non-linearity error is the
+     camera's calibrated response curve (:class:`NonlinearityCurve`:
+     relative error vs count level as a fraction of full scale; the
+     manifest's ``[calibration] nonlinearity_curve``, by default the
+     synthetic instrument's documented curve) at the reading's expected
+     count level, times the reading.  Optionally the readings are first
+     corrected by that curve (``correct_nonlinearity``), which removes the
+     seams of the replacement scheme; the weights then carry only the
+     curve's residual uncertainty (see :func:`stitch_weighted`).
 
    A pixel is saturated in an exposure when its raw counts reach
    ``saturation_fraction * full_scale`` (the mean of averaged frames
@@ -66,9 +74,10 @@ contributions ``u_scatter_flux`` (with its parts ``u_scatter_nonlinearity``
 and ``u_scatter_noise``), ``u_incident_flux``, ``u_scatter_angle`` and
 ``u_solid_angle`` (relative, dimensionless; ``detailed_uncertainty=True``
 adds every sub-contribution), with the §4.2 figures, the contributions that
-are equal on every pixel (``u_nd``, ``u_temporal``, ...) and the inputs'
-names in header attributes.  Files are written atomically; inputs are only
-read.
+are equal on every pixel (``u_nd``, ``u_temporal``, ...), the merge's
+options (``merge``, ``nonlinearity_curve`` as ``"x:error,..."``,
+``nonlinearity_corrected``, ``taper_start``) and the inputs' names in header
+attributes.  Files are written atomically; inputs are only read.
 """
 
 from __future__ import annotations
@@ -98,6 +107,9 @@ from .uncertainty import (
 
 __all__ = [
     "MERGES",
+    "NonlinearityCurve",
+    "SYNTHETIC_NONLINEARITY_CURVE",
+    "SEED_CURVE_RESIDUAL",
     "FLAG_SATURATED",
     "FLAG_BELOW_NOISE",
     "FLAG_BELOW_ARTIFACT_FLOOR",
@@ -147,6 +159,80 @@ class ReductionError(ValueError):
     """Inputs that cannot be reduced together; the message names the files and the problem."""
 
 
+# --- non-linearity calibration --------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NonlinearityCurve:
+    """The camera's calibrated response curve: relative error of a reading vs its count level (seed §4.2, Eq 91).
+
+    ``points`` are ``(fraction, error)`` pairs: ``fraction`` the signal
+    (counts above the black level) as a fraction of full scale, strictly
+    increasing in [0, 1]; ``error`` the relative deviation of a reading at
+    that level from the linear response, ``reading / linear - 1`` (the
+    seed's Eq 91 on the array-wide pixel averages, its "baseline method";
+    per-pixel gain differences are the separate ``scatter_nonlinearity``
+    dNL_s of Eq 92).  Linear interpolation between the points, constant
+    beyond the ends.  In a manifest: ``[calibration] nonlinearity_curve =
+    [[0.0, -0.0172], [1.0, 0.0172]]`` (:mod:`brdfjax.instrument.raw`).
+    """
+
+    points: tuple[tuple[float, float], ...]
+
+    def __post_init__(self) -> None:
+        pts = tuple((float(x), float(e)) for x, e in self.points)
+        if not pts:
+            raise ValueError("NonlinearityCurve needs at least one (fraction, error) point")
+        xs = [x for x, _ in pts]
+        if not all(math.isfinite(x) and 0.0 <= x <= 1.0 for x in xs) or any(b <= a for a, b in zip(xs, xs[1:])):
+            raise ValueError(f"NonlinearityCurve fractions must strictly increase within [0, 1], got {xs}")
+        if not all(math.isfinite(e) and -0.5 < e < 0.5 for _, e in pts):
+            raise ValueError(f"NonlinearityCurve errors must lie in (-0.5, 0.5), got {[e for _, e in pts]}")
+        object.__setattr__(self, "points", pts)
+
+    @classmethod
+    def linear(cls, common_max: float) -> "NonlinearityCurve":
+        """``error = common_max (2 x - 1)``: the synthetic instrument's common term (``NonLinearity.common_max``)."""
+        return cls(((0.0, -float(common_max)), (1.0, float(common_max))))
+
+    def __call__(self, fraction: np.ndarray | float) -> np.ndarray:
+        """Relative error of a reading whose signal is ``fraction`` of full scale."""
+        xs, es = zip(*self.points)
+        return np.interp(np.asarray(fraction, dtype=np.float64), xs, es)
+
+    def linearise(self, signal: np.ndarray, full_scale: float, iterations: int = 3) -> np.ndarray:
+        """Invert the response: the linear signal ``s`` whose reading is ``signal`` (counts above black level).
+
+        Solves ``s (1 + error(s / full_scale)) = signal`` by fixed-point
+        iteration (each step shrinks the residual by ``|d error / dx| x``,
+        under 4 % for the seed's curve).
+        """
+        signal = np.asarray(signal, dtype=np.float64)
+        s = signal
+        for _ in range(max(1, int(iterations))):
+            s = signal / (1.0 + self(np.clip(s / full_scale, 0.0, 1.0)))
+        return s
+
+    def describe(self) -> str:
+        """The points as ``"x:e,x:e"`` (a header attribute of reduced frames)."""
+        return ",".join(f"{x:g}:{e:g}" for x, e in self.points)
+
+
+#: The synthetic instrument's documented common non-linearity (:class:`brdfjax.instrument.synthetic.NonLinearity`:
+#: ``error = 1.72 % (2 x - 1)``; the seed's baseline method over the full range reads 1.72 % at most, §4.2).
+SYNTHETIC_NONLINEARITY_CURVE = NonlinearityCurve.linear(0.0172)
+#: Residual non-linearity after correcting by the array-average curve, as a fraction of the curve: the seed's
+#: per-pixel curves deviate from their own linear fits by 1.74 +- 0.14 % at most (§4.2, second method), so the
+#: shape of one pixel's curve differs from the array's by about 0.14 / 1.74 = 8 %.
+SEED_CURVE_RESIDUAL = 0.14 / 1.74
+
+
+def _curve(curve: Any) -> NonlinearityCurve | None:
+    if curve is None or isinstance(curve, NonlinearityCurve):
+        return curve
+    return NonlinearityCurve(tuple(tuple(p) for p in curve))
+
+
 # --- stitching ------------------------------------------------------------------------------------
 
 
@@ -194,16 +280,26 @@ def _check_pair(stack: RawStack, background: RawStack) -> None:
         )
 
 
-def _differences(stack: RawStack, background: RawStack, saturation_fraction: float, order=None):
+def _differences(stack: RawStack, background: RawStack, saturation_fraction: float, order=None,
+                 linearise: NonlinearityCurve | None = None):
     """Yield ``(k, t_k, d_k, saturated_k)`` per exposure (in ``order``), float64 differences in counts.
 
     One exposure at a time, so that a full frame never holds more than one difference array.
+    ``linearise``: correct both readings by the response curve first (saturation is still judged on
+    the raw counts).
     """
-    level = saturation_fraction * stack.attrs.full_scale
+    fs = stack.attrs.full_scale
+    level = saturation_fraction * fs
     for k in range(len(stack.exposures)) if order is None else order:
         e = stack.exposures[k]
         b = background.exposures[k].counts
-        yield k, e.exposure_s, e.counts.astype(np.float64) - b, (e.counts >= level) | (b >= level)
+        sat = (e.counts >= level) | (b >= level)
+        if linearise is None:
+            d = e.counts.astype(np.float64) - b
+        else:
+            d = (linearise.linearise(e.counts.astype(np.float64) - stack.attrs.black_level, fs)
+                 - linearise.linearise(b.astype(np.float64) - background.attrs.black_level, fs))
+        yield k, e.exposure_s, d, sat
 
 
 def stitch_replacement(
@@ -263,39 +359,74 @@ def stitch_weighted(
     *,
     saturation_fraction: float = 0.98,
     gain_e_per_count: float = SEED_GAIN,
+    nonlinearity_curve: NonlinearityCurve | Sequence[tuple[float, float]] | None = SYNTHETIC_NONLINEARITY_CURVE,
+    correct_nonlinearity: bool = False,
+    curve_residual: float = SEED_CURVE_RESIDUAL,
     taper_start: float | None = None,
     iterations: int = 2,
 ) -> Stitched:
-    """Inverse-variance merge of every unsaturated exposure (module docstring, step 2); sDC referred to the longest.
+    """Merge every unsaturated exposure weighted by the inverse of its full variance; sDC referred to the longest.
 
-    Weights ``w_k = 1 / var_k`` from the noise model (``gain_e_per_count``
-    electrons per count sets the shot noise) evaluated at the previous
-    estimate (the first pilot is the replacement scheme; ``iterations``
-    passes); the variance of the merge is ``sum w_k^2 var_k / (sum w_k)^2``
-    (``1 / sum w_k`` without taper).
+    The weight of exposure ``k`` of a pixel is ``w_k = 1 / var_k`` with
 
-    The optimal weights favour the longest unsaturated exposure right up to
-    its saturation, so where the exposures of a pixel disagree -- the common
-    non-linearity of seed §4.2 differs by ~3 % between 90 % and 9 % of full
-    scale -- the merge keeps the seams of the replacement scheme.
-    ``taper_start`` (a fraction of full scale, e.g. 0.5) hands every
-    exposure but the shortest over gradually to the shorter ones as its
-    expected raw counts rise from ``taper_start`` to ``saturation_fraction``:
-    its share of the merge becomes its inverse-variance share times a
-    ``sin^2`` ramp from 1 to 0 (``tau = S W / (W + (1 - S) w)`` with ``W``
-    the shorter exposures' weight).  That removes the discontinuities, but
-    costs noise in the hand-over band wherever the shorter exposure is
-    dark-noise limited (the seed's dark noise hardly grows beyond 100 ms), so
-    it is off by default.
+        var_k = [noise_k + (u(x_k) F_k)^2] (t_ref / t_k)^2,
+
+    evaluated at the previous estimate of the pixel's rate (the first pilot
+    is the replacement scheme; ``iterations`` passes), never at its own
+    noisy counts:
+
+    * ``noise_k`` (counts^2): shot noise ``F_k / (gain n_k)``
+      (``gain_e_per_count`` electrons per count, ``F_k`` the expected signal
+      in counts, ``n_k`` frames) plus the dark/ambient noise of measurement
+      and background and their rounding to integer counts;
+    * ``u(x_k)``: the relative non-linearity error of the reading at its
+      expected count level ``x_k`` = (signal + background counts - black
+      level) / full scale, from the calibration ``nonlinearity_curve`` (a
+      :class:`NonlinearityCurve`, or ``(fraction, error)`` pairs).  An
+      uncorrected reading's error is the curve itself, ``u = error(x)``: the
+      merge then leans on the readings the curve says are closest to linear
+      (its mean error drops), but, for the synthetic curve that reads about
+      as far off at 10 % of full scale as near it, a reading that is about
+      to saturate keeps about half the weight, so about half of the
+      replacement scheme's seams stay.  ``None``: noise only.
+
+    ``correct_nonlinearity`` first corrects measurement and background
+    readings by the curve (:meth:`NonlinearityCurve.linearise`; seed §7.3
+    names this as future work); each corrected reading then keeps only the
+    curve's residual uncertainty ``u = curve_residual * error(x)`` (default
+    8 %, the spread of the seed's per-pixel curve shapes), and the exposures
+    agree across each switch: no seams.  Saturation is judged on the raw
+    counts either way.
+
+    ``taper_start`` (a fraction of full scale, e.g. 0.5; default off) also
+    hands every exposure but the shortest over gradually to the shorter
+    ones as its expected raw counts rise from ``taper_start`` to
+    ``saturation_fraction``: its share of the merge becomes its
+    inverse-variance share times a ``sin^2`` ramp from 1 to 0 (``tau = S W /
+    (W + (1 - S) w)`` with ``W`` the shorter exposures' weight).  That
+    removes the seams of uncorrected readings, but costs noise in the
+    hand-over band wherever the shorter exposure is dark-noise limited (the
+    seed's dark noise hardly grows beyond 100 ms).
+
+    ``variance`` of the result is the noise variance of the merge, ``sum
+    w_k^2 noise_k (t_ref / t_k)^2 / (sum w_k)^2`` (the non-linearity enters
+    the uncertainty budget separately, as ``scatter_nonlinearity``, Eq 92).
     """
     if taper_start is not None and not 0 <= taper_start < saturation_fraction:
         raise ValueError(
             f"taper_start = {taper_start!r} must be None or in [0, saturation_fraction = {saturation_fraction!r})"
         )
+    curve = _curve(nonlinearity_curve)
+    if correct_nonlinearity and curve is None:
+        raise ValueError("correct_nonlinearity needs a nonlinearity_curve")
+    if not (math.isfinite(curve_residual) and curve_residual >= 0):
+        raise ValueError(f"curve_residual must be a number >= 0, got {curve_residual!r}")
     pilot = stitch_replacement(stack, background, saturation_fraction=saturation_fraction,
                                gain_e_per_count=gain_e_per_count)
     t_ref = pilot.t_ref
     fs = stack.attrs.full_scale
+    black = stack.attrs.black_level
+    u_scale = curve_residual if correct_nonlinearity else 1.0
     rate = pilot.flux.astype(np.float64) / t_ref
     noise = _noise_terms(stack, background)
     for _ in range(max(1, int(iterations))):
@@ -304,15 +435,21 @@ def stitch_weighted(
         sw2v = np.zeros(stack.shape, np.float64)
         w_below = np.zeros(stack.shape, np.float64)  # inverse-variance weight of the shorter exposures so far
         count = np.zeros(stack.shape, np.int8)
-        for k, t, d, sat in _differences(stack, background, saturation_fraction):
+        lin = curve if correct_nonlinearity else None
+        for k, t, d, sat in _differences(stack, background, saturation_fraction, linearise=lin):
             n = stack.exposures[k].n_frames
+            scale2 = (t_ref / t) ** 2
             light = np.maximum(rate * t, 0.0)
-            var = (light / (gain_e_per_count * n) + noise[k]) * (t_ref / t) ** 2
+            var_noise = (light / (gain_e_per_count * n) + noise[k]) * scale2
+            x = (light + background.exposures[k].counts - black) / fs
+            if curve is not None and u_scale > 0:
+                var = var_noise + (u_scale * curve(np.clip(x, 0.0, 1.0)) * light) ** 2 * scale2
+            else:
+                var = var_noise
             w = 1.0 / var
             w[sat] = 0.0
             w_eff = w
             if k > 0 and taper_start is not None:
-                x = (light + background.exposures[k].counts) / fs
                 ramp = np.clip((saturation_fraction - x) / (saturation_fraction - taper_start), 0.0, 1.0)
                 s_ = np.sin(0.5 * np.pi * ramp) ** 2
                 with np.errstate(invalid="ignore", divide="ignore"):
@@ -320,10 +457,10 @@ def stitch_weighted(
                 w_eff = w * tau
             sw += w_eff
             swx += w_eff * (d * (t_ref / t))
-            sw2v += w_eff * w_eff * var
+            sw2v += w_eff * w_eff * var_noise
             w_below += w
             count += (w_eff > 0).astype(np.int8)
-            del d, var, w, w_eff, light
+            del d, var, var_noise, w, w_eff, light, x
         ok = sw > 0
         safe = np.where(ok, sw, 1.0)
         flux = np.where(ok, swx / safe, pilot.flux)
@@ -332,17 +469,27 @@ def stitch_weighted(
     return Stitched(flux.astype(np.float32), variance.astype(np.float32), ~ok, count, t_ref, "weighted")
 
 
-def stitch(
-    stack: RawStack, background: RawStack, *, merge: str = "weighted", taper_start: float | None = None, **kw: Any
-) -> Stitched:
+#: Keywords of :func:`stitch_weighted` that the replacement scheme does not take.
+WEIGHTED_ONLY = ("nonlinearity_curve", "correct_nonlinearity", "curve_residual", "taper_start", "iterations")
+
+
+def stitch(stack: RawStack, background: RawStack, *, merge: str = "weighted", **kw: Any) -> Stitched:
     """Background-subtract and stitch with ``merge`` = ``"weighted"`` or ``"replacement"``.
 
-    ``taper_start`` applies to the weighted merge only; other keywords go to both.
+    ``nonlinearity_curve``, ``curve_residual``, ``taper_start`` and
+    ``iterations`` apply to the weighted merge only (the replacement scheme
+    ignores them); ``correct_nonlinearity=True`` needs the weighted merge
+    (the replacement scheme is the seed's, uncorrected).  Other keywords go
+    to both.
     """
     if merge == "weighted":
-        return stitch_weighted(stack, background, taper_start=taper_start, **kw)
+        return stitch_weighted(stack, background, **kw)
     if merge == "replacement":
-        return stitch_replacement(stack, background, **kw)
+        if kw.get("correct_nonlinearity"):
+            raise ValueError(
+                "correct_nonlinearity needs merge='weighted' (the replacement scheme is the seed's, §3.6)"
+            )
+        return stitch_replacement(stack, background, **{k: v for k, v in kw.items() if k not in WEIGHTED_ONLY})
     raise ValueError(f"unknown merge {merge!r}; known: {', '.join(MERGES)}")
 
 
@@ -521,9 +668,16 @@ def beam_signature(
     merge: Literal["weighted", "replacement"] = "weighted",
     saturation_fraction: float = 0.98,
     gain_e_per_count: float = SEED_GAIN,
+    nonlinearity_curve: NonlinearityCurve | Sequence[tuple[float, float]] | None = SYNTHETIC_NONLINEARITY_CURVE,
+    correct_nonlinearity: bool = False,
+    curve_residual: float = SEED_CURVE_RESIDUAL,
     taper_start: float | None = None,
 ) -> BeamSignature:
-    """Stitch a beam signature and sum it over the array (§3.8): the incident flux ``Phi_b`` at ``OD_b``."""
+    """Stitch a beam signature and sum it over the array (§3.8): the incident flux ``Phi_b`` at ``OD_b``.
+
+    ``nonlinearity_curve``, ``correct_nonlinearity``, ``curve_residual`` and
+    ``taper_start`` are the weighted merge's (:func:`stitch_weighted`).
+    """
     if beam.attrs.kind != "beam":
         raise ReductionError(f"{beam.path}: kind is {beam.attrs.kind!r}, expected 'beam' for a beam signature")
     if beam_background.attrs.kind not in ("background", "dark"):
@@ -531,7 +685,8 @@ def beam_signature(
             f"{beam_background.path}: kind is {beam_background.attrs.kind!r}, expected 'background' (or 'dark')"
         )
     b = stitch(beam, beam_background, merge=merge, saturation_fraction=saturation_fraction,
-               gain_e_per_count=gain_e_per_count, taper_start=taper_start)
+               gain_e_per_count=gain_e_per_count, nonlinearity_curve=nonlinearity_curve,
+               correct_nonlinearity=correct_nonlinearity, curve_residual=curve_residual, taper_start=taper_start)
     if np.any(b.saturated):
         raise ReductionError(
             f"{beam.path}: {int(b.saturated.sum())} pixel(s) of the beam signature are saturated even at the "
@@ -564,6 +719,9 @@ def reduce_measurement(
     gain_e_per_count: float = SEED_GAIN,
     artifact_decades: float = 4.8,
     min_snr: float = 3.0,
+    nonlinearity_curve: NonlinearityCurve | Sequence[tuple[float, float]] | None = SYNTHETIC_NONLINEARITY_CURVE,
+    correct_nonlinearity: bool = False,
+    curve_residual: float = SEED_CURVE_RESIDUAL,
     taper_start: float | None = None,
     detailed_uncertainty: bool = False,
 ) -> ReducedFrame:
@@ -576,8 +734,11 @@ def reduce_measurement(
     seed's).  ``dR``, ``dd`` (m) and ``dtheta_c`` (rad) are the geometry's
     standard uncertainties.  ``artifact_decades`` places the artifact floor
     below the frame's peak; pixels whose stitched flux is under ``min_snr``
-    times its standard deviation are flagged too (0: off).  ``taper_start``
-    is the weighted merge's optional hand-over taper (:func:`stitch_weighted`).
+    times its standard deviation are flagged too (0: off).
+    ``nonlinearity_curve`` (the camera's response curve; None: noise-only
+    weights), ``correct_nonlinearity``, ``curve_residual`` and
+    ``taper_start`` are the weighted merge's (:func:`stitch_weighted`); the
+    beam signature was stitched with its own options.
     ``detailed_uncertainty`` adds a channel for every sub-contribution of the
     geometric terms (``u_theta_R``, ``u_solid_angle_d``, ...).
     """
@@ -598,8 +759,10 @@ def reduce_measurement(
     od_b, od_m = beam.attrs.optical_density, a.optical_density
     beam_flux = beam.flux
     phi_i = incident_flux(beam_flux, od_b, od_m)
+    curve = _curve(nonlinearity_curve)
     s = stitch(sample, sample_background, merge=merge, saturation_fraction=saturation_fraction,
-               gain_e_per_count=gain_e_per_count, taper_start=taper_start)
+               gain_e_per_count=gain_e_per_count, nonlinearity_curve=curve,
+               correct_nonlinearity=correct_nonlinearity, curve_residual=curve_residual, taper_start=taper_start)
     exposure_ratio = float(beam.t_ref / sample.exposure_times[-1])
 
     # Geometry of the measurement (misalignment included) on the output grid.
@@ -727,6 +890,8 @@ def reduce_measurement(
         "saturation_fraction": float(saturation_fraction),
         "min_snr": float(min_snr),
         "taper_start": -1.0 if taper_start is None else float(taper_start),
+        "nonlinearity_curve": curve.describe() if curve is not None and merge == "weighted" else "",
+        "nonlinearity_corrected": int(bool(correct_nonlinearity) and merge == "weighted"),
         **{f"u_{k}": v for k, v in sorted(uniform.items())},
         "usable_fraction": float(mask.mean()),
         "channel_units": "brdf: sr^-1, theta_s: rad, phi_s: rad, omega: sr, "
@@ -792,10 +957,13 @@ def reduce_measurement_set(
     ``step`` keeps every ``step``-th pixel of the output frames.  Other
     keyword options go to :func:`reduce_measurement` (``scatter_nonlinearity``,
     ``nd_tolerances``, ``dR``, ``dd``, ``dtheta_c``, ``saturation_fraction``,
-    ``gain_e_per_count``, ``artifact_decades``, ``min_snr``, ``taper_start``,
-    ``detailed_uncertainty``); the manifest's optional
-    ``[calibration]`` table supplies ``scatter_nonlinearity`` and extra
-    ``nd_tolerances`` (added to the seed's table) unless given here.  Inputs are only read; each
+    ``gain_e_per_count``, ``artifact_decades``, ``min_snr``,
+    ``nonlinearity_curve``, ``correct_nonlinearity``, ``curve_residual``,
+    ``taper_start``, ``detailed_uncertainty``); the weighted merge's options
+    also stitch the beam signature.  The manifest's optional
+    ``[calibration]`` table supplies ``scatter_nonlinearity``,
+    ``nonlinearity_curve`` and extra ``nd_tolerances`` (added to the seed's
+    table) unless given here.  Inputs are only read; each
     output is written to a temporary name and renamed into place, so an
     interrupted run leaves the old output or the new one.
     """
@@ -809,9 +977,18 @@ def reduce_measurement_set(
         options.setdefault("scatter_nonlinearity", cal.scatter_nonlinearity)
     if cal.nd_tolerances and options.get("nd_tolerances") is None:
         options["nd_tolerances"] = {**SEED_ND_TOLERANCES, **cal.nd_tolerances}
+    if cal.nonlinearity_curve is not None:
+        options.setdefault("nonlinearity_curve", NonlinearityCurve(cal.nonlinearity_curve))
     out_dir = Path(out_dir)
     inputs = {p.resolve() for p in manifest.files()} | {manifest.path}
-    stitch_kw = {k: options[k] for k in ("saturation_fraction", "gain_e_per_count", "taper_start") if k in options}
+    stitch_kw = {
+        k: options[k]
+        for k in ("saturation_fraction", "gain_e_per_count", "nonlinearity_curve", "correct_nonlinearity",
+                  "curve_residual", "taper_start")
+        if k in options
+    }
+    if merge == "replacement" and options.get("correct_nonlinearity"):
+        raise ValueError("correct_nonlinearity needs merge='weighted' (the replacement scheme is the seed's, §3.6)")
     beam = beam_signature(
         _read(manifest.beam.file, "beam signature"),
         _read(manifest.beam.background, "beam background"),
@@ -844,7 +1021,9 @@ def plot_merge_comparison(
     *,
     row: int | None = None,
     truth: np.ndarray | None = None,
-    taper_start: float | None = 0.5,
+    nonlinearity_curve: NonlinearityCurve | Sequence[tuple[float, float]] | None = SYNTHETIC_NONLINEARITY_CURVE,
+    corrected: bool = True,
+    taper_start: float | None = None,
     average_rows: bool = False,
     saturation_fraction: float = 0.98,
 ) -> Path:
@@ -853,12 +1032,14 @@ def plot_merge_comparison(
     Top: the stitched flux (sDC, log scale) of each merge along the row, each
     exposure's scaled counts faint behind.  Bottom: relative error against
     ``truth`` (expected sDC; without it, against the weighted merge), with
-    the replacement scheme's switching points marked -- its seams -- and
-    the weighted merge with the hand-over taper of ``taper_start`` (None:
-    left out).  ``row`` defaults to the row of the brightest pixel;
-    ``average_rows`` plots the bottom panel's errors averaged over all rows
-    (for a target constant down each column, so that seams stand out of the
-    noise).  Written atomically as PNG (matplotlib Agg).
+    the replacement scheme's switching points marked -- its seams -- for
+    the weighted merge (inverse full variance with ``nonlinearity_curve``),
+    with ``corrected``: the weighted merge of readings corrected by the
+    curve, and with ``taper_start`` (None: left out): the weighted merge
+    with that hand-over taper.  ``row`` defaults to the row of the brightest
+    pixel; ``average_rows`` plots the bottom panel's errors averaged over
+    all rows (for a target constant down each column, so that seams stand
+    out of the noise).  Written atomically as PNG (matplotlib Agg).
     """
     import matplotlib
 
@@ -866,11 +1047,16 @@ def plot_merge_comparison(
     import matplotlib.pyplot as plt
 
     kw = dict(saturation_fraction=saturation_fraction)
+    curve = _curve(nonlinearity_curve)
     merges = {"replacement (seed §3.6)": stitch_replacement(stack, background, **kw),
-              "inverse-variance weighted": stitch_weighted(stack, background, **kw)}
+              "weighted (noise + non-linearity variance)": stitch_weighted(
+                  stack, background, nonlinearity_curve=curve, **kw)}
+    if corrected and curve is not None:
+        merges["weighted, readings corrected by the curve"] = stitch_weighted(
+            stack, background, nonlinearity_curve=curve, correct_nonlinearity=True, **kw)
     if taper_start is not None:
         merges[f"weighted, hand-over taper from {taper_start:g} FS"] = stitch_weighted(
-            stack, background, taper_start=taper_start, **kw
+            stack, background, nonlinearity_curve=curve, taper_start=taper_start, **kw
         )
     rep, wei = list(merges.values())[:2]
     if row is None:
@@ -882,7 +1068,7 @@ def plot_merge_comparison(
         d = (e.counts[row].astype(np.float64) - b.counts[row]) * (t_ref / e.exposure_s)
         sat = e.counts[row] >= saturation_fraction * stack.attrs.full_scale
         ax0.plot(x, np.where(sat | (d <= 0), np.nan, d), lw=0.6, alpha=0.4, label=f"{e.exposure_s * 1e3:g} ms, scaled")
-    styles = ["k-", "C3--", "C2-."]
+    styles = ["k-", "C3--", "C2-.", "C0:"]
     for (name, m), st in zip(merges.items(), styles):
         ax0.plot(x, np.where(m.flux[row] > 0, m.flux[row], np.nan), st, lw=1.0, label=name)
     if truth is not None:
