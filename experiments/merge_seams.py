@@ -6,16 +6,32 @@ instrument on a coarse camera (8 x 8 binned pixels, :meth:`InstrumentConfig.coar
 four exposures 1-1000 ms.  Every flux level of the stitched range is then
 sampled by many pixels, so the merges can be compared level by level.
 
+Merges (:mod:`brdfjax.instrument.reduce`):
+
+* ``replacement`` -- the seed's scheme (§3.6);
+* ``weighted`` -- the default inverse-variance merge: each reading weighted by
+  the inverse of its full variance, noise plus the square of its
+  non-linearity error from the calibration curve (here the synthetic
+  instrument's documented curve, ``SYNTHETIC_NONLINEARITY_CURVE``, which is
+  what the camera does);
+* ``weighted, noise only`` -- the same with noise variances only (no curve);
+* ``weighted + taper`` -- ``weighted`` with the hand-over taper from 0.5 of
+  full scale;
+* ``weighted, corrected`` -- the readings corrected by the curve first, weights
+  from noise plus the curve's residual uncertainty.
+
 Printed:
 
 * RMS relative error of the stitched flux against the expected light, by
-  flux band, for the replacement scheme, the inverse-variance merge and the
-  inverse-variance merge with the hand-over taper (``taper_start=0.5``):
-  once with every effect of the instrument, once without the non-linearity
-  (noise only: what a merge can act on), pooled over ``--seeds`` noise seeds;
+  flux band: once with every effect of the instrument, once without the
+  non-linearity (noise only: what a merge can act on; the weights then use
+  no curve, as for a camera calibrated to be linear), pooled over
+  ``--seeds`` noise seeds;
 * the seams: the jump of the mean relative error across each exposure
   switch (pixels at 85-97 % vs 103-120 % of the flux where the longer
-  exposure saturates), on a noise-free stack with only the non-linearity.
+  exposure saturates), on a noise-free stack with only the non-linearity,
+  also as a fraction of the replacement scheme's;
+* a summary line per merge: overall RMS and the largest seam.
 
 Written: ``merge_seams.png`` (:func:`brdfjax.instrument.reduce.plot_merge_comparison`
 on the full-instrument stack: one row's flux, and the relative error averaged
@@ -34,15 +50,29 @@ from pathlib import Path
 import numpy as np
 
 import brdfjax as bj
-from brdfjax.instrument.reduce import plot_merge_comparison, stitch_replacement, stitch_weighted
+from brdfjax.instrument.reduce import (
+    SYNTHETIC_NONLINEARITY_CURVE,
+    plot_merge_comparison,
+    stitch_replacement,
+    stitch_weighted,
+)
 from brdfjax.instrument.synthetic import InstrumentConfig, SyntheticInstrument
 
 BANDS = ((5e2, 5e3), (5e3, 1.6e4), (1.6e4, 1.6e5), (1.6e5, 1.6e6), (1.6e6, 1.6e7), (5e2, 1.6e7))
-MERGES = {
-    "replacement": lambda st, bg: stitch_replacement(st, bg),
-    "weighted": lambda st, bg: stitch_weighted(st, bg),
-    "weighted+taper": lambda st, bg: stitch_weighted(st, bg, taper_start=0.5),
-}
+
+
+def merges(curve):
+    """Name -> merge(stack, background) with the camera's calibration ``curve`` (None: calibrated linear)."""
+    out = {
+        "replacement": lambda st, bg: stitch_replacement(st, bg),
+        "weighted": lambda st, bg: stitch_weighted(st, bg, nonlinearity_curve=curve),
+        "weighted, noise only": lambda st, bg: stitch_weighted(st, bg, nonlinearity_curve=None),
+        "weighted + taper": lambda st, bg: stitch_weighted(st, bg, nonlinearity_curve=curve, taper_start=0.5),
+    }
+    if curve is not None:
+        out["weighted, corrected"] = lambda st, bg: stitch_weighted(
+            st, bg, nonlinearity_curve=curve, correct_nonlinearity=True)
+    return out
 
 
 def ramp_measurement(config: InstrumentConfig, seed: int, shape=(48, 256), decades=(-1.0, 4.5)):
@@ -59,11 +89,11 @@ def ramp_measurement(config: InstrumentConfig, seed: int, shape=(48, 256), decad
     return st, bg, light * float(st.exposure_times[-1])
 
 
-def band_errors(config: InstrumentConfig, seeds) -> dict:
+def band_errors(config: InstrumentConfig, seeds, curve) -> dict:
     sq: dict = {}
     for seed in seeds:
         st, bg, light = ramp_measurement(config, seed)
-        for name, merge in MERGES.items():
+        for name, merge in merges(curve).items():
             m = merge(st, bg)
             for band in BANDS:
                 sel = (light > band[0]) & (light < band[1]) & ~m.saturated
@@ -71,11 +101,11 @@ def band_errors(config: InstrumentConfig, seeds) -> dict:
     return {k: float(np.sqrt(np.mean(v))) for k, v in sq.items()}
 
 
-def seams(config: InstrumentConfig) -> dict:
+def seams(config: InstrumentConfig, curve) -> dict:
     st, bg, light = ramp_measurement(config, 0)
     t, fs = st.exposure_times, st.attrs.full_scale
     out = {}
-    for name, merge in MERGES.items():
+    for name, merge in merges(curve).items():
         m = merge(st, bg)
         jumps = []
         for k in range(len(t) - 1):
@@ -87,30 +117,49 @@ def seams(config: InstrumentConfig) -> dict:
     return out
 
 
+def _table(title: str, rms: dict, names) -> None:
+    print(title)
+    print(f"| {'merge':<21} | " + " | ".join(f"{f'{a:.1e}-{b:.1e}':>17}" for a, b in BANDS[:-1])
+          + f" | {'all, 5e2-1.6e7':>14} |")
+    for n in names:
+        print(f"| {n:<21} | " + " | ".join(f"{rms[(n, band)]:>17.4%}" for band in BANDS[:-1])
+              + f" | {rms[(n, BANDS[-1])]:>14.4%} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=Path("runs/merge_seams"))
     ap.add_argument("--seeds", type=int, default=4)
     args = ap.parse_args(argv)
     base = InstrumentConfig().coarse(8)
+    curve = SYNTHETIC_NONLINEARITY_CURVE  # the synthetic camera's documented curve (NonLinearity.common_max)
+    assert curve.points == ((0.0, -base.nonlinearity.common_max), (1.0, base.nonlinearity.common_max))
     seeds = range(args.seeds)
-    full = band_errors(base, seeds)
-    noise_only = band_errors(base.without("nonlinearity"), seeds)
-    seam = seams(base.ideal().with_effects(nonlinearity=True, black_level=True, quantisation=True, saturation=True))
-    names = list(MERGES)
-    print(f"RMS relative error of the stitched flux vs the expected light ({args.seeds} seeds, 48 x 256 px each)")
-    print(f"| {'band (sDC)':<17} | " + " | ".join(f"{n + ' (all)':>20}" for n in names) + " | "
-          + " | ".join(f"{n + ' (noise)':>22}" for n in names) + " |")
-    for band in BANDS:
-        label = f"{band[0]:.1e}-{band[1]:.1e}"
-        print(f"| {label:<17} | " + " | ".join(f"{full[(n, band)]:>20.4%}" for n in names) + " | "
-              + " | ".join(f"{noise_only[(n, band)]:>22.4%}" for n in names) + " |")
+    full = band_errors(base, seeds, curve)
+    noise_only = band_errors(base.without("nonlinearity"), seeds, None)
+    seam = seams(base.ideal().with_effects(nonlinearity=True, black_level=True, quantisation=True, saturation=True),
+                 curve)
+    names = list(merges(curve))
+    print(f"RMS relative error of the stitched flux vs the expected light ({args.seeds} seeds, 48 x 256 px each)\n")
+    _table("every effect of the instrument:", full, names)
+    print()
+    _table("noise only (no non-linearity; weights without a curve):", noise_only,
+           [n for n in names if n in merges(None) and n != "weighted, noise only"])
     print("\nSeams: jump of the mean relative error across each exposure switch (non-linearity only, no noise)")
+    ref = max(abs(j) for j in seam["replacement"])
     for n in names:
-        print(f"  {n:<15} " + "  ".join(f"{1e3 * t:g} ms: {j:+.3%}" for t, j in zip((0.01, 0.1, 1.0), seam[n])))
+        print(f"  {n:<21} " + "  ".join(f"{1e3 * t:g} ms: {j:+.3%}" for t, j in zip((0.01, 0.1, 1.0), seam[n]))
+              + f"   (largest {max(abs(j) for j in seam[n]) / ref:.0%} of replacement's)")
+    print("\nSummary (overall RMS with every effect; largest seam):")
+    r0 = full[("replacement", BANDS[-1])]
+    for n in names:
+        r = full[(n, BANDS[-1])]
+        verdict = "reference" if n == "replacement" else f"{'lower' if r < r0 else 'HIGHER'} than replacement"
+        print(f"  {n:<21} RMS {r:.4%} ({verdict}), largest seam {max(abs(j) for j in seam[n]):.3%}")
     args.out.mkdir(parents=True, exist_ok=True)
     st, bg, light = ramp_measurement(base, 0)
-    png = plot_merge_comparison(st, bg, args.out / "merge_seams.png", row=24, truth=light, average_rows=True)
+    png = plot_merge_comparison(st, bg, args.out / "merge_seams.png", row=24, truth=light, average_rows=True,
+                                nonlinearity_curve=curve, corrected=True)
     print(f"\nwrote {png}")
     return 0
 
