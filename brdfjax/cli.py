@@ -319,6 +319,12 @@ def _reduce_arguments(p: argparse.ArgumentParser) -> None:
         help="HDR merge: inverse-variance weighted (default) or the seed's replacement scheme (§3.6)",
     )
     p.add_argument("--step", type=int, default=1, metavar="K", help="keep every K-th pixel of the output frames")
+    p.add_argument(
+        "--correct-nonlinearity",
+        action="store_true",
+        help="correct the readings by the camera's response curve (manifest [calibration] nonlinearity_curve, "
+        "else the seed's typical 1.72%% curve) before the weighted merge: removes the exposure-switch seams",
+    )
     p.add_argument("--no-plot", action="store_true", help="write the EXR files and summary only, no PNG figures")
 
 
@@ -356,7 +362,12 @@ def _run_reduce(args: argparse.Namespace) -> int:
     console.print(f"brdfjax reduce: {args.manifest} -> {args.out} ({args.merge} merge)", markup=False)
     t0 = time.perf_counter()
     try:
-        paths = reduce_measurement_set(args.manifest, args.out, merge=args.merge, step=args.step)
+        if args.correct_nonlinearity and args.merge != "weighted":
+            _error(prog, "--correct-nonlinearity needs --merge weighted (the replacement scheme is the seed's, §3.6)")
+            return EXIT_USAGE
+        paths = reduce_measurement_set(
+            args.manifest, args.out, merge=args.merge, step=args.step, correct_nonlinearity=args.correct_nonlinearity
+        )
     except (ManifestError, RawFormatError, FileNotFoundError) as e:
         _error(prog, str(e))
         return EXIT_USAGE

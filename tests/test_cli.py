@@ -287,3 +287,14 @@ def test_synthesize_bad_effect_name_exit_2(tmp_path, capsys):
     cfg.write_text(SMALL_CONFIG)
     assert main(["synthesize", str(cfg), "--out", str(tmp_path / "set"), "--without", "stray_lite"]) == 2
     assert "unknown effect(s) ['stray_lite']; known:" in capsys.readouterr().err
+
+
+def test_reduce_correct_nonlinearity_flag(tmp_path, capsys):
+    from brdfjax.cli import main
+    from brdfjax.instrument.reduce import read_reduced_frame
+
+    assert main(["reduce", str(EXAMPLE_SET), "--out", str(tmp_path / "c"), "--no-plot", "--correct-nonlinearity"]) == 0
+    assert read_reduced_frame(tmp_path / "c" / "solar_cell_20deg.exr").attrs["nonlinearity_corrected"] in (1, True)
+    assert main(["reduce", str(EXAMPLE_SET), "--out", str(tmp_path / "r"), "--merge", "replacement",
+                 "--correct-nonlinearity"]) == 2
+    assert "needs --merge weighted" in capsys.readouterr().err
