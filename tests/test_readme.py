@@ -15,7 +15,7 @@ def test_readme_python_tour_runs():
     ns: dict = {}
     exec(compile(block.group(1), str(README), "exec"), ns)
     assert ns["brdf"].shape == (2472, 3296)
-    assert float(ns["omega"]) == np.float32(2.864e-10) or abs(float(ns["omega"]) - 2.864e-10) < 5e-14
+    assert abs(float(ns["omega"]) - 2.864e-10) < 5e-14  # seed Table 3, centre pixel
     assert set(ns["parts"]) == {"center", "offset", "bars"}
     assert np.all(np.isfinite(np.asarray(ns["grads"].terms["center"].distribution.m)))
     np.testing.assert_allclose(np.asarray(ns["n_h"]), [0, 1648], atol=1e-6)
