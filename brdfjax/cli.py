@@ -448,12 +448,51 @@ def _synthesize_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder for the measurement set")
     p.add_argument("--seed", type=int, default=0, help="noise seed (the same seed gives the same files)")
-    p.add_argument("--camera-seed", type=int, default=0, help="seed of the camera's fixed per-pixel maps")
+    p.add_argument(
+        "--camera-seed", type=int, default=None, help="seed of the camera's fixed per-pixel maps (overrides the config)"
+    )
     p.add_argument("--nd", default=None, metavar="STACK", help='sample ND filters, e.g. "3.0" (default: chosen by the seed\'s rule)')
+    p.add_argument(
+        "--instrument", default=None, metavar="TOML",
+        help="instrument config: every effect's switch and parameters (see configs/instrument_seed.toml); "
+        "default: the seed's instrument",
+    )
     p.add_argument(
         "--without", default="", metavar="EFFECTS",
         help="comma-separated instrument effects to switch off (e.g. stray_light,ambient)",
     )
+
+
+def load_instrument_config(path: str | os.PathLike | None, camera_seed: int | None = None) -> Any:
+    """Read an instrument TOML into :class:`~brdfjax.instrument.synthetic.InstrumentConfig`.
+
+    Raises :class:`~brdfjax.config.ConfigError` naming the file and the dotted key on a bad value or an
+    unknown key.
+    """
+    import tomllib
+
+    from pydantic import ValidationError
+
+    from .config import ConfigError
+    from .instrument.synthetic import InstrumentConfig
+
+    source = str(path) if path is not None else "<default instrument>"
+    data: dict[str, Any] = {}
+    if path is not None:
+        try:
+            data = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise ConfigError(source, [("", "no such instrument config")]) from None
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(source, [("", f"not valid TOML ({e})")]) from None
+    if camera_seed is not None:
+        data["camera_seed"] = camera_seed
+    try:
+        return InstrumentConfig(**data)
+    except ValidationError as e:
+        raise ConfigError(
+            source, [(".".join(str(x) for x in err["loc"]), err["msg"]) for err in e.errors()]
+        ) from None
 
 
 def _run_synthesize(args: argparse.Namespace) -> int:
@@ -461,11 +500,16 @@ def _run_synthesize(args: argparse.Namespace) -> int:
 
     from .config import ConfigError, load_simulate_config
     from .instrument.raw import Calibration
-    from .instrument.synthetic import EFFECTS, InstrumentConfig, SyntheticInstrument
+    from .instrument.synthetic import EFFECTS, SyntheticInstrument
 
     prog = "brdfjax synthesize"
     try:
         cfg = load_simulate_config(args.config)
+    except ConfigError as e:
+        _error(prog, str(e))
+        return EXIT_USAGE
+    try:
+        inst_cfg = load_instrument_config(args.instrument, args.camera_seed)
     except ConfigError as e:
         _error(prog, str(e))
         return EXIT_USAGE
@@ -481,7 +525,7 @@ def _run_synthesize(args: argparse.Namespace) -> int:
     detector = cfg.build_detector()
     # The seed instrument's beam footprint and stray-light offsets are sizes on the array: scale
     # them to this detector's pixels (a no-op on the seed camera).
-    inst_cfg = InstrumentConfig(camera_seed=args.camera_seed).without(*off)
+    inst_cfg = inst_cfg.without(*off)
     inst_cfg = inst_cfg.for_pixel_pitch(float(detector.pixel_pitch))
     instrument = SyntheticInstrument(detector, inst_cfg, seed=args.seed)
     model = cfg.build_model()

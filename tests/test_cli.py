@@ -298,3 +298,27 @@ def test_reduce_correct_nonlinearity_flag(tmp_path, capsys):
     assert main(["reduce", str(EXAMPLE_SET), "--out", str(tmp_path / "r"), "--merge", "replacement",
                  "--correct-nonlinearity"]) == 2
     assert "needs --merge weighted" in capsys.readouterr().err
+
+
+def test_synthesize_instrument_config(tmp_path, capsys):
+    """Every effect's switch and parameters come from an instrument TOML; bad keys are named."""
+    from brdfjax.cli import load_instrument_config, main
+    from brdfjax.config import ConfigError
+    from brdfjax.instrument.raw import read_raw_exr
+
+    shipped = load_instrument_config(Path(__file__).parents[1] / "configs" / "instrument_seed.toml")
+    from brdfjax.instrument.synthetic import InstrumentConfig
+
+    assert shipped == InstrumentConfig()  # the shipped file spells out the defaults
+    inst = tmp_path / "inst.toml"
+    inst.write_text("exposures_s = [0.002, 0.02]\nn_frames = 4\n[stray_light]\nenabled = false\n")
+    cfg = tmp_path / "small.toml"
+    cfg.write_text(SMALL_CONFIG)
+    assert main(["synthesize", str(cfg), "--instrument", str(inst), "--out", str(tmp_path / "s")]) == 0
+    st = read_raw_exr(tmp_path / "s" / "ti40.exr")
+    assert [e.exposure_s for e in st.exposures] == [0.002, 0.02] and st.exposures[0].n_frames == 4
+    inst.write_text("n_frames = 0\n[footprint]\nw_pix = 3\n")
+    with pytest.raises(ConfigError, match="footprint.w_pix: Extra inputs are not permitted"):
+        load_instrument_config(inst)
+    assert main(["synthesize", str(cfg), "--instrument", str(inst), "--out", str(tmp_path / "t")]) == 2
+    assert "n_frames: Input should be greater than or equal to 1" in capsys.readouterr().err
