@@ -1,0 +1,47 @@
+"""Inverse fitting: brdfjax models fitted to detector frames and goniometer tables.
+
+``fit(model, data, params)`` fits any :class:`~brdfjax.Model` to one or many
+:class:`FrameData` (BRDF frames on a pixel grid with ``sigma_rel`` and a
+mask) and :class:`TableData` (goniometer samples), jointly, with parameters
+shared across frames or per frame, bounds by reparametrisation, log-space
+residuals weighted by each point's uncertainty, an optional robust loss and
+instrument function, and 1-sigma uncertainties from the weighted Jacobian.
+See the module docstrings of ``_params``, ``_residuals``, ``_covariance``,
+``_solvers`` and ``_auto_init`` for the conventions.
+"""
+
+from ._auto_init import (
+    INITIALIZERS as INITIALIZERS,
+    fit_amplitudes as fit_amplitudes,
+    get_initializer as get_initializer,
+    init_solar_cell as init_solar_cell,
+    init_specular_lambertian as init_specular_lambertian,
+)
+from ._common import FitInputError as FitInputError
+from ._covariance import Covariance as Covariance, covariance as covariance
+from ._data import FrameData as FrameData, TableData as TableData
+from ._synthetic import render_noisy_frames as render_noisy_frames
+from ._fit import FIRST_STAGES as FIRST_STAGES, fit as fit, prepare as prepare, versions as versions
+from ._params import TRANSFORMS as TRANSFORMS, Param as Param
+from ._residuals import (
+    LOSSES as LOSSES,
+    irls_weights as irls_weights,
+    robust_residuals as robust_residuals,
+)
+from ._result import BlockSummary as BlockSummary, FitResult as FitResult, ParameterEstimate as ParameterEstimate
+from ._solvers import (
+    SOLVERS as SOLVERS,
+    LBFGSB as LBFGSB,
+    AbstractSolver as AbstractSolver,
+    LevenbergMarquardt as LevenbergMarquardt,
+    SolveOutcome as SolveOutcome,
+    get_solver as get_solver,
+)
+from ._tables import (
+    CANONICAL_COLUMNS as CANONICAL_COLUMNS,
+    export_table as export_table,
+    read_astm_e1392 as read_astm_e1392,
+    read_cornell_brdf as read_cornell_brdf,
+    read_merl_inplane as read_merl_inplane,
+    read_table as read_table,
+)

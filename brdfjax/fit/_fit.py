@@ -1,0 +1,519 @@
+"""``fit``: fit a brdfjax model to detector frames and/or goniometer tables.
+
+The numerical work is pure JAX (:mod:`brdfjax.fit._problem`); this module sets
+it up from NumPy inputs, runs the solver and turns the solution into a
+:class:`~brdfjax.fit.FitResult`.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import math
+import platform
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry import Directions
+from ..render import Frame, cast
+from ..terms import Model
+from ._common import FRAME_PARAMETERS, FitInputError
+from ._covariance import covariance
+from ._data import FrameData, TableData
+from ._params import Layout, as_param, build_layout
+from ._problem import (
+    FrameBlock,
+    Problem,
+    TableBlock,
+    build_targets,
+    can_stack,
+    stack_frames,
+    evaluate,
+    frame_for_block,
+    jacobian,
+    template_for_block,
+    with_loss,
+    with_scale,
+)
+from ._residuals import DEFAULT_LOSS_SCALE, LOSSES, irls_weights, loss_id
+from ._result import BlockSummary, FitResult, ParameterEstimate
+from ._solvers import AbstractSolver, SolveOutcome, get_solver
+
+__all__ = ["fit", "prepare", "versions", "FIRST_STAGES"]
+
+#: First stages of a fit (``fit(first_stage=...)``): ``soft`` softens the log residuals below each
+#: block's median datum; a loss name runs that robust loss first.
+FIRST_STAGES = ("soft", "huber", "cauchy")
+
+Data = FrameData | TableData
+
+
+def versions() -> dict[str, str]:
+    """Versions of Python and the packages a fit depends on."""
+    out = {"python": platform.python_version()}
+    for pkg in ("brdfjax", "jax", "jaxlib", "equinox", "optimistix", "lineax", "jaxopt", "numpy"):
+        try:
+            out[pkg] = importlib.metadata.version(pkg)
+        except importlib.metadata.PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def _as_blocks(data: Data | Sequence[Data]) -> list[Data]:
+    blocks = [data] if isinstance(data, FrameData | TableData) else list(data)
+    if not blocks:
+        raise FitInputError("no data: give at least one FrameData or TableData")
+    for i, b in enumerate(blocks):
+        if not isinstance(b, FrameData | TableData):
+            raise FitInputError(f"data[{i}] is a {type(b).__name__}; expected FrameData or TableData")
+    return blocks
+
+
+def _block_names(blocks: Sequence[Data]) -> tuple[str, ...]:
+    names = [b.name for b in blocks]
+    if len(set(names)) == len(names):
+        return tuple(names)
+    return tuple(f"{n}{i}" for i, n in enumerate(names))
+
+
+def _leaves(detector) -> tuple[Any, list[np.ndarray]]:
+    leaves, treedef = jax.tree_util.tree_flatten(detector, is_leaf=lambda x: x is None)
+    return treedef, [None if x is None else np.asarray(x) for x in leaves]
+
+
+def _check_detectors(blocks: Sequence[Data], names: Sequence[str], allow: bool) -> None:
+    frames = [(n, b) for n, b in zip(names, blocks) if isinstance(b, FrameData)]
+    if len(frames) < 2 or allow:
+        return
+    (n0, b0), rest = frames[0], frames[1:]
+    t0, l0 = _leaves(b0.detector)
+    for n, b in rest:
+        t, lv = _leaves(b.detector)
+        same = b.detector.shape == b0.detector.shape and t == t0 and all(
+            (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y)) for x, y in zip(l0, lv)
+        )
+        if not same:
+            raise FitInputError(
+                f"frames '{n0}' and '{n}' were taken with different detectors; a joint fit of different "
+                "detectors must say so: pass allow_different_detectors=True"
+            )
+
+
+def _resolve_precision(precision: str | None) -> tuple[str, Any]:
+    if precision is None:
+        precision = "float64" if jax.config.jax_enable_x64 else "float32"
+    if precision not in ("float32", "float64"):
+        raise FitInputError(f"precision must be 'float32' or 'float64', got {precision!r}")
+    if precision == "float64" and not jax.config.jax_enable_x64:
+        raise FitInputError(
+            "precision 'float64' needs 64-bit JAX: call jax.config.update('jax_enable_x64', True) first "
+            "(brdfjax never flips this process-wide switch for you)"
+        )
+    return precision, (jnp.float64 if precision == "float64" else jnp.float32)
+
+
+def _floor(block: Data, usable: np.ndarray, floor: float | str) -> float:
+    if isinstance(floor, str):
+        if floor != "auto":
+            raise FitInputError(f"floor must be a number (sr^-1) or 'auto', got {floor!r}")
+        return 1e-6 * float(np.min(np.asarray(block.brdf, float)[usable]))
+    floor = float(floor)
+    if not (floor >= 0 and math.isfinite(floor)):
+        raise FitInputError(f"floor must be a non-negative number (sr^-1), got {floor!r}")
+    return floor
+
+
+def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame, floor: float, use_footprint: bool):
+    brdf = np.asarray(b.brdf, np.float64)
+    sigma = np.broadcast_to(np.asarray(b.sigma_rel, np.float64), brdf.shape)
+    data = brdf[usable]
+    inv_sigma = 1.0 / sigma[usable]
+    soft = float(np.median(data))
+    detector = b.arm_detector()
+    if b.footprint is not None and use_footprint:
+        k = np.asarray(b.footprint, np.float64)
+        return FrameBlock(
+            template, frame, detector,
+            np.asarray(b.grid.n_h, np.float64), np.asarray(b.grid.n_v, np.float64),
+            data, inv_sigma, np.float64(floor), np.float64(soft), k / k.sum(), np.flatnonzero(usable.ravel()),
+        )
+    rows, cols = np.nonzero(usable)
+    return FrameBlock(
+        template, frame, detector,
+        np.asarray(b.grid.n_h, np.float64)[cols], np.asarray(b.grid.n_v, np.float64)[rows],
+        data, inv_sigma, np.float64(floor), np.float64(soft),
+    )
+
+
+def _table_block(b: TableData, usable: np.ndarray, template: Model, floor: float):
+    sel = usable
+    ti, pi_, ts, ps = (np.asarray(getattr(b, f), np.float64)[sel] for f in ("theta_i", "phi_i", "theta_s", "phi_s"))
+    dirs = Directions.from_angles(ti, pi_, ts, ps)
+    wl = np.broadcast_to(np.asarray(b.wavelength, np.float64), usable.shape)[sel]
+    brdf = np.asarray(b.brdf, np.float64)[sel]
+    inv_sigma = np.ones_like(brdf) if b.sigma_rel is None else 1.0 / np.broadcast_to(np.asarray(b.sigma_rel, np.float64), usable.shape)[sel]
+    return TableBlock(template, dirs, wl, brdf, inv_sigma, np.float64(floor), np.float64(np.median(brdf)))
+
+
+def _wants_auto(spec: Mapping[str, Any]) -> bool:
+    return any(isinstance(p.value, str) and p.value == "auto" for p in (as_param(k, v) for k, v in spec.items()))
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """A validated fit problem and what the result needs to know about its blocks."""
+
+    problem: Problem
+    layout: Layout
+    blocks: list[Data]
+    names: tuple[str, ...]
+    auto: dict[str, Any]
+    warnings: list[str]
+    inv_sigma: tuple[np.ndarray, ...]  # per block, at the usable points
+    convolved: tuple[bool, ...]
+
+
+def prepare(
+    model: Model,
+    data: Data | Sequence[Data],
+    params: Mapping[str, Any] | None = None,
+    *,
+    solver: AbstractSolver,
+    loss: str = "linear",
+    loss_scale: float | None = None,
+    initializer: str | Callable | None = None,
+    init_options: Mapping[str, Any] | None = None,
+    floor: float | str = "auto",
+    precision: str | None = None,
+    allow_different_detectors: bool = False,
+    use_footprint: bool = True,
+) -> "Prepared":
+    """Validate the inputs and build the :class:`Problem` (unscaled) and its :class:`Layout`."""
+    from ._auto_init import get_initializer
+
+    if not isinstance(model, Model):
+        raise FitInputError(f"model must be a brdfjax Model (a named sum of terms), got {type(model).__name__}")
+    spec = dict(params or {})
+    if loss not in LOSSES:
+        raise FitInputError(f"unknown loss '{loss}'; known: {', '.join(LOSSES)}")
+    k = DEFAULT_LOSS_SCALE if loss_scale is None else float(loss_scale)
+    if not (k > 0 and math.isfinite(k)):
+        raise FitInputError(f"loss_scale must be a positive number (in sigma), got {loss_scale!r}")
+    blocks = _as_blocks(data)
+    names = _block_names(blocks)
+    _check_detectors(blocks, names, allow_different_detectors)
+    usable = [b.check_usable() for b in blocks]
+    precision, dtype = _resolve_precision(precision)
+    warnings: list[str] = []
+
+    auto: dict[str, Any] | None = None
+    if _wants_auto(spec):
+        init = get_initializer(initializer, model)
+        auto = dict(init(model, blocks, **dict(init_options or {})))
+    elif initializer is not None:
+        get_initializer(initializer, model)  # validate the name even when unused
+
+    frame_values = {
+        name: [float(getattr(b, name)) if isinstance(b, FrameData) else None for b in blocks] for name in FRAME_PARAMETERS
+    }
+    model_values = {k_: float(np.asarray(v)) for k_, v in model.params().items()}
+    layout = build_layout(
+        spec, model_values, model.parameter_units(), names, frame_values, auto, solver.box_bounds
+    )
+    built = []
+    for i, (b, u) in enumerate(zip(blocks, usable)):
+        template = template_for_block(model, layout, i)
+        fl = _floor(b, u, floor)
+        if isinstance(b, FrameData):
+            frame = frame_for_block(Frame(b.theta_i, b.phi_ref, b.wavelength), layout, i)
+            built.append(_frame_block(b, u, template, frame, fl, use_footprint))
+        else:
+            built.append(_table_block(b, u, template, fl))
+    n_free = len(layout.free)
+    lo = np.array([e.lower for e in layout.free], np.float64)
+    hi = np.array([e.upper for e in layout.free], np.float64)
+    stacked = can_stack(built)
+    problem = Problem(
+        blocks=() if stacked else tuple(built),
+        stack=stack_frames(built) if stacked else None,
+        u0=layout.u0(),
+        scale=np.ones(n_free),
+        lower=lo,
+        upper=hi,
+        loss_index=np.int32(loss_id(loss)),
+        loss_scale=np.float64(k),
+        soften=np.float64(0.0),
+        transforms=tuple(e.transform for e in layout.free),
+        targets=build_targets(layout),
+        counts=tuple(int(b.data.shape[0]) for b in built),
+    )
+    return Prepared(
+        cast(problem, dtype), layout, blocks, names, auto or {}, warnings,
+        tuple(np.asarray(b.inv_sigma, np.float64) for b in built),
+        tuple(isinstance(b, FrameBlock) and b.kernel is not None for b in built),
+    )
+
+
+def _scales(problem: Problem, layout: Layout, warnings: list[str]) -> np.ndarray:
+    """Per-parameter step scale: 1 / (Jacobian column norm) at the start, capped by ``scale_max``."""
+    n = len(layout.free)
+    if n == 0:
+        return np.ones(0)
+    J = np.asarray(jacobian(jnp.zeros(n, problem.u0.dtype), problem), np.float64)
+    norms = np.linalg.norm(J, axis=0)
+    caps = np.array([e.scale_max for e in layout.free])
+    scale = np.empty(n)
+    for i, e in enumerate(layout.free):
+        if not np.isfinite(norms[i]):
+            raise FitInputError(
+                f"parameter '{e.name}': the Jacobian at the start is not finite; check the start values and data"
+            )
+        if norms[i] == 0:
+            warnings.append(
+                f"parameter '{e.name}' does not change the residuals at the start (zero Jacobian column): "
+                "the data do not see it there; give a better start or fix it"
+            )
+            scale[i] = caps[i]
+        else:
+            scale[i] = min(1.0 / norms[i], caps[i])
+    return scale
+
+
+def _solve_stage(
+    problem: Problem, layout: Layout, solver: AbstractSolver, u_start: np.ndarray, warnings: list[str]
+) -> tuple[Problem, SolveOutcome]:
+    """One solve from ``u_start``, with the step scales recomputed there."""
+    n = len(layout.free)
+    problem = with_scale(problem, u_start, np.ones(n))
+    scale = _scales(problem, layout, warnings)
+    problem = with_scale(problem, u_start, scale)
+    box = None
+    if solver.box_bounds:
+        lo, hi = layout.box()
+        with np.errstate(invalid="ignore"):
+            box = ((lo - u_start) / scale, (hi - u_start) / scale)
+    # The solver's coordinates are float64 whenever 64-bit JAX is on (optimistix keeps its own scalars in
+    # the default float type); the model is still evaluated at the requested precision.
+    outcome = solver.solve(problem, jnp.zeros(n, jnp.result_type(float)), box)
+    return problem, outcome
+
+
+def _group_stats(b: TableData, usable: np.ndarray, r: np.ndarray, log_res: np.ndarray) -> tuple[dict[str, Any], ...]:
+    ti = np.asarray(b.theta_i, float)[usable]
+    key = np.round(np.degrees(ti), 4)
+    out = []
+    for t in np.unique(key):
+        sel = key == t
+        out.append(
+            {
+                "theta_i_deg": float(t),
+                "n_points": int(sel.sum()),
+                "chi2": float(np.sum(r[sel] ** 2)),
+                "log_rms": float(np.sqrt(np.mean(log_res[sel] ** 2))),
+            }
+        )
+    return tuple(out)
+
+
+def fit(
+    model: Model,
+    data: Data | Sequence[Data],
+    params: Mapping[str, Any] | None = None,
+    *,
+    solver: str | AbstractSolver = "levenberg_marquardt",
+    solver_options: Mapping[str, Any] | None = None,
+    loss: str = "linear",
+    loss_scale: float | None = None,
+    first_stage: str | None = "soft",
+    initializer: str | Callable | None = None,
+    init_options: Mapping[str, Any] | None = None,
+    floor: float | str = "auto",
+    precision: str | None = None,
+    absolute_sigma: bool | None = None,
+    allow_different_detectors: bool = False,
+    use_footprint: bool = True,
+) -> FitResult:
+    """Fit ``model`` to one or several data blocks (detector frames and/or goniometer tables).
+
+    ``params`` maps parameter names (the model's public names, ``theta_i``,
+    ``phi_ref``) to a :class:`~brdfjax.fit.Param`, a start value (free),
+    ``"auto"``, ``"free"`` or ``"fixed"``; parameters not named are held at
+    the model's (or the data's) values.  Values and bounds are in stored units
+    (radians, metres); the result reports angles in degrees.
+
+    ``solver``: a name from :data:`~brdfjax.fit.SOLVERS` with
+    ``solver_options``, or a solver object.  ``loss``: ``linear``, ``huber`` or
+    ``cauchy`` with ``loss_scale`` in sigma (default 3).  ``initializer``: the
+    automatic initialisation for ``"auto"`` starts (a name from
+    :data:`~brdfjax.fit.INITIALIZERS` or a callable ``(model, blocks, **options)
+    -> {name: value}``; default: chosen from the model), with
+    ``init_options`` (e.g. index priors ``n1``, ``n2``).  ``floor``: the
+    underflow guard of the log model (sr^-1, or ``"auto"``).  ``precision``:
+    ``float32``/``float64`` (default: float64 when 64-bit JAX is on).
+    ``absolute_sigma``: take the data's uncertainties at face value
+    (default: yes when every block has ``sigma_rel``).  Frames from different
+    detectors need ``allow_different_detectors=True``.  A footprint on a frame
+    is convolved with the model unless ``use_footprint=False``.
+
+    A fit that does not converge returns normally with ``converged=False``
+    and a message that says why; bad inputs raise
+    :class:`~brdfjax.fit.FitInputError`.
+    """
+    t_start = time.perf_counter()
+    opts = dict(solver_options or {})
+    solver_obj = get_solver(solver, **opts)
+    prep = prepare(
+        model, data, params, solver=solver_obj, loss=loss, loss_scale=loss_scale, initializer=initializer,
+        init_options=init_options, floor=floor, precision=precision,
+        allow_different_detectors=allow_different_detectors, use_footprint=use_footprint,
+    )
+    problem, layout, blocks, auto, warnings = prep.problem, prep.layout, prep.blocks, prep.auto, prep.warnings
+    precision_name = "float64" if problem.u0.dtype == jnp.float64 else "float32"
+    t_setup = time.perf_counter()
+    if first_stage is not None and first_stage not in FIRST_STAGES:
+        raise FitInputError(f"unknown first_stage '{first_stage}'; known: {', '.join(FIRST_STAGES)} or None")
+    n_free = len(layout.free)
+    u0 = layout.u0()
+    k_final = float(np.asarray(problem.loss_scale))
+    stages = [(loss_id(loss), k_final, 0.0)]
+    if first_stage == "soft":
+        stages.insert(0, (loss_id(loss), k_final, 1.0))
+    elif first_stage is not None:
+        stages.insert(0, (loss_id(first_stage), DEFAULT_LOSS_SCALE, 0.0))
+    t_scale = time.perf_counter()
+    notes, total_steps = [], 0
+    if not n_free:
+        problem = with_scale(problem, u0, np.ones(0))
+        outcome = SolveOutcome(np.zeros(0), True, "successful", "nothing to fit: every parameter is fixed", 0)
+    else:
+        u_start = u0
+        for i, (index, k_stage, soften) in enumerate(stages):
+            problem, outcome = _solve_stage(
+                with_loss(problem, index, k_stage, soften), layout, solver_obj, u_start, warnings if i == 0 else []
+            )
+            total_steps += outcome.n_steps
+            if i < len(stages) - 1:
+                notes.append(f"first stage ({first_stage}): {outcome.n_steps} steps, {outcome.status}")
+                if np.all(np.isfinite(outcome.v)):
+                    u_start = np.asarray(problem.u0, np.float64) + np.asarray(problem.scale, np.float64) * outcome.v
+        if notes:
+            outcome = SolveOutcome(
+                outcome.v, outcome.converged, outcome.status, f"{outcome.message} [{'; '.join(notes)}]", total_steps
+            )
+    u0 = np.asarray(problem.u0, np.float64)
+    scale = np.asarray(problem.scale, np.float64)
+    t_solve = time.perf_counter()
+
+    v = outcome.v
+    converged, status, message = outcome.converged, outcome.status, outcome.message
+    r_blocks_all, r_tilde = evaluate(jnp.asarray(v), problem)
+    r = np.asarray(r_blocks_all, np.float64)
+    rt = np.asarray(r_tilde, np.float64)
+    if not np.all(np.isfinite(r)) and converged:
+        converged, status = False, "failed"
+        message = "not converged: residuals at the solution are not finite"
+    n_points = int(r.size)
+    dof = n_points - n_free
+    chi2 = float(np.sum(r**2))
+    chi2_red = chi2 / dof if dof > 0 else math.nan
+    if dof <= 0:
+        warnings.append(f"{n_points} points for {n_free} free parameters: no degrees of freedom left")
+    has_sigma = all(not (isinstance(b, TableData) and b.sigma_rel is None) for b in blocks)
+    absolute = has_sigma if absolute_sigma is None else bool(absolute_sigma)
+    u = u0 + scale * v
+    if n_free:
+        J = np.asarray(jacobian(jnp.asarray(v), problem), np.float64)
+        cov = covariance(J, scale * layout.jacobian_diag(u), chi2_red, absolute)
+        if cov.undetermined:
+            warnings.append(
+                "the data do not determine "
+                + ", ".join(layout.free[i].name for i in cov.undetermined)
+                + f" (Jacobian rank {cov.rank} < {n_free}): their sigmas are infinite; fix some of them"
+            )
+    else:
+        cov = covariance(np.zeros((n_points, 0)), np.zeros(0), chi2_red, absolute)
+    t_cov = time.perf_counter()
+    x = layout.natural(u)
+    for i, e in enumerate(layout.free):
+        for bound in (e.lower, e.upper):
+            if math.isfinite(bound) and abs(x[i] - bound) <= 1e-6 * abs(e.x0 - bound):
+                warnings.append(
+                    f"parameter '{e.name}' ended on its bound {bound:.6g}; its sigma is not meaningful "
+                    "(widen the bound, or fix the parameter)"
+                )
+
+    estimates: dict[str, ParameterEstimate] = {}
+    free_index = {e.name: i for i, e in enumerate(layout.free)}
+    fixed_by_name = {e.name: e for e in layout.fixed}
+    for name in layout.order:
+        if name in free_index:
+            i = free_index[name]
+            e = layout.free[i]
+            estimates[name] = ParameterEstimate(float(x[i]), float(cov.sigma[i]), e.unit, True, e.x0)
+        else:
+            f = fixed_by_name[name]
+            estimates[name] = ParameterEstimate(f.value, None, f.unit, False, f.value)
+
+    # per-block statistics
+    summaries = []
+    res_blocks, w_blocks = [], []
+    offset = 0
+    k = float(np.asarray(problem.loss_scale))
+    for name, b, n, inv_sigma, conv in zip(prep.names, blocks, problem.counts, prep.inv_sigma, prep.convolved):
+        rb = r[offset : offset + n]
+        offset += n
+        log_res = rb / inv_sigma
+        res_blocks.append(rb)
+        w_blocks.append(np.asarray(irls_weights(loss, jnp.asarray(rb), k)))
+        groups = _group_stats(b, b.usable(), rb, log_res) if isinstance(b, TableData) else ()
+        summaries.append(
+            BlockSummary(
+                name, "frame" if isinstance(b, FrameData) else "table", n, float(np.sum(rb**2)),
+                float(np.sqrt(np.mean(log_res**2))), conv, groups,
+            )
+        )
+    n_down = int(np.sum(np.abs(r) > k)) if loss != "linear" else 0
+    fitted = problem.block_inputs(jnp.asarray(v))
+    t_end = time.perf_counter()
+    return FitResult(
+        parameters=estimates,
+        free_names=layout.free_names,
+        covariance=cov.matrix,
+        correlation=cov.correlation,
+        chi2=chi2,
+        dof=dof,
+        n_points=n_points,
+        converged=bool(converged),
+        status=status,
+        message=message,
+        n_iterations=int(outcome.n_steps),
+        wall_s=t_end - t_start,
+        solver=solver_obj.name,
+        loss=loss,
+        loss_scale=k,
+        cost=float(np.sum(rt**2)),
+        n_downweighted=n_down,
+        covariance_absolute=absolute,
+        precision=precision_name,
+        blocks=tuple(summaries),
+        warnings=tuple(warnings),
+        versions=versions(),
+        timings={
+            "setup_s": t_setup - t_start,
+            "scaling_s": t_scale - t_setup,
+            "solve_s": t_solve - t_scale,
+            "covariance_s": t_cov - t_solve,
+            "total_s": t_end - t_start,
+        },
+        models=tuple(m for m, _ in fitted),
+        frames=tuple(f for _, f in fitted),
+        residuals=tuple(res_blocks),
+        weights=tuple(w_blocks),
+        auto_init={kk: (np.asarray(vv).tolist()) for kk, vv in auto.items()},
+    )

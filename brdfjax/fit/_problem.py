@@ -1,0 +1,343 @@
+"""The fit problem as one pure-JAX pytree: data blocks, per-block models and the parameter map.
+
+:class:`Problem` holds everything the residual function needs as arrays
+(data, uncertainties, pixel indices or directions, the per-block template
+models and frames, the start point and scales of the parameters) and the
+structure as static fields.  The residual function is the module-level
+:func:`residuals` ``(v, problem) -> r``: solvers receive the problem through
+``args``, so a new data set of the same shapes reuses the compiled program.
+
+Solver coordinates: ``v`` with ``u = u0 + scale * v`` and ``x = g(u)``
+(:mod:`brdfjax.fit._params`); ``scale`` makes every column of the Jacobian
+at the start about unit norm (capped so that a unit step in ``v`` changes a
+log-parametrised quantity by at most a factor e), the scaling Marquardt's
+method applies and a trust region in ``v`` needs.
+
+Two things keep compile times down (XLA on CPU compiles the derivative of
+the solar-cell model slowly, ~7 s per copy):
+
+- Detector frames of the same structure are **stacked**: their usable pixels
+  are padded to one length (a multiple of :data:`PAD_MULTIPLE`, zero weight
+  on the padding) and the model is evaluated under ``vmap`` over frames, so
+  one copy of the model serves every frame and data sets whose point counts
+  round to the same length reuse the compiled program.
+- :func:`residuals` carries a **custom JVP** that materialises the Jacobian
+  once (forward mode) and applies it as a matrix: optimistix uses the
+  derivative several times per step (the QR of the damped system, the
+  gradient, the predicted reduction), and with the rule they share one
+  Jacobian.  The JVP is exact; only second derivatives through it are not
+  available (no solver here needs them).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ..detector import Detector
+from ..geometry import Directions
+from ..render import Frame, evaluate_pixels
+from ..terms import AbstractTerm, Model
+from ._params import Layout, forward
+from ._residuals import convolve_same, log_model, robust_residuals_by_id
+
+__all__ = ["FrameBlock", "FrameStack", "TableBlock", "Problem", "residuals", "raw_residuals", "PAD_MULTIPLE"]
+
+#: Stacked frames are padded to a multiple of this many points.
+PAD_MULTIPLE = 256
+
+Values = dict[str, Array]
+
+
+def _apply(template: AbstractTerm, frame: Frame | None, model_values: Values, frame_values: Values):
+    model = template.with_params(model_values) if model_values else template
+    if frame is not None:
+        if "theta_i" in frame_values:
+            frame = eqx.tree_at(lambda f: f.theta_i, frame, frame_values["theta_i"])
+        if "phi_ref" in frame_values:
+            frame = eqx.tree_at(lambda f: f.phi_ref, frame, frame_values["phi_ref"])
+    return model, frame
+
+
+class FrameBlock(eqx.Module):
+    """One detector frame: the usable pixels (or the whole grid when a footprint is convolved)."""
+
+    template: AbstractTerm
+    frame: Frame
+    detector: Detector
+    n_h: Array  # (n,) pixel columns of the points, or (cols,) of the grid with a footprint
+    n_v: Array  # (n,) pixel rows of the points, or (rows,) of the grid with a footprint
+    data: Array  # (n,) BRDF, sr^-1
+    inv_sigma: Array  # (n,) 1 / sigma_rel
+    floor: Array  # scalar, sr^-1: the log(0) guard
+    soft_level: Array  # scalar, sr^-1: the softening level of a first stage
+    kernel: Array | None = None  # normalised footprint on the grid spacing
+    flat_index: Array | None = None  # (n,) indices of the points in the raveled grid
+
+    def model_values(self, model: AbstractTerm, frame: Frame) -> Array:
+        if self.kernel is None:
+            return evaluate_pixels(model, frame, self.detector, self.n_h, self.n_v)
+        image = evaluate_pixels(model, frame, self.detector, self.n_h[None, :], self.n_v[:, None])
+        return convolve_same(image, self.kernel).ravel()[self.flat_index]
+
+    def residuals(self, model: AbstractTerm, frame: Frame, soften: Array) -> Array:
+        return _log_residuals(self.model_values(model, frame), self, soften)
+
+
+def _log_residuals(f: Array, block: "FrameBlock | TableBlock", soften: Array) -> Array:
+    """``(log(f + floor + s) - log(d + s)) (d + s) / (d sigma_rel)`` with ``s = soften * soft_level``.
+
+    ``s = 0`` is the plain log residual; ``s > 0`` softens the log below the
+    level ``s`` (a first stage that keeps the zeros of the model -- dark
+    fringes -- from trapping the solver), with the weight rescaled so that
+    the residual stays in units of sigma.
+    """
+    s = soften * block.soft_level
+    d = block.data
+    return (log_model(f, block.floor + s) - jnp.log(d + s)) * block.inv_sigma * ((d + s) / d)
+
+
+class TableBlock(eqx.Module):
+    """One goniometer table: the usable rows."""
+
+    template: AbstractTerm
+    dirs: Directions
+    wavelength: Array
+    data: Array
+    inv_sigma: Array
+    floor: Array
+    soft_level: Array
+
+    @property
+    def frame(self) -> None:
+        return None
+
+    def model_values(self, model: AbstractTerm, frame: None) -> Array:
+        return model(self.dirs, self.wavelength)
+
+    def residuals(self, model: AbstractTerm, frame: None, soften: Array) -> Array:
+        return _log_residuals(self.model_values(model, frame), self, soften)
+
+
+class FrameStack(eqx.Module):
+    """Detector frames of one structure, stacked along a leading axis (usable points padded)."""
+
+    blocks: FrameBlock  # every array leaf has a leading (n_frames,) axis
+    valid: Array  # (n_points,) flat indices of the real points in the (n_frames * n_pad) residuals
+
+    def residuals(self, model_values: Values, frame_values: Values, soften: Array) -> Array:
+        def one(block, mv, fv):
+            model, frame = _apply(block.template, block.frame, mv, fv)
+            return block.residuals(model, frame, soften)
+
+        r = jax.vmap(one)(self.blocks, model_values, frame_values)
+        return r.ravel()[self.valid]
+
+
+def stack_frames(blocks: list[FrameBlock]) -> FrameStack:
+    """Stack frame blocks (no footprint) padded to a common multiple of :data:`PAD_MULTIPLE` points."""
+    n = [int(b.n_h.shape[0]) for b in blocks]
+    n_pad = -(-max(n) // PAD_MULTIPLE) * PAD_MULTIPLE
+
+    def pad(b: FrameBlock, k: int) -> FrameBlock:
+        extra = n_pad - k
+
+        def ext(a, fill):
+            a = np.asarray(a)
+            return np.concatenate([a, np.full(extra, fill, a.dtype)])
+
+        return eqx.tree_at(
+            lambda x: (x.n_h, x.n_v, x.data, x.inv_sigma),
+            b,
+            (ext(b.n_h, np.asarray(b.n_h)[0]), ext(b.n_v, np.asarray(b.n_v)[0]), ext(b.data, 1.0), ext(b.inv_sigma, 0.0)),
+        )
+
+    padded = [pad(b, k) for b, k in zip(blocks, n)]
+    stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *padded)
+    valid = np.concatenate([i * n_pad + np.arange(k) for i, k in enumerate(n)])
+    return FrameStack(stacked, valid)
+
+
+def can_stack(blocks: list[Any]) -> bool:
+    if len(blocks) < 2 or not all(isinstance(b, FrameBlock) and b.kernel is None for b in blocks):
+        return False
+    s0 = jax.tree_util.tree_structure(blocks[0])
+    return all(jax.tree_util.tree_structure(b) == s0 for b in blocks[1:])
+
+
+class Problem(eqx.Module):
+    """Data blocks and the map from solver coordinates ``v`` to each block's model and frame."""
+
+    blocks: tuple[FrameBlock | TableBlock, ...]  # evaluated one by one (empty when stacked)
+    stack: FrameStack | None  # all blocks, stacked (None when evaluated one by one)
+    u0: Array
+    scale: Array
+    lower: Array
+    upper: Array
+    loss_index: Array  # index into LOSSES (traced: changing the loss does not recompile)
+    loss_scale: Array
+    soften: Array  # 0: plain log residuals; 1: softened at each block's soft_level (traced)
+    transforms: tuple[str, ...] = eqx.field(static=True)
+    targets: tuple[tuple[str, str, tuple[int, ...]], ...] = eqx.field(static=True)  # (base, kind, blocks)
+    counts: tuple[int, ...] = eqx.field(static=True)  # usable points per block
+
+    @property
+    def n_blocks(self) -> int:
+        return len(self.counts)
+
+    def unconstrained(self, v: Array) -> Array:
+        # The solver may work in float64 while the model is evaluated in float32 (``precision``).
+        return self.u0 + self.scale * jnp.asarray(v, self.u0.dtype)
+
+    def natural(self, v: Array) -> Array:
+        """Stored-unit values of the free parameters."""
+        u = self.unconstrained(v)
+        if not self.transforms:
+            return u
+        return jnp.stack([forward(t, u[i], self.lower[i], self.upper[i]) for i, t in enumerate(self.transforms)])
+
+    def _block_values(self, x: Array, k: int) -> tuple[Values, Values]:
+        mv: Values = {}
+        fv: Values = {}
+        for i, (base, kind, blocks) in enumerate(self.targets):
+            if k in blocks:
+                (mv if kind == "model" else fv)[base] = x[i]
+        return mv, fv
+
+    def _stacked_values(self, x: Array) -> tuple[Values, Values]:
+        per = [self._block_values(x, k) for k in range(self.n_blocks)]
+        mv = {name: jnp.stack([p[0][name] for p in per]) for name in per[0][0]}
+        fv = {name: jnp.stack([p[1][name] for p in per]) for name in per[0][1]}
+        return mv, fv
+
+    def block_inputs(self, v: Array) -> list[tuple[AbstractTerm, Frame | None]]:
+        """Each block's model and frame with the free parameters at ``v``."""
+        x = self.natural(v)
+        out = []
+        for k in range(self.n_blocks):
+            mv, fv = self._block_values(x, k)
+            if self.stack is not None:
+                block = jax.tree_util.tree_map(lambda a: a[k], self.stack.blocks)
+            else:
+                block = self.blocks[k]
+            out.append(_apply(block.template, block.frame, mv, fv))
+        return out
+
+    def block_list(self) -> list[FrameBlock | TableBlock]:
+        """The blocks one by one (unstacked views when stacked; padding included)."""
+        if self.stack is None:
+            return list(self.blocks)
+        return [jax.tree_util.tree_map(lambda a: a[k], self.stack.blocks) for k in range(self.n_blocks)]
+
+    def weighted_residuals(self, v: Array) -> Array:
+        """``(log(f + floor) - log d) / sigma_rel`` at every usable point (softened in a first stage), blocks in order."""
+        x = self.natural(v)
+        if self.stack is not None:
+            return self.stack.residuals(*self._stacked_values(x), self.soften)
+        out = []
+        for k, block in enumerate(self.blocks):
+            mv, fv = self._block_values(x, k)
+            model, frame = _apply(block.template, block.frame, mv, fv)
+            out.append(block.residuals(model, frame, self.soften))
+        return jnp.concatenate(out)
+
+    def residuals(self, v: Array) -> Array:
+        return robust_residuals_by_id(self.loss_index, self.weighted_residuals(v), self.loss_scale)
+
+
+def _plain_residuals(v: Array, problem: Problem) -> Array:
+    return problem.residuals(v)
+
+
+_BIG = 1e8  # stands in for a non-finite residual at a solver's trial point
+
+
+@jax.custom_jvp
+def residuals(v: Array, problem: Problem) -> Array:
+    """The residual function handed to solvers (one object, so compiled programs are reused)."""
+    r = problem.residuals(v).astype(jnp.result_type(v))
+    return jnp.where(jnp.isfinite(r), r, _BIG)
+
+
+@residuals.defjvp
+def _residuals_jvp(primals, tangents):
+    v, problem = primals
+    t_v, _ = tangents  # the data are not differentiated
+    r = problem.residuals(v).astype(jnp.result_type(v))
+    J = jax.jacfwd(_plain_residuals)(v, problem).astype(jnp.result_type(v))
+    # Far from the data (a trial step of the solver) a derivative can be 0 * inf; the solver must
+    # see finite numbers to reject the step rather than fail.
+    r = jnp.where(jnp.isfinite(r), r, _BIG)
+    J = jnp.where(jnp.isfinite(J), J, 0.0)
+    return r, J @ t_v
+
+
+def raw_residuals(v: Array, problem: Problem) -> Array:
+    return problem.weighted_residuals(v)
+
+
+def half_sum_squares(v: Array, problem: Problem) -> Array:
+    """``sum rho(r)``: the objective of minimisers (L-BFGS-B)."""
+    return 0.5 * jnp.sum(jnp.square(residuals(v, problem)))
+
+
+@eqx.filter_jit
+def jacobian(v: Array, problem: Problem) -> Array:
+    """d r~ / d v, (n_points, n_free), forward mode."""
+    return jax.jacfwd(_plain_residuals)(v, problem)
+
+
+@eqx.filter_jit
+def evaluate(v: Array, problem: Problem) -> tuple[Array, Array]:
+    """Raw and robust residuals at ``v``."""
+    r = problem.weighted_residuals(v)
+    return r, robust_residuals_by_id(problem.loss_index, r, problem.loss_scale)
+
+
+def with_loss(problem: Problem, index: int, scale: float, soften: float = 0.0) -> Problem:
+    """The same problem with another loss and softening (no recompilation: all are arrays)."""
+    dtype = problem.loss_scale.dtype
+    return eqx.tree_at(
+        lambda p: (p.loss_index, p.loss_scale, p.soften),
+        problem,
+        (jnp.asarray(index, jnp.int32), jnp.asarray(scale, dtype), jnp.asarray(soften, dtype)),
+    )
+
+
+def with_scale(problem: Problem, u0: np.ndarray, scale: np.ndarray) -> Problem:
+    dtype = problem.u0.dtype
+    return eqx.tree_at(lambda p: (p.u0, p.scale), problem, (jnp.asarray(u0, dtype), jnp.asarray(scale, dtype)))
+
+
+def build_targets(layout: Layout) -> tuple[tuple[str, str, tuple[int, ...]], ...]:
+    return tuple((e.base, e.kind, e.blocks) for e in layout.free)
+
+
+def template_for_block(model: Model, layout: Layout, k: int) -> Model:
+    """The model of block ``k`` with the fixed values of the layout applied (the free ones set at start)."""
+    values: dict[str, Any] = {}
+    for e in layout.fixed:
+        if e.kind == "model" and k in e.blocks:
+            values[e.base] = np.float64(e.value)
+    for e in layout.free:
+        if e.kind == "model" and k in e.blocks:
+            values[e.base] = np.float64(e.x0)
+    return model.with_params(values) if values else model
+
+
+def frame_for_block(frame: Frame, layout: Layout, k: int) -> Frame:
+    entries = [(e.base, e.kind, e.blocks, e.value) for e in layout.fixed]
+    entries += [(e.base, e.kind, e.blocks, e.x0) for e in layout.free]
+    for base, kind, blocks, x in entries:
+        if kind == "frame" and k in blocks:
+            value = np.float64(x)
+            if base == "theta_i":
+                frame = eqx.tree_at(lambda f: f.theta_i, frame, value)
+            else:
+                frame = eqx.tree_at(lambda f: f.phi_ref, frame, value)
+    return frame

@@ -1,0 +1,192 @@
+"""The result of a fit and its JSON form (issue 4's output contract).
+
+``FitResult.to_json()`` writes at least ``parameters`` (name -> ``{"value",
+"sigma", "unit", "free"}`` in natural units: angles in degrees with unit
+"deg"), ``chi2``, ``chi2_reduced``, ``dof``, ``converged``, ``message``,
+``n_iterations`` and ``wall_s``; beside them the correlation matrix, the
+loss, per-block statistics, whether the model was convolved with an
+instrument function, warnings and versions.  Non-finite numbers are written
+as ``null`` (JSON has no NaN); a fixed parameter's sigma is ``null``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._common import natural_unit, to_natural
+
+__all__ = ["ParameterEstimate", "BlockSummary", "FitResult"]
+
+
+def _num(x: Any) -> Any:
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+@dataclass(frozen=True)
+class ParameterEstimate:
+    """One parameter in stored units (rad, m, 1, sr^-1); :meth:`natural` converts for reports."""
+
+    value: float
+    sigma: float | None  # None for fixed parameters
+    unit: str
+    free: bool
+    initial: float
+
+    def natural(self) -> dict[str, Any]:
+        f = to_natural(self.unit)
+        return {
+            "value": _num(self.value * f),
+            "sigma": None if self.sigma is None else _num(self.sigma * f),
+            "unit": natural_unit(self.unit),
+            "free": self.free,
+            "initial": _num(self.initial * f),
+        }
+
+
+@dataclass(frozen=True)
+class BlockSummary:
+    """Fit statistics of one data block (a frame or a table), and of groups within it (tables: per theta_i)."""
+
+    name: str
+    kind: str  # "frame" or "table"
+    n_points: int
+    chi2: float
+    log_rms: float  # rms of log(f_model) - log(d_data), natural log
+    convolved: bool
+    groups: tuple[dict[str, Any], ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "n_points": self.n_points,
+            "chi2": _num(self.chi2),
+            "log_rms": _num(self.log_rms),
+            "convolved": self.convolved,
+            "groups": [{k: (_num(v) if isinstance(v, float) else v) for k, v in g.items()} for g in self.groups],
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class FitResult:
+    """Everything a fit found; ``models``/``frames`` are the fitted core objects per block."""
+
+    parameters: dict[str, ParameterEstimate]
+    free_names: tuple[str, ...]
+    covariance: np.ndarray  # stored units, free parameters
+    correlation: np.ndarray
+    chi2: float
+    dof: int
+    n_points: int
+    converged: bool
+    status: str
+    message: str
+    n_iterations: int
+    wall_s: float
+    solver: str
+    loss: str
+    loss_scale: float
+    cost: float
+    n_downweighted: int
+    covariance_absolute: bool
+    precision: str
+    blocks: tuple[BlockSummary, ...]
+    warnings: tuple[str, ...]
+    versions: dict[str, str]
+    timings: dict[str, float] = field(default_factory=dict)
+    models: tuple[Any, ...] = ()
+    frames: tuple[Any, ...] = ()
+    residuals: tuple[np.ndarray, ...] = ()  # per block, raw (non-robust) weighted residuals
+    weights: tuple[np.ndarray, ...] = ()  # per block, IRLS weights rho'(r)/r
+    auto_init: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def chi2_reduced(self) -> float:
+        return self.chi2 / self.dof if self.dof > 0 else math.nan
+
+    @property
+    def convolved(self) -> bool:
+        """Whether the model was convolved with an instrument function (footprint) in any block."""
+        return any(b.convolved for b in self.blocks)
+
+    def value(self, name: str) -> float:
+        """A parameter's value in stored units (rad, m, ...)."""
+        return self._get(name).value
+
+    def sigma(self, name: str) -> float | None:
+        return self._get(name).sigma
+
+    def _get(self, name: str) -> ParameterEstimate:
+        if name not in self.parameters:
+            raise KeyError(f"unknown parameter '{name}'; known: {', '.join(self.parameters)}")
+        return self.parameters[name]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "parameters": {k: p.natural() for k, p in self.parameters.items()},
+            "chi2": _num(self.chi2),
+            "chi2_reduced": _num(self.chi2_reduced),
+            "dof": int(self.dof),
+            "n_points": int(self.n_points),
+            "n_free": len(self.free_names),
+            "converged": bool(self.converged),
+            "status": self.status,
+            "message": self.message,
+            "n_iterations": int(self.n_iterations),
+            "wall_s": _num(self.wall_s),
+            "timings_s": {k: _num(v) for k, v in self.timings.items()},
+            "solver": self.solver,
+            "loss": {
+                "name": self.loss,
+                "scale": _num(self.loss_scale),
+                "cost": _num(self.cost),
+                "n_downweighted": int(self.n_downweighted),
+            },
+            "covariance_absolute": self.covariance_absolute,
+            "correlation": {
+                "names": list(self.free_names),
+                "matrix": [[_num(x) for x in row] for row in np.asarray(self.correlation)],
+            },
+            "instrument_function": {
+                "convolved": self.convolved,
+                "blocks": [b.name for b in self.blocks if b.convolved],
+            },
+            "blocks": [b.to_dict() for b in self.blocks],
+            "warnings": list(self.warnings),
+            "precision": self.precision,
+            "versions": dict(self.versions),
+        }
+
+    def to_json(self, path: str | os.PathLike | None = None, indent: int = 2) -> str:
+        """The JSON text; written (atomically) to ``path`` when given."""
+        text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        if path is not None:
+            path = Path(path)
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text(text + "\n")
+            os.replace(tmp, path)
+        return text
+
+    def summary(self) -> str:
+        """A short human-readable table of the parameters in natural units."""
+        lines = [
+            f"{'converged' if self.converged else 'NOT converged'}: {self.message}",
+            f"chi2 = {self.chi2:.6g}, dof = {self.dof}, chi2_reduced = {self.chi2_reduced:.4g}, "
+            f"{self.n_iterations} iterations, {self.wall_s:.2f} s ({self.solver}, loss {self.loss})",
+        ]
+        for name, p in self.parameters.items():
+            d = p.natural()
+            sig = "fixed" if d["sigma"] is None and not p.free else f"+- {d['sigma']:.3g}" if d["sigma"] is not None else "+- inf"
+            lines.append(f"  {name:<22s} {d['value']:>14.6g} {sig:<14s} {d['unit']}")
+        lines.extend(f"warning: {w}" for w in self.warnings)
+        return "\n".join(lines)

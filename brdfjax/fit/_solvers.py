@@ -1,0 +1,178 @@
+"""Solvers of the fit, by name: one registry shared by ``fit``, configs and error messages.
+
+- ``levenberg_marquardt`` (default; alias ``lm``): optimistix's
+  Levenberg-Marquardt on the (robust) residual vector, in the scaled
+  coordinates of :mod:`brdfjax.fit._problem`.  Bounds come from the
+  reparametrisation.
+- ``lbfgsb``: jaxopt's bounded L-BFGS-B on ``sum rho(r)``; two-sided bounds are
+  native box constraints (the parameters keep an affine map), one-sided
+  bounds still use ``log``.
+
+Each solver is a small ``eqx.Module`` whose ``solve(problem, v0)`` returns a
+:class:`SolveOutcome`.  The residual function is the module-level
+:func:`brdfjax.fit._problem.residuals`, and the data travel in ``args``, so
+the compiled solve is reused across fits of the same shapes (a new closure on
+every call would recompile, ``dependencies.md``).
+"""
+
+from __future__ import annotations
+
+import abc
+import warnings
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ._common import FitInputError
+from ._problem import Problem, half_sum_squares, residuals
+
+__all__ = ["SolveOutcome", "AbstractSolver", "LevenbergMarquardt", "LBFGSB", "SOLVERS", "get_solver"]
+
+
+@dataclass(frozen=True)
+class SolveOutcome:
+    """What a solver returns: the solution in solver coordinates and how it ended."""
+
+    v: np.ndarray
+    converged: bool
+    status: str  # "successful", "max_steps_reached", "diverged", "failed"
+    message: str
+    n_steps: int
+
+
+class AbstractSolver(eqx.Module):
+    """A named solver; concrete solvers are final."""
+
+    name: ClassVar[str]
+    #: Whether two-sided bounds are passed as a box (else they are reparametrised with a logit).
+    box_bounds: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def solve(self, problem: Problem, v0: Any, box: tuple[np.ndarray, np.ndarray] | None = None) -> SolveOutcome:
+        raise NotImplementedError
+
+
+@eqx.filter_jit
+def _lm_solve(v0, problem, rtol, atol, max_steps):
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(residuals, solver, v0, args=problem, max_steps=max_steps, throw=False)
+    return sol.value, sol.result, sol.stats["num_steps"]
+
+
+class LevenbergMarquardt(AbstractSolver):
+    """optimistix Levenberg-Marquardt (``optx.least_squares``, ``throw=False``).
+
+    ``rtol``/``atol``: the Cauchy termination of optimistix (step and residual
+    change both below ``atol + rtol * |value|``), in solver coordinates where
+    a unit step is about one standard deviation of the start's Jacobian.
+    """
+
+    name: ClassVar[str] = "levenberg_marquardt"
+    rtol: float = eqx.field(static=True, default=1e-5)
+    atol: float = eqx.field(static=True, default=1e-5)
+    max_steps: int = eqx.field(static=True, default=256)
+
+    def solve(self, problem, v0, box=None):
+        value, result, steps = _lm_solve(jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps)
+        v = np.asarray(value)
+        n = int(steps)
+        if result == optx.RESULTS.successful:
+            if not np.all(np.isfinite(v)):
+                return SolveOutcome(v, False, "failed", "the solution is not finite", n)
+            return SolveOutcome(v, True, "successful", f"converged in {n} steps (rtol={self.rtol:g}, atol={self.atol:g})", n)
+        message = str(optx.RESULTS[result])
+        if result == optx.RESULTS.nonlinear_max_steps_reached:
+            return SolveOutcome(
+                v, False, "max_steps_reached",
+                f"not converged: max_steps={self.max_steps} reached; increase max_steps, or check the start "
+                f"(optimistix: {message})", n,
+            )
+        if result == optx.RESULTS.nonlinear_divergence:
+            return SolveOutcome(v, False, "diverged", f"not converged: the solve diverged (optimistix: {message})", n)
+        return SolveOutcome(v, False, "failed", f"not converged (optimistix: {message})", n)
+
+
+def _jaxopt():
+    with warnings.catch_warnings():
+        # jaxopt is unmaintained and says so on import (dependencies.md); it is still correct for L-BFGS-B.
+        warnings.filterwarnings("ignore", category=DeprecationWarning)
+        import jaxopt
+    return jaxopt
+
+
+@eqx.filter_jit
+def _lbfgsb_solve(v0, lower, upper, problem, tol, max_steps):
+    jaxopt = _jaxopt()
+    solver = jaxopt.LBFGSB(fun=half_sum_squares, maxiter=max_steps, tol=tol, implicit_diff=False)
+    params, state = solver.run(v0, bounds=(lower, upper), problem=problem)
+    return params, state.iter_num, state.error, state.value
+
+
+class LBFGSB(AbstractSolver):
+    """jaxopt bounded L-BFGS-B on ``sum rho(r)`` (converged when the projected gradient norm <= ``tol``)."""
+
+    name: ClassVar[str] = "lbfgsb"
+    box_bounds: ClassVar[bool] = True
+    tol: float = eqx.field(static=True, default=1e-4)
+    max_steps: int = eqx.field(static=True, default=1000)
+
+    def solve(self, problem, v0, box=None):
+        v0 = jnp.asarray(v0)
+        if box is None:
+            lower = jnp.full_like(v0, -jnp.inf)
+            upper = jnp.full_like(v0, jnp.inf)
+        else:
+            lower, upper = (jnp.asarray(b, v0.dtype) for b in box)
+        params, iters, error, _ = _lbfgsb_solve(v0, lower, upper, problem, self.tol, self.max_steps)
+        v = np.asarray(params)
+        n, err = int(iters), float(error)
+        if not (np.all(np.isfinite(v)) and np.isfinite(err)):
+            return SolveOutcome(v, False, "failed", "not converged: the solution or its gradient is not finite", n)
+        if err <= self.tol:
+            return SolveOutcome(
+                v, True, "successful", f"converged in {n} iterations (projected gradient {err:.3g} <= tol={self.tol:g})", n
+            )
+        if n >= self.max_steps:
+            return SolveOutcome(
+                v, False, "max_steps_reached",
+                f"not converged: max_steps={self.max_steps} reached with projected gradient {err:.3g} > "
+                f"tol={self.tol:g}; increase max_steps", n,
+            )
+        return SolveOutcome(
+            v, False, "failed",
+            f"not converged: the line search stopped after {n} iterations with projected gradient {err:.3g} > tol={self.tol:g}",
+            n,
+        )
+
+
+SOLVERS: dict[str, type[AbstractSolver]] = {
+    LevenbergMarquardt.name: LevenbergMarquardt,
+    LBFGSB.name: LBFGSB,
+}
+_ALIASES = {"lm": LevenbergMarquardt.name, "l-bfgs-b": LBFGSB.name}
+
+
+def get_solver(solver: str | AbstractSolver = "levenberg_marquardt", **options: Any) -> AbstractSolver:
+    """A solver by name (``options`` are its settings: rtol, atol, max_steps / tol, max_steps)."""
+    if isinstance(solver, AbstractSolver):
+        if options:
+            raise FitInputError("solver options are given with a solver name, not with a solver object")
+        return solver
+    key = _ALIASES.get(solver, solver)
+    if key not in SOLVERS:
+        known = sorted(set(SOLVERS) | set(_ALIASES))
+        raise FitInputError(f"unknown solver '{solver}'; known: {', '.join(known)}")
+    cls = SOLVERS[key]
+    try:
+        return cls(**options)
+    except TypeError:
+        import dataclasses
+
+        names = [f.name for f in dataclasses.fields(cls)]
+        raise FitInputError(
+            f"solver '{key}': unknown option(s) {sorted(set(options) - set(names))}; known: {', '.join(names)}"
+        ) from None

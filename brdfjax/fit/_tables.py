@@ -1,0 +1,570 @@
+"""Goniometer tables: readers (whitespace/CSV with a column mapping, ASTM E1392-style, MERL in-plane,
+Cornell ``.brdf``) and export of a model to a table on any angle grid.
+
+Every reader returns :class:`~brdfjax.fit.TableData` in brdfjax's conventions
+(radians; azimuths from -x, the source at ``phi_i = 0`` and the mirror
+direction at ``phi_s = pi``; wavelengths in metres) and names the file, line
+and column in every error (:class:`~brdfjax.fit.FitInputError`).
+
+Angle conventions differ between sources; the readers take:
+
+- ``columns``: canonical name -> the file's column (header name or 0-based
+  index).  Canonical names: ``theta_i``, ``phi_i``, ``theta_s``, ``phi_s``,
+  ``brdf``, ``sigma_rel`` (relative 1-sigma), ``sigma`` (absolute, sr^-1),
+  ``wavelength``.  ``phi_i`` defaults to 0.
+- ``angle_unit``: ``deg`` or ``rad`` (a header such as ``theta_s(rad)``
+  overrides it for that column).
+- ``signed_inplane``: zeniths are signed in-plane angles (negative: the
+  source side); they become ``|theta|`` with the azimuth turned by 180 deg.
+  Without a ``phi_s`` column this is required, and ``phi_s`` is the forward
+  half of the plane of incidence (pi) for positive angles.
+- ``azimuth_offset``: added to both azimuths (the file's unit), for sources
+  whose azimuth zero is elsewhere (MERL: -180).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..geometry import Directions
+from ..terms import AbstractTerm
+from ._common import FitInputError
+from ._data import TableData
+
+__all__ = [
+    "read_table",
+    "read_astm_e1392",
+    "read_merl_inplane",
+    "read_cornell_brdf",
+    "export_table",
+    "CANONICAL_COLUMNS",
+]
+
+CANONICAL_COLUMNS = ("theta_i", "phi_i", "theta_s", "phi_s", "brdf", "sigma_rel", "sigma", "wavelength")
+_ANGLES = ("theta_i", "phi_i", "theta_s", "phi_s")
+_WAVELENGTH_UNITS = {"nm": 1e-9, "um": 1e-6, "µm": 1e-6, "m": 1.0}
+
+
+def _path(path: str | os.PathLike) -> Path:
+    p = Path(path)
+    if not p.is_file():
+        raise FitInputError(f"{p}: no such file")
+    return p
+
+
+def _split(line: str, delimiter: str | None) -> list[str]:
+    if delimiter is not None:
+        return [t.strip() for t in line.split(delimiter)]
+    if "," in line:
+        return [t.strip() for t in line.split(",")]
+    if "\t" in line:
+        return [t.strip() for t in line.split("\t") if t.strip()]
+    return line.split()
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+        return True
+    except ValueError:
+        return False
+
+
+_UNIT_RE = re.compile(r"^(.*?)\s*[\(\[]\s*([^\)\]]*)\s*[\)\]]\s*$")
+
+
+def _header_name(token: str) -> tuple[str, str | None]:
+    """``'theta_s(deg)'`` -> ``('theta_s', 'deg')``; names are compared case-insensitively."""
+    m = _UNIT_RE.match(token)
+    if m:
+        return m.group(1).strip().lower(), m.group(2).strip().lower() or None
+    return token.strip().lower(), None
+
+
+def _read_numeric(path: Path, comment: str, delimiter: str | None) -> tuple[list[str] | None, np.ndarray, list[int]]:
+    """Header tokens (or None), the numeric rows and their line numbers."""
+    header: list[str] | None = None
+    last_comment: list[str] | None = None
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    with path.open() as fh:
+        for lineno, raw in enumerate(fh, 1):
+            line = raw.strip()
+            if not line:
+                continue
+            if comment and line.startswith(comment):
+                body = line[len(comment) :].strip()
+                if body:
+                    last_comment = _split(body, delimiter)
+                continue
+            tokens = _split(line, delimiter)
+            if not rows and header is None and not all(_is_number(t) for t in tokens):
+                header = tokens
+                continue
+            try:
+                values = [float(t) for t in tokens]
+            except ValueError:
+                bad = next(t for t in tokens if not _is_number(t))
+                raise FitInputError(f"{path}:{lineno}: '{bad}' is not a number") from None
+            if rows and len(values) != len(rows[0]):
+                raise FitInputError(f"{path}:{lineno}: {len(values)} columns, but the first data row has {len(rows[0])}")
+            rows.append(values)
+            lines.append(lineno)
+    if not rows:
+        raise FitInputError(f"{path}: no data rows")
+    data = np.array(rows, dtype=np.float64)
+    if header is None and last_comment is not None and len(last_comment) == data.shape[1]:
+        header = last_comment
+    return header, data, lines
+
+
+def _angle_factor(path: Path, column: str, unit: str | None) -> float:
+    if unit in ("deg", "degree", "degrees"):
+        return math.pi / 180.0
+    if unit in ("rad", "radian", "radians"):
+        return 1.0
+    raise FitInputError(f"{path}: column '{column}': unknown angle unit {unit!r}; use 'deg' or 'rad'")
+
+
+def _columns_to_table(
+    path: Path,
+    header: list[str] | None,
+    data: np.ndarray,
+    columns: Mapping[str, str | int],
+    angle_unit: str,
+    signed_inplane: bool,
+    azimuth_offset: float,
+    wavelength: float | None,
+    wavelength_unit: str,
+    name: str | None,
+) -> TableData:
+    unknown = set(columns) - set(CANONICAL_COLUMNS)
+    if unknown:
+        raise FitInputError(f"{path}: unknown column role(s) {sorted(unknown)}; known: {', '.join(CANONICAL_COLUMNS)}")
+    for need in ("theta_i", "theta_s", "brdf"):
+        if need not in columns:
+            raise FitInputError(f"{path}: the column mapping needs '{need}' (give columns={{'{need}': <name or index>}})")
+    if "sigma" in columns and "sigma_rel" in columns:
+        raise FitInputError(f"{path}: give 'sigma' (absolute) or 'sigma_rel', not both")
+    names = [_header_name(t) for t in header] if header is not None else None
+    n_cols = data.shape[1]
+
+    def column(role: str) -> tuple[np.ndarray, str | None]:
+        key = columns[role]
+        if isinstance(key, int | np.integer):
+            if not 0 <= int(key) < n_cols:
+                raise FitInputError(f"{path}: column index {key} for '{role}' is out of range (the file has {n_cols} columns)")
+            unit = names[int(key)][1] if names is not None and len(names) == n_cols else None
+            return data[:, int(key)], unit
+        if names is None:
+            raise FitInputError(f"{path}: no header row to find column '{key}' for '{role}'; map it by index instead")
+        wanted = str(key).strip().lower()
+        hits = [i for i, (n, _) in enumerate(names) if n == wanted]
+        if not hits:
+            raise FitInputError(
+                f"{path}: no column '{key}' for '{role}'; the header has: {', '.join(n for n, _ in names)}"
+            )
+        if len(names) != n_cols:
+            raise FitInputError(f"{path}: the header names {len(names)} columns but the data have {n_cols}")
+        return data[:, hits[0]], names[hits[0]][1]
+
+    out: dict[str, np.ndarray] = {}
+    for role in _ANGLES:
+        if role not in columns:
+            continue
+        values, unit = column(role)
+        f = _angle_factor(path, f"{columns[role]} ({role})", unit or angle_unit)
+        offset = azimuth_offset if role.startswith("phi") else 0.0
+        out[role] = (values + offset) * f
+        if not np.all(np.isfinite(out[role])):
+            raise FitInputError(f"{path}: column '{columns[role]}' ({role}) has non-finite angles")
+    for role in ("theta_i", "theta_s"):
+        th = out[role]
+        lim = math.pi / 2 + 1e-9
+        if np.any(np.abs(th) > lim):
+            bad = float(np.degrees(np.max(np.abs(th))))
+            raise FitInputError(
+                f"{path}: column '{columns[role]}' ({role}) has zenith angles up to {bad:.4g} deg (> 90); "
+                f"check angle_unit ('{angle_unit}') and which column is the zenith"
+            )
+    n = data.shape[0]
+    phi_i = out.get("phi_i", np.zeros(n))
+    if "phi_s" in out:
+        phi_s = out["phi_s"]
+    elif signed_inplane:
+        phi_s = np.full(n, math.pi)  # forward half of the plane of incidence for positive angles
+    else:
+        raise FitInputError(
+            f"{path}: no 'phi_s' column; for in-plane data with signed scatter angles pass signed_inplane=True"
+        )
+    theta_i, theta_s = out["theta_i"], out["theta_s"]
+    if signed_inplane:
+        phi_i = np.where(theta_i < 0, phi_i + math.pi, phi_i)
+        phi_s = np.where(theta_s < 0, phi_s + math.pi, phi_s)
+        theta_i, theta_s = np.abs(theta_i), np.abs(theta_s)
+    elif np.any(theta_i < 0) or np.any(theta_s < 0):
+        raise FitInputError(
+            f"{path}: negative zenith angles in '{columns['theta_i']}'/'{columns['theta_s']}'; if they are signed "
+            "in-plane angles pass signed_inplane=True"
+        )
+    brdf, _ = column("brdf")
+    sigma_rel = None
+    if "sigma_rel" in columns:
+        sigma_rel, _ = column("sigma_rel")
+    elif "sigma" in columns:
+        sigma_abs, _ = column("sigma")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sigma_rel = sigma_abs / brdf
+    if "wavelength" in columns:
+        wl_values, unit = column("wavelength")
+        wl = wl_values * _WAVELENGTH_UNITS.get(unit or wavelength_unit, np.nan)
+    elif wavelength is not None:
+        wl = float(wavelength) * _WAVELENGTH_UNITS.get(wavelength_unit, np.nan)
+    else:
+        wl = 632.8e-9
+    if wavelength_unit not in _WAVELENGTH_UNITS:
+        raise FitInputError(f"{path}: unknown wavelength unit '{wavelength_unit}'; known: {', '.join(_WAVELENGTH_UNITS)}")
+    wrap = lambda a: np.mod(a, 2 * math.pi)  # noqa: E731
+    return TableData(
+        theta_i=theta_i, phi_i=wrap(phi_i), theta_s=theta_s, phi_s=wrap(phi_s), brdf=brdf, sigma_rel=sigma_rel,
+        wavelength=wl, name=name or path.stem, source=str(path),
+    )
+
+
+def read_table(
+    path: str | os.PathLike,
+    columns: Mapping[str, str | int],
+    *,
+    angle_unit: str = "deg",
+    signed_inplane: bool = False,
+    azimuth_offset: float = 0.0,
+    wavelength: float | None = None,
+    wavelength_unit: str = "nm",
+    delimiter: str | None = None,
+    comment: str = "#",
+    name: str | None = None,
+) -> TableData:
+    """A whitespace- or comma-separated table with a column mapping (module docstring).
+
+    The header is the first non-numeric line, or else the last comment line
+    with as many names as the data have columns.  ``wavelength`` (in
+    ``wavelength_unit``) applies to every row when there is no wavelength
+    column (default 632.8 nm).
+    """
+    p = _path(path)
+    if angle_unit not in ("deg", "rad"):
+        raise FitInputError(f"{p}: angle_unit must be 'deg' or 'rad', got {angle_unit!r}")
+    header, data, _ = _read_numeric(p, comment, delimiter)
+    return _columns_to_table(p, header, data, columns, angle_unit, signed_inplane, azimuth_offset, wavelength, wavelength_unit, name)
+
+
+def read_merl_inplane(path: str | os.PathLike, name: str | None = None) -> TableData:
+    """MERL in-plane slices as published with lumos-sat (``../shared/data/real/merl_aluminium_inplane.txt``).
+
+    Columns ``phi_in theta_in phi_out theta_out brdf`` where ``phi`` is the
+    ZENITH (degrees; signed in-plane for the outgoing direction) and
+    ``theta`` the azimuth, the source at azimuth 180 and the mirror direction
+    at 0 (checked on the file: each slice peaks at ``phi_out = phi_in``,
+    ``theta_out = 0``).  No uncertainties.
+    """
+    return read_table(
+        path,
+        {"theta_i": "phi_in", "phi_i": "theta_in", "theta_s": "phi_out", "phi_s": "theta_out", "brdf": "brdf"},
+        angle_unit="deg",
+        signed_inplane=True,
+        azimuth_offset=-180.0,
+        name=name,
+    )
+
+
+def read_cornell_brdf(
+    path: str | os.PathLike, wavelength_nm: float | str = "mean", name: str | None = None
+) -> TableData:
+    """A Cornell gonioreflectometer ``.brdf`` file (pbrt-v2 ``scenes/brdfs``).
+
+    Format: ``#`` comments; the number of wavelengths; the wavelengths (nm);
+    records ``theta_i phi_i theta_s phi_s`` (radians, ``phi_i = 0``, mirror
+    direction at ``phi_s = pi``: brdfjax's convention) followed by one BRDF
+    per wavelength.  ``wavelength_nm``: one of the file's wavelengths, or
+    ``"mean"`` for the average over all of them (reported at the mean
+    wavelength).  No uncertainties.
+    """
+    p = _path(path)
+    tokens: list[str] = []
+    with p.open() as fh:
+        for raw in fh:
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            tokens.extend(line.split())
+    try:
+        values = np.array([float(t) for t in tokens])
+    except ValueError:
+        bad = next(t for t in tokens if not _is_number(t))
+        raise FitInputError(f"{p}: '{bad}' is not a number") from None
+    if values.size < 2 or values[0] != int(values[0]) or values[0] < 1:
+        raise FitInputError(f"{p}: expected the number of wavelengths first, got {values[:1].tolist()}")
+    n_wl = int(values[0])
+    wls = values[1 : 1 + n_wl]
+    rest = values[1 + n_wl :]
+    width = 4 + n_wl
+    if wls.size != n_wl or rest.size == 0 or rest.size % width:
+        raise FitInputError(
+            f"{p}: {rest.size} numbers after the {n_wl} wavelengths do not form records of 4 angles + {n_wl} values"
+        )
+    rec = rest.reshape(-1, width)
+    spectra = rec[:, 4:]
+    if isinstance(wavelength_nm, str):
+        if wavelength_nm != "mean":
+            raise FitInputError(f"{p}: wavelength_nm must be a number (nm) or 'mean', got {wavelength_nm!r}")
+        brdf = spectra.mean(axis=1)
+        wl = float(wls.mean()) * 1e-9
+        suffix = "mean"
+    else:
+        idx = np.nonzero(np.isclose(wls, float(wavelength_nm)))[0]
+        if idx.size == 0:
+            raise FitInputError(
+                f"{p}: no wavelength {wavelength_nm} nm; the file has {', '.join(f'{w:g}' for w in wls)} nm or 'mean'"
+            )
+        brdf = spectra[:, idx[0]]
+        wl = float(wls[idx[0]]) * 1e-9
+        suffix = f"{wls[idx[0]]:g}nm"
+    theta_i, phi_i, theta_s, phi_s = rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3]
+    if np.any(np.abs(theta_i) > math.pi / 2 + 1e-6) or np.any(np.abs(theta_s) > math.pi / 2 + 1e-6):
+        raise FitInputError(f"{p}: zenith angles beyond pi/2: the file's angles should be in radians")
+    return TableData(
+        theta_i=np.abs(theta_i), phi_i=np.mod(phi_i, 2 * math.pi), theta_s=np.abs(theta_s),
+        phi_s=np.mod(phi_s, 2 * math.pi), brdf=brdf, sigma_rel=None, wavelength=wl,
+        name=name or f"{p.stem}_{suffix}", source=str(p),
+    )
+
+
+# --- ASTM E1392-style files -----------------------------------------------------------------
+
+_ASTM_KEYS = {
+    "wavelength": "wavelength",
+    "lambda": "wavelength",
+    "incident angle": "theta_i",
+    "angle of incidence": "theta_i",
+    "theta_i": "theta_i",
+    "incident azimuth": "phi_i",
+    "phi_i": "phi_i",
+    "angle unit": "angle_unit",
+    "angle units": "angle_unit",
+    "units": "angle_unit",
+    "sample": "sample",
+    "polarization": "polarization",
+    "polarisation": "polarization",
+}
+_ASTM_COLUMNS = {
+    "theta_s": "theta_s", "scatter_angle": "theta_s", "scatter angle": "theta_s", "theta_r": "theta_s", "polar": "theta_s",
+    "phi_s": "phi_s", "scatter_azimuth": "phi_s", "azimuth": "phi_s", "phi_r": "phi_s",
+    "brdf": "brdf", "bsdf": "brdf",
+    "sigma": "sigma", "uncertainty": "sigma", "u": "sigma", "sigma_rel": "sigma_rel",
+}
+_KEY_RE = re.compile(r"^\s*([A-Za-z_ ]+?)\s*[:=]\s*(.+?)\s*$")
+
+
+def _value_unit(path: Path, lineno: int, key: str, text: str) -> tuple[float, str | None]:
+    parts = text.split()
+    try:
+        v = float(parts[0])
+    except (ValueError, IndexError):
+        raise FitInputError(f"{path}:{lineno}: '{key}' needs a number, got '{text}'") from None
+    return v, (parts[1].lower() if len(parts) > 1 else None)
+
+
+def read_astm_e1392(path: str | os.PathLike, name: str | None = None) -> TableData:
+    """An ASTM E1392-style scatter file: keyword header, then columns; several sections allowed.
+
+    ASTM E1392 says what a BRDF report must state (wavelength, incident
+    angle, scatter angles, BRDF) rather than a file layout; this reader takes
+    the common layout of scatterometer exports::
+
+        # comments
+        Sample: ...                    (optional; free text)
+        Wavelength: 632.8 nm           (nm, um or m; required)
+        Angle unit: deg                (deg or rad; default deg)
+        Incident angle: 20             (starts a section; required)
+        Incident azimuth: 0            (optional, default 0)
+        theta_s  phi_s  BRDF  sigma    (column header)
+        ...numbers...
+        Incident angle: 40             (next section, same columns unless a new header follows)
+        ...
+
+    Column names (case-insensitive, units in parentheses allowed):
+    ``theta_s``/``scatter_angle``, ``phi_s``/``azimuth`` (optional: without it
+    ``theta_s`` is a signed in-plane angle, negative on the source side),
+    ``brdf``/``bsdf``, ``sigma`` (absolute, sr^-1) or ``sigma_rel``.
+    """
+    p = _path(path)
+    meta: dict[str, Any] = {"angle_unit": "deg", "phi_i": 0.0}
+    header: list[tuple[str, str | None]] | None = None
+    sections: list[dict[str, Any]] = []
+    current: dict[str, Any] | None = None
+    with p.open() as fh:
+        for lineno, raw in enumerate(fh, 1):
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            m = _KEY_RE.match(line)
+            if m and not _is_number(line.split()[0]):
+                key = m.group(1).strip().lower()
+                if key not in _ASTM_KEYS:
+                    raise FitInputError(
+                        f"{p}:{lineno}: unknown header key '{m.group(1).strip()}'; known: {', '.join(sorted(_ASTM_KEYS))}"
+                    )
+                role = _ASTM_KEYS[key]
+                text = m.group(2)
+                if role in ("sample", "polarization"):
+                    meta[role] = text
+                elif role == "angle_unit":
+                    if text.lower() not in ("deg", "rad"):
+                        raise FitInputError(f"{p}:{lineno}: angle unit must be 'deg' or 'rad', got '{text}'")
+                    meta["angle_unit"] = text.lower()
+                elif role == "wavelength":
+                    v, unit = _value_unit(p, lineno, key, text)
+                    if (unit or "nm") not in _WAVELENGTH_UNITS:
+                        raise FitInputError(f"{p}:{lineno}: unknown wavelength unit '{unit}'; known: nm, um, m")
+                    meta["wavelength"] = v * _WAVELENGTH_UNITS[unit or "nm"]
+                else:
+                    v, unit = _value_unit(p, lineno, key, text)
+                    f = _angle_factor(p, key, unit or meta["angle_unit"])
+                    meta[role] = v * f
+                    if role == "theta_i":
+                        current = {"theta_i": meta["theta_i"], "phi_i": meta["phi_i"], "rows": [], "header": header, "line": lineno}
+                        sections.append(current)
+                continue
+            tokens = _split(line, None)
+            if not all(_is_number(t) for t in tokens):
+                header = [_header_name(t) for t in tokens]
+                for n, _ in header:
+                    if n not in _ASTM_COLUMNS:
+                        raise FitInputError(
+                            f"{p}:{lineno}: unknown column '{n}'; known: {', '.join(sorted(_ASTM_COLUMNS))}"
+                        )
+                if current is not None and not current["rows"]:
+                    current["header"] = header
+                continue
+            if current is None:
+                raise FitInputError(f"{p}:{lineno}: data before any 'Incident angle:' line")
+            if current["header"] is None:
+                current["header"] = header
+            if current["header"] is None:
+                raise FitInputError(f"{p}:{lineno}: data before a column header (e.g. 'theta_s phi_s BRDF')")
+            if len(tokens) != len(current["header"]):
+                raise FitInputError(f"{p}:{lineno}: {len(tokens)} values, but the header names {len(current['header'])} columns")
+            current["rows"].append([float(t) for t in tokens])
+    if "wavelength" not in meta:
+        raise FitInputError(f"{p}: no 'Wavelength:' line")
+    if not sections or not any(s["rows"] for s in sections):
+        raise FitInputError(f"{p}: no data (each section starts with 'Incident angle:' and a column header)")
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("theta_i", "phi_i", "theta_s", "phi_s", "brdf", "sigma_rel")}
+    any_sigma = False
+    for s in sections:
+        if not s["rows"]:
+            continue
+        data = np.array(s["rows"], np.float64)
+        roles = {_ASTM_COLUMNS[n]: (i, u) for i, (n, u) in enumerate(s["header"])}
+        if "theta_s" not in roles or "brdf" not in roles:
+            raise FitInputError(f"{p}:{s['line']}: the section needs a theta_s and a BRDF column")
+        i, u = roles["theta_s"]
+        ts = data[:, i] * _angle_factor(p, "theta_s", u or meta["angle_unit"])
+        if "phi_s" in roles:
+            j, uj = roles["phi_s"]
+            ps = data[:, j] * _angle_factor(p, "phi_s", uj or meta["angle_unit"])
+        else:
+            ps = np.where(ts < 0, 0.0, math.pi) + s["phi_i"]
+            ts = np.abs(ts)
+        brdf = data[:, roles["brdf"][0]]
+        if "sigma_rel" in roles:
+            sr = data[:, roles["sigma_rel"][0]]
+            any_sigma = True
+        elif "sigma" in roles:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sr = data[:, roles["sigma"][0]] / brdf
+            any_sigma = True
+        else:
+            sr = np.full(brdf.shape, np.nan)
+        n = brdf.size
+        if np.any(ts < 0) or np.any(ts > math.pi / 2 + 1e-9) or not (0 <= s["theta_i"] <= math.pi / 2):
+            raise FitInputError(f"{p}:{s['line']}: zenith angles outside [0, 90] deg; check 'Angle unit'")
+        cols["theta_i"].append(np.full(n, s["theta_i"]))
+        cols["phi_i"].append(np.full(n, s["phi_i"]))
+        cols["theta_s"].append(ts)
+        cols["phi_s"].append(ps)
+        cols["brdf"].append(brdf)
+        cols["sigma_rel"].append(sr)
+    cat = {k: np.concatenate(v) for k, v in cols.items()}
+    if any_sigma and np.any(np.isnan(cat["sigma_rel"])):
+        raise FitInputError(f"{p}: some sections have an uncertainty column and some do not")
+    return TableData(
+        theta_i=cat["theta_i"], phi_i=np.mod(cat["phi_i"], 2 * math.pi), theta_s=cat["theta_s"],
+        phi_s=np.mod(cat["phi_s"], 2 * math.pi), brdf=cat["brdf"], sigma_rel=cat["sigma_rel"] if any_sigma else None,
+        wavelength=meta["wavelength"], name=name or p.stem, source=str(p),
+    )
+
+
+# --- export ---------------------------------------------------------------------------------
+
+
+def export_table(
+    model: AbstractTerm,
+    theta_i: Sequence[float] | float,
+    phi_i: Sequence[float] | float,
+    theta_s: Sequence[float] | float,
+    phi_s: Sequence[float] | float,
+    *,
+    wavelength_nm: float = 632.8,
+    angle_unit: str = "deg",
+    grid: bool = True,
+    path: str | os.PathLike | None = None,
+) -> dict[str, np.ndarray]:
+    """A model evaluated on an angle grid, as columns (and a CSV file when ``path`` is given).
+
+    ``grid=True``: every combination of the four angle lists; ``False``: the
+    lists broadcast against each other (one row per element).  Angles in
+    ``angle_unit`` (azimuths from -x: the mirror direction of ``phi_i = 0``
+    is ``phi_s = 180`` deg).  Columns: ``theta_i_deg, phi_i_deg, theta_s_deg,
+    phi_s_deg, wavelength_nm, brdf_per_sr``.
+    """
+    if angle_unit not in ("deg", "rad"):
+        raise FitInputError(f"export_table: angle_unit must be 'deg' or 'rad', got {angle_unit!r}")
+    f = math.pi / 180 if angle_unit == "deg" else 1.0
+    arrays = [np.atleast_1d(np.asarray(a, np.float64)) * f for a in (theta_i, phi_i, theta_s, phi_s)]
+    if grid:
+        arrays = [a.ravel() for a in np.meshgrid(*arrays, indexing="ij")]
+    else:
+        try:
+            arrays = [a.ravel() for a in np.broadcast_arrays(*arrays)]
+        except ValueError:
+            raise FitInputError(
+                "export_table: with grid=False the four angle arrays must broadcast against each other"
+            ) from None
+    for label, a in (("theta_i", arrays[0]), ("theta_s", arrays[2])):
+        if np.any(a < 0) or np.any(a > math.pi / 2):
+            raise FitInputError(f"export_table: {label} must lie in [0, 90] deg")
+    dirs = Directions.from_angles(*arrays)
+    brdf = np.asarray(model(dirs, wavelength_nm * 1e-9), np.float64)
+    cols = {
+        "theta_i_deg": np.degrees(arrays[0]),
+        "phi_i_deg": np.degrees(arrays[1]),
+        "theta_s_deg": np.degrees(arrays[2]),
+        "phi_s_deg": np.degrees(arrays[3]),
+        "wavelength_nm": np.full(brdf.shape, float(wavelength_nm)),
+        "brdf_per_sr": brdf,
+    }
+    if path is not None:
+        p = Path(path)
+        table = np.stack(list(cols.values()), -1)
+        tmp = p.with_name(p.name + ".tmp")
+        np.savetxt(tmp, table, delimiter=",", header=",".join(cols), comments="", fmt="%.10g")
+        os.replace(tmp, p)
+    return cols
