@@ -1,0 +1,67 @@
+"""Fits of real measurements by others (../shared/data/real): specular microfacet + Lambertian models.
+
+The tables carry no uncertainties, so every point is weighted 1 and the
+quality measure is the log-RMS, the rms of ``ln(f_model / f_data)`` per
+incident angle (printed; ``pytest -s`` shows it).  A single-lobe model is a
+coarse description of these materials (MERL aluminium, a metallic paint with
+flakes) and Eq 70 has no shadowing-masking factor, so grazing incidence (80
+deg) fits worst: the bounds below record what the model achieves, not a claim
+of accuracy.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import brdfjax as bj
+from brdfjax.fit import fit, read_cornell_brdf, read_merl_inplane
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+pytestmark = pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real is not present")
+
+#: Aluminium near 550 nm (Rakic 1995): n + i k = 0.96 + 6.69 i; paints: a dielectric binder, n = 1.5.
+ALUMINIUM = dict(n=0.96, k=6.69)
+PAINT = dict(n=1.5)
+
+
+def _model(distribution, **index):
+    width = bj.GGX(0.1) if distribution == "ggx" else bj.Beckmann(0.1)
+    return bj.Model(terms={"spec": bj.Specular(width, rho_s=0.5, **index), "diffuse": bj.Lambertian(0.05)})
+
+
+def _report(label, res):
+    groups = res.blocks[0].groups
+    rows = ", ".join(f"{g['theta_i_deg']:g}: {g['log_rms']:.3f}" for g in groups)
+    width = "spec.alpha" if "spec.alpha" in res.parameters else "spec.m"
+    print(
+        f"\n{label}: {res.message}\n  {width} = {res.value(width):.4g} +- {res.sigma(width):.2g}, "
+        f"rho_s = {res.value('spec.rho_s'):.4g}, rho_d = {res.value('diffuse.rho_d'):.4g}; "
+        f"log-RMS {res.blocks[0].log_rms:.3f} overall, per theta_i (deg): {rows}"
+    )
+    return {g["theta_i_deg"]: g["log_rms"] for g in groups}
+
+
+CASES = [
+    # file, reader, distribution, index, bound on the overall log-RMS, bound per incident angle
+    ("merl_aluminium_inplane.txt", "merl", "ggx", ALUMINIUM, 1.3, 2.0),
+    ("merl_aluminium_inplane.txt", "merl", "beckmann", ALUMINIUM, 1.3, 1.5),
+    ("cornell_cayman_metallic.brdf", "cornell", "beckmann", PAINT, 1.4, 3.5),
+    ("cornell_krylon_blue.brdf", "cornell", "ggx", PAINT, 0.55, 1.5),
+]
+
+
+@pytest.mark.parametrize("file, reader, distribution, index, overall, per_angle", CASES, ids=[f"{c[0].split('.')[0]}-{c[2]}" for c in CASES])
+def test_real_data_fit_converges_from_auto(file, reader, distribution, index, overall, per_angle):
+    table = read_merl_inplane(REAL / file) if reader == "merl" else read_cornell_brdf(REAL / file)
+    width = "spec.alpha" if distribution == "ggx" else "spec.m"
+    res = fit(_model(distribution, **index), table, {width: "auto", "spec.rho_s": "auto", "diffuse.rho_d": "auto"})
+    per = _report(f"{file} ({distribution} + Lambertian)", res)
+    assert res.converged, res.message
+    assert not res.covariance_absolute  # no uncertainties in the file: scaled by the residual variance
+    assert 1e-3 < res.value(width) < 1.0
+    assert res.value("spec.rho_s") > 0 and res.value("diffuse.rho_d") > 0
+    assert np.isfinite(res.sigma(width)) and res.sigma(width) < 0.2 * res.value(width)
+    assert res.blocks[0].log_rms < overall
+    assert max(per.values()) < per_angle
+    assert len(per) == len(table.incident_angles())
