@@ -236,8 +236,7 @@ def prepare(
         else:
             built.append(_table_block(b, u, template, fl))
     n_free = len(layout.free)
-    lo = np.array([e.lower for e in layout.free], np.float64)
-    hi = np.array([e.upper for e in layout.free], np.float64)
+    lo, hi = layout.bounds()
     stacked = can_stack(built)
     problem = Problem(
         blocks=() if stacked else tuple(built),
@@ -249,7 +248,7 @@ def prepare(
         loss_index=np.int32(loss_id(loss)),
         loss_scale=np.float64(k),
         soften=np.float64(0.0),
-        transforms=tuple(e.transform for e in layout.free),
+        transform_ids=layout.transform_ids(),
         targets=build_targets(layout),
         counts=tuple(int(b.data.shape[0]) for b in built),
     )

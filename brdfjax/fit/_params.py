@@ -46,7 +46,20 @@ import numpy as np
 
 from ._common import FRAME_PARAMETERS, FitInputError
 
-__all__ = ["Param", "TRANSFORMS", "forward", "inverse", "derivative", "Layout", "FreeEntry", "FixedEntry", "build_layout"]
+__all__ = [
+    "Param",
+    "TRANSFORMS",
+    "forward",
+    "forward_by_id",
+    "inverse",
+    "derivative",
+    "derivative_by_id",
+    "transform_id",
+    "Layout",
+    "FreeEntry",
+    "FixedEntry",
+    "build_layout",
+]
 
 TRANSFORMS = ("identity", "log", "neglog", "logit")
 
@@ -107,32 +120,59 @@ def as_param(name: str, spec: Any) -> Param:
 # --- transforms ---------------------------------------------------------------------------
 
 
+def _namespace(*arrays: Any):
+    return jnp if any(isinstance(a, jax.Array | jax.core.Tracer) for a in arrays) else np
+
+
+def forward_by_id(ids: Any, u: Any, lower: Any, upper: Any) -> Any:
+    """``x = g(u)`` element-wise, the transform of each element given by its index into :data:`TRANSFORMS`.
+
+    NumPy in, NumPy out (float64 for reports); JAX in, JAX out (differentiable;
+    unused branches see finite inputs, so no NaN leaks into gradients).  The
+    transform kinds are data, not structure: changing a bound does not
+    recompile a fit.
+    """
+    xp = _namespace(ids, u, lower, upper)
+    lo = xp.where(xp.isfinite(lower), lower, 0.0)
+    hi = xp.where(xp.isfinite(upper), upper, 0.0)
+    is_id, is_log, is_neg = ids == 0, ids == 1, ids == 2
+    u_log = xp.where(is_log, u, 0.0)
+    u_neg = xp.where(is_neg, u, 0.0)
+    u_sig = xp.where(ids == 3, u, 0.0)
+    sig = 1.0 / (1.0 + xp.exp(-u_sig))
+    return xp.where(
+        is_id, u, xp.where(is_log, lo + xp.exp(u_log), xp.where(is_neg, hi - xp.exp(-u_neg), lo + (hi - lo) * sig))
+    )
+
+
+def derivative_by_id(ids: Any, u: Any, lower: Any, upper: Any) -> Any:
+    """``dx/du`` element-wise (see :func:`forward_by_id`)."""
+    xp = _namespace(ids, u, lower, upper)
+    lo = xp.where(xp.isfinite(lower), lower, 0.0)
+    hi = xp.where(xp.isfinite(upper), upper, 0.0)
+    is_id, is_log, is_neg = ids == 0, ids == 1, ids == 2
+    e_log = xp.exp(xp.where(is_log, u, 0.0))
+    e_neg = xp.exp(-xp.where(is_neg, u, 0.0))
+    sig = 1.0 / (1.0 + xp.exp(-xp.where(ids == 3, u, 0.0)))
+    return xp.where(is_id, 1.0, xp.where(is_log, e_log, xp.where(is_neg, e_neg, (hi - lo) * sig * (1.0 - sig))))
+
+
+def transform_id(kind: str) -> int:
+    if kind not in TRANSFORMS:
+        raise ValueError(f"unknown transform '{kind}'; known: {', '.join(TRANSFORMS)}")
+    return TRANSFORMS.index(kind)
+
+
 def forward(kind: str, u: Any, lower: Any, upper: Any) -> Any:
-    """``x = g(u)`` (JAX, differentiable)."""
-    if kind == "identity":
-        return u
-    if kind == "log":
-        return lower + jnp.exp(u)
-    if kind == "neglog":
-        return upper - jnp.exp(-u)
-    if kind == "logit":
-        return lower + (upper - lower) * jax.nn.sigmoid(u)
-    raise ValueError(f"unknown transform '{kind}'; known: {', '.join(TRANSFORMS)}")
+    """``x = g(u)`` for one transform kind (NumPy or JAX, differentiable)."""
+    xp = _namespace(u, lower, upper)
+    return forward_by_id(xp.full(xp.shape(u), transform_id(kind)), u, xp.asarray(lower, float), xp.asarray(upper, float))
 
 
 def derivative(kind: str, u: Any, lower: Any, upper: Any) -> Any:
-    """``dx/du`` (NumPy or JAX)."""
-    xp = jnp if isinstance(u, jax.Array) else np
-    if kind == "identity":
-        return xp.ones_like(u)
-    if kind == "log":
-        return xp.exp(u)
-    if kind == "neglog":
-        return xp.exp(-u)
-    if kind == "logit":
-        s = 1.0 / (1.0 + xp.exp(-u))
-        return (upper - lower) * s * (1.0 - s)
-    raise ValueError(f"unknown transform '{kind}'; known: {', '.join(TRANSFORMS)}")
+    """``dx/du`` for one transform kind (NumPy or JAX)."""
+    xp = _namespace(u, lower, upper)
+    return derivative_by_id(xp.full(xp.shape(u), transform_id(kind)), u, xp.asarray(lower, float), xp.asarray(upper, float))
 
 
 def inverse(kind: str, x: float, lower: float, upper: float) -> float:
@@ -217,23 +257,19 @@ class Layout:
         hi = np.array([e.upper if e.transform == "identity" else np.inf for e in self.free])
         return lo, hi
 
+    def transform_ids(self) -> np.ndarray:
+        return np.array([transform_id(e.transform) for e in self.free], dtype=np.int32)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([e.lower for e in self.free], np.float64), np.array([e.upper for e in self.free], np.float64)
+
     def natural(self, u: np.ndarray) -> np.ndarray:
         """Stored-unit values of the free entries at unconstrained ``u`` (NumPy float64)."""
-        out = []
-        for e, ui in zip(self.free, np.asarray(u, dtype=np.float64)):
-            if e.transform == "identity":
-                out.append(float(ui))
-            elif e.transform == "log":
-                out.append(e.lower + math.exp(ui))
-            elif e.transform == "neglog":
-                out.append(e.upper - math.exp(-ui))
-            else:
-                out.append(e.lower + (e.upper - e.lower) / (1.0 + math.exp(-ui)))
-        return np.array(out)
+        return np.asarray(forward_by_id(self.transform_ids(), np.asarray(u, np.float64), *self.bounds()), np.float64)
 
     def jacobian_diag(self, u: np.ndarray) -> np.ndarray:
         """``dx/du`` of every free entry at ``u`` (float64)."""
-        return np.array([float(derivative(e.transform, ui, e.lower, e.upper)) for e, ui in zip(self.free, u)])
+        return np.asarray(derivative_by_id(self.transform_ids(), np.asarray(u, np.float64), *self.bounds()), np.float64)
 
 
 def _default_bounds(unit: str, base: str, kind: str) -> tuple[float, float]:

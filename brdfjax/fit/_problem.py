@@ -43,7 +43,7 @@ from ..detector import Detector
 from ..geometry import Directions
 from ..render import Frame, evaluate_pixels
 from ..terms import AbstractTerm, Model
-from ._params import Layout, forward
+from ._params import Layout, forward_by_id
 from ._residuals import convolve_same, log_model, robust_residuals_by_id
 
 __all__ = ["FrameBlock", "FrameStack", "TableBlock", "Problem", "residuals", "raw_residuals", "PAD_MULTIPLE"]
@@ -182,7 +182,7 @@ class Problem(eqx.Module):
     loss_index: Array  # index into LOSSES (traced: changing the loss does not recompile)
     loss_scale: Array
     soften: Array  # 0: plain log residuals; 1: softened at each block's soft_level (traced)
-    transforms: tuple[str, ...] = eqx.field(static=True)
+    transform_ids: Array  # (n_free,) indices into TRANSFORMS (traced: bounds and kinds do not recompile)
     targets: tuple[tuple[str, str, tuple[int, ...]], ...] = eqx.field(static=True)  # (base, kind, blocks)
     counts: tuple[int, ...] = eqx.field(static=True)  # usable points per block
 
@@ -196,10 +196,7 @@ class Problem(eqx.Module):
 
     def natural(self, v: Array) -> Array:
         """Stored-unit values of the free parameters."""
-        u = self.unconstrained(v)
-        if not self.transforms:
-            return u
-        return jnp.stack([forward(t, u[i], self.lower[i], self.upper[i]) for i, t in enumerate(self.transforms)])
+        return forward_by_id(self.transform_ids, self.unconstrained(v), self.lower, self.upper)
 
     def _block_values(self, x: Array, k: int) -> tuple[Values, Values]:
         mv: Values = {}
