@@ -78,28 +78,31 @@ def test_joint_fit_of_different_detectors_must_say_so():
     assert res.value("d.rho_d") == pytest.approx(np.pi, rel=1e-6)  # brdf = 1 = rho / pi
 
 
-def test_footprint_is_convolved_and_recorded():
-    # A Gaussian peak seen through a box footprint: the fit with the footprint recovers the width,
-    # the fit without it sees a wider peak; the result says which happened.
+def test_footprint_is_convolved_and_recorded_with_a_free_incidence_angle():
+    # A narrow peak seen through a box footprint, the sample 0.02 deg off (the arm stays at the
+    # nominal 30 deg, the incidence is 30.02 deg): the fit convolves the model with the footprint,
+    # recovers the width (unconvolved, the 14-pixel box would widen it by ~5 %) and the incidence,
+    # and says that it convolved.
     det = bj.Detector.seed()
-    grid = det.grid(2, (-30, 30, -30, 30))
+    grid = det.grid(2, (-40, 40, -30, 30))
     model = bj.Model(terms={"p": bj.Specular(bj.Beckmann(1e-4), rho_s=0.02, n=1.5), "floor": bj.Lambertian(0.5)})
-    frame = bj.Frame.from_degrees(30.0)
-    truth = np.asarray(bj.render(model, frame, det, grid=grid, precision="float64"), np.float64)
+    truth = np.asarray(
+        bj.render(model, bj.Frame.from_degrees(30.02), det.at(np.radians(30.0)), grid=grid, precision="float64")
+    )
     kernel = np.ones((7, 7)) / 49.0
     import jax.scipy.signal as jss
 
     blurred = np.asarray(jss.fftconvolve(truth, kernel, mode="same"))
     mask = np.zeros(truth.shape, bool)
     mask[6:-6, 6:-6] = True  # away from the zero-padded edge
-    fr = FrameData(blurred, 1e-3, float(frame.theta_i), det, grid, mask=mask, footprint=kernel, name="blur")
-    spec = {"p.m": 1.3e-4, "p.rho_s": 0.03}
-    with_fp = fit(model, fr, spec)
-    without = fit(model, fr, spec, use_footprint=False)
-    assert with_fp.converged and with_fp.convolved and with_fp.to_dict()["instrument_function"]["blocks"] == ["blur"]
-    assert not without.convolved
-    assert with_fp.value("p.m") == pytest.approx(1e-4, rel=1e-4)
-    assert without.value("p.m") > 1.03e-4
+    fr = FrameData(blurred, 1e-3, np.radians(30.0), det, grid, mask=mask, footprint=kernel, name="blur")
+    res = fit(model, fr, {"p.m": 1.3e-4, "p.rho_s": 0.03, "theta_i": "free"})
+    assert res.converged, res.message
+    assert res.convolved and res.to_dict()["instrument_function"] == {"convolved": True, "blocks": ["blur"]}
+    assert res.value("p.m") == pytest.approx(1e-4, rel=1e-4)
+    assert np.degrees(res.value("theta_i[blur]")) == pytest.approx(30.02, abs=1e-6)
+    out = res.to_dict()["parameters"]["theta_i[blur]"]
+    assert out["unit"] == "deg" and out["free"] is True and out["initial"] == pytest.approx(30.0)
 
 
 # --- tables -------------------------------------------------------------------------------
@@ -258,3 +261,15 @@ def test_export_table_round_trip(tmp_path):
     assert cols["phi_s_deg"][k] == 180 and cols["theta_s_deg"][k] in (10, 40)
     with pytest.raises(FitInputError, match=r"theta_s must lie in \[0, 90\] deg"):
         export_table(model, 10, 0, 95, 180)
+
+
+def test_frames_and_tables_jointly_with_a_per_frame_parameter():
+    model = bj.Model(terms={"d": bj.Lambertian(0.1)})
+    fr = _frame(brdf=np.full(GRID.shape, 0.2 / np.pi), name="frame")
+    n = 50
+    tab = TableData(np.full(n, 0.3), np.zeros(n), np.full(n, 0.4), np.full(n, 1.0), np.full(n, 0.4 / np.pi), 0.03, name="gonio")
+    res = fit(model, [fr, tab], {"d.rho_d": bj.fit.Param(0.1, per_frame=True)})
+    assert res.converged, res.message
+    assert res.value("d.rho_d[frame]") == pytest.approx(0.2, rel=1e-5)  # the log(0) guard biases by 1e-6
+    assert res.value("d.rho_d[gonio]") == pytest.approx(0.4, rel=1e-5)
+    assert [b.kind for b in res.blocks] == ["frame", "table"]

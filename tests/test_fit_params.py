@@ -88,6 +88,14 @@ def test_lambertian_fit_matches_closed_form(solver):
     assert res.covariance_absolute
 
 
+def test_float32_precision():
+    tab = _lambertian_table()
+    res = fit(LAMB, tab, {"diffuse.rho_d": 0.1}, precision="float32")
+    assert res.precision == "float32" and res.converged, res.message
+    rho_hat = np.pi * np.exp(np.mean(np.log(np.asarray(tab.brdf))))
+    assert res.value("diffuse.rho_d") == pytest.approx(rho_hat, rel=1e-5)
+
+
 def test_table_without_uncertainty_scales_covariance_by_residual_variance():
     tab = _lambertian_table(sigma=False)
     res = fit(LAMB, tab, {"diffuse.rho_d": 0.1})
