@@ -1,6 +1,5 @@
 """Fit data containers and table readers: validation messages, conventions, round trips."""
 
-import math
 from pathlib import Path
 
 import numpy as np

@@ -8,6 +8,7 @@ s``, ``rho = pi exp(mean log d)`` and ``sigma(rho) = rho s / sqrt(N)``.
 import json
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -242,3 +243,29 @@ def test_covariance_oracle_linear_model():
     np.testing.assert_allclose(np.diag(cov.correlation), 1.0)
     scaled = covariance(J, np.ones(3), chi2_reduced=4.0, absolute=False)
     np.testing.assert_allclose(scaled.matrix, 4.0 * np.linalg.inv(J.T @ J), rtol=1e-10)
+
+
+def test_residual_jacobian_matches_finite_differences():
+    """The solvers' residual function carries a custom JVP (one materialised Jacobian); check it."""
+    from brdfjax.fit._fit import prepare
+    from brdfjax.fit._problem import residuals, with_scale
+
+    model = bj.Model(terms={"s": bj.Specular(bj.GGX(0.2), rho_s=0.5, n=1.5), "d": bj.Lambertian(0.05)})
+    rng = np.random.default_rng(1)
+    n = 60
+    ti, ts, ps = rng.uniform(0.1, 1.0, n), rng.uniform(0.0, 1.2, n), rng.uniform(0, 2 * np.pi, n)
+    f = np.asarray(model(bj.Directions.from_angles(ti, np.zeros(n), ts, ps), 633e-9)) * np.exp(0.1 * rng.standard_normal(n))
+    tab = TableData(ti, np.zeros(n), ts, ps, f, 0.1)
+    prep = prepare(model, tab, {"s.alpha": 0.3, "s.rho_s": Param(0.4, lower=0.0, upper=2.0), "d.rho_d": 0.1}, solver=get_solver())
+    problem = with_scale(prep.problem, prep.layout.u0(), np.array([0.5, 2.0, 1.0]))
+    v = jnp.array([0.1, -0.2, 0.3])
+    from brdfjax.fit._problem import half_sum_squares
+
+    res = eqx.filter_jit(residuals)
+    J = np.asarray(eqx.filter_jit(jax.jacfwd(residuals))(v, problem))
+    h = 1e-6
+    fd = np.stack([(np.asarray(res(v + h * e, problem)) - np.asarray(res(v - h * e, problem))) / (2 * h) for e in jnp.eye(3)], -1)
+    np.testing.assert_allclose(J, fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+    # and the gradient of the objective (reverse mode through the rule) is J^T r
+    g = np.asarray(eqx.filter_jit(jax.grad(half_sum_squares))(v, problem))
+    np.testing.assert_allclose(g, J.T @ np.asarray(res(v, problem)), rtol=1e-10)
