@@ -40,3 +40,15 @@ def test_readme_instrument_example_runs(tmp_path, monkeypatch):
     exec(compile(block, str(README), "exec"), ns)
     frame = read_reduced_frame(ns["paths"][0])
     assert frame.brdf.shape == (48, 64) and (frame.extra["mask"] > 0).sum() > 100
+
+
+def test_readme_fit_example_runs():
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+    (block,) = [b for b in blocks if "from brdfjax.fit import" in b]
+    ns: dict = {}
+    exec(compile(block.replace("print(", "str("), str(README), "exec"), ns)
+    r = ns["result"].to_json()
+    r = r if isinstance(r, dict) else __import__("json").loads(r)
+    assert r["converged"] is True
+    m1 = r["parameters"]["m1"]
+    assert abs(m1["value"] - 2e-4) < max(3 * m1["sigma"], 1e-6)
