@@ -21,6 +21,7 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
@@ -251,7 +252,9 @@ class Model(AbstractTerm):
             return self
         paths = self._paths()
         flat = [paths[self._resolve(k)][0] for k in values]
-        new = [v if hasattr(v, "dtype") else np.asarray(v, dtype=np.float64) for v in values.values()]
+        # Arrays and tracers keep their dtype (so this works under jit/grad); plain numbers become float64.
+        new = [v if isinstance(v, np.ndarray | jax.Array | jax.core.Tracer) else np.asarray(v, dtype=np.float64)
+               for v in values.values()]
 
         def where(m):
             return tuple(_get_path(m, p) for p in flat)

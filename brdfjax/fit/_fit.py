@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..geometry import Directions
-from ..render import Frame, cast
+from ..render import Frame, _resolve_dtype, cast
 from ..terms import Model
 from ._common import FRAME_PARAMETERS, FitInputError
 from ._covariance import covariance
@@ -105,16 +105,14 @@ def _check_detectors(blocks: Sequence[Data], names: Sequence[str], allow: bool) 
 
 
 def _resolve_precision(precision: str | None) -> tuple[str, Any]:
+    """Default to the process's JAX precision; the checks (and messages) are render's."""
     if precision is None:
         precision = "float64" if jax.config.jax_enable_x64 else "float32"
-    if precision not in ("float32", "float64"):
-        raise FitInputError(f"precision must be 'float32' or 'float64', got {precision!r}")
-    if precision == "float64" and not jax.config.jax_enable_x64:
-        raise FitInputError(
-            "precision 'float64' needs 64-bit JAX: call jax.config.update('jax_enable_x64', True) first "
-            "(brdfjax never flips this process-wide switch for you)"
-        )
-    return precision, (jnp.float64 if precision == "float64" else jnp.float32)
+    try:
+        dtype = _resolve_dtype(precision)
+    except ValueError as e:
+        raise FitInputError(str(e)) from None
+    return np.dtype(dtype).name, dtype
 
 
 def _floor(block: Data, usable: np.ndarray, floor: float | str) -> float:
