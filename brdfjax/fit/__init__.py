@@ -20,6 +20,11 @@ from ._auto_init import (
 from ._common import FitInputError as FitInputError
 from ._covariance import Covariance as Covariance, covariance as covariance
 from ._data import FrameData as FrameData, TableData as TableData
+from ._frames_io import (
+    detector_from_attrs as detector_from_attrs,
+    frame_data_from_reduced as frame_data_from_reduced,
+    read_frame_data as read_frame_data,
+)
 from ._synthetic import render_noisy_frames as render_noisy_frames
 from ._fit import FIRST_STAGES as FIRST_STAGES, fit as fit, prepare as prepare, versions as versions
 from ._params import TRANSFORMS as TRANSFORMS, Param as Param

@@ -862,6 +862,8 @@ def reduce_measurement(
         "m_v": a.m_v,
         "step": int(step),
         "roi": (int(grid.n_h[0]), int(grid.n_h[-1]), int(grid.n_v[0]), int(grid.n_v[-1])),
+        "detector_n_v": int(sample.shape[0]),  # the raw array's shape (the roi is on its pixel indices)
+        "detector_n_h": int(sample.shape[1]),
         "model": f"measured: {a.sample}" if a.sample else "measured",
         "frame": "reduced from raw exposure stacks (brdfjax.instrument.reduce)",
         "merge": merge,

@@ -1,0 +1,239 @@
+"""Reduced BRDF frames (``brdfjax.instrument.reduce``) as fit data.
+
+A reduced frame (a :class:`~brdfjax.instrument.reduce.ReducedFrame` or its
+EXR file, written by ``brdfjax reduce``) carries the BRDF on a pixel grid
+with the extra channels ``sigma_rel`` and ``mask`` and header attributes that
+describe the measurement: ``theta_i``, ``theta_c``, ``phi_ref``,
+``wavelength`` (rad, m), the detector (``R``, ``pixel_pitch``,
+``pixel_pitch_v``, misalignment ``roll``, ``yaw``, ``pitch``, ``m_h``,
+``m_v``, the raw array's ``detector_n_v`` x ``detector_n_h``) and the grid
+(``step``, ``roi = (h0, h1, v0, v1)`` seed pixel indices).
+:func:`frame_data_from_reduced` turns one into a :class:`FrameData` with the
+same :class:`~brdfjax.Detector` and :class:`~brdfjax.PixelGrid`, optionally
+decimated further (every ``step``-th row and column of the stored grid) and
+cut to a region of interest.
+
+The detector's arm: when ``theta_c`` equals ``theta_i`` (the camera centred on
+the specular peak, as in every seed measurement) the detector is built with
+``theta_c = None`` ("follows the peak"), so frames at several incidence
+angles share one detector (a joint fit needs no
+``allow_different_detectors``) and a fit that frees ``theta_i`` moves the
+incidence, not the camera.  Otherwise the arm stays at the stored
+``theta_c``.
+
+The instrument function: a frame attribute ``footprint_w_px`` (the 1/e^2
+radius of a Gaussian beam footprint, Eq 73, in raw detector pixels), or the
+``footprint_w_px`` argument, gives the footprint kernel sampled on the
+frame's grid (:func:`brdfjax.instrument.synthetic.footprint_kernel` with the
+radius divided by the grid's pixel step); ``footprint`` may also be given as
+a kernel array directly.  Files written before ``detector_n_v`` /
+``detector_n_h`` existed get the smallest even-sized array that holds the roi
+(pixel geometry depends on the indices only, not on the array size).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..detector import Detector, PixelGrid
+from ._common import FitInputError
+from ._data import FrameData
+
+__all__ = ["frame_data_from_reduced", "read_frame_data", "detector_from_attrs"]
+
+_REQUIRED = ("theta_i", "phi_ref", "wavelength", "R", "pixel_pitch", "step", "roi")
+
+
+def _owner(name: str | None, source: str | None) -> str:
+    return f"frame '{name}'" + (f" ({source})" if source else "")
+
+
+def _shape_from_roi(roi: tuple[int, int, int, int]) -> tuple[int, int]:
+    h0, h1, v0, v1 = roi
+
+    def size(lo: int, hi: int) -> int:
+        # even n: indices -(n/2 - 1) .. n/2
+        n = max(2 * hi, 2 - 2 * lo, 2)
+        return n + (n % 2)
+
+    return size(v0, v1), size(h0, h1)
+
+
+def detector_from_attrs(attrs: Mapping[str, Any], *, owner: str = "frame") -> Detector:
+    """The :class:`Detector` a reduced frame was measured with (arm ``None`` when centred on the peak)."""
+    missing = [k for k in _REQUIRED if k not in attrs]
+    if missing:
+        raise FitInputError(
+            f"{owner}: missing header attribute(s) {missing}; a reduced frame has {', '.join(_REQUIRED)} "
+            "(written by brdfjax reduce)"
+        )
+    roi = tuple(int(x) for x in attrs["roi"])
+    if "detector_n_v" in attrs and "detector_n_h" in attrs:
+        shape = (int(attrs["detector_n_v"]), int(attrs["detector_n_h"]))
+    else:
+        shape = _shape_from_roi(roi)  # type: ignore[arg-type]
+    theta_i = float(attrs["theta_i"])
+    theta_c = attrs.get("theta_c")
+    arm = None if theta_c is None or math.isclose(float(theta_c), theta_i, rel_tol=0.0, abs_tol=1e-12) else float(theta_c)
+    pitch = float(attrs["pixel_pitch"])
+    try:
+        return Detector(
+            shape=shape,
+            pixel_pitch=pitch,
+            pixel_pitch_v=float(attrs.get("pixel_pitch_v", pitch) or pitch),
+            distance=float(attrs["R"]),
+            theta_c=arm,
+            roll=float(attrs.get("roll", 0.0)),
+            yaw=float(attrs.get("yaw", 0.0)),
+            pitch=float(attrs.get("pitch", 0.0)),
+            m_h=float(attrs.get("m_h", 0.0)),
+            m_v=float(attrs.get("m_v", 0.0)),
+        )
+    except (ValueError, TypeError) as e:
+        raise FitInputError(f"{owner}: the header does not describe a valid detector: {e}") from None
+
+
+def _stored_grid(attrs: Mapping[str, Any], shape: tuple[int, int], owner: str) -> PixelGrid:
+    h0, h1, v0, v1 = (int(x) for x in attrs["roi"])
+    step = int(attrs["step"])
+    grid = PixelGrid(np.arange(h0, h1 + 1, step), np.arange(v0, v1 + 1, step))
+    if grid.shape != tuple(shape):
+        raise FitInputError(
+            f"{owner}: the header's roi {(h0, h1, v0, v1)} with step {step} gives a {grid.shape} grid, "
+            f"but the channels are {tuple(shape)}"
+        )
+    return grid
+
+
+def _footprint_for(w_px: float | None, pixel_step: int):
+    if w_px is None:
+        return None
+    from ..instrument.synthetic import footprint_kernel
+
+    return footprint_kernel(float(w_px) / pixel_step, tail=1e-9)
+
+
+def frame_data_from_reduced(
+    reduced: Any,
+    *,
+    name: str | None = None,
+    step: int = 1,
+    mask: Any = None,
+    roi: tuple[int, int, int, int] | None = None,
+    footprint: Any = "auto",
+    footprint_w_px: float | None = None,
+    source: str | None = None,
+) -> FrameData:
+    """A :class:`FrameData` from a reduced frame (a ``ReducedFrame`` or anything with ``brdf``, ``extra``, ``attrs``).
+
+    ``step`` keeps every ``step``-th row and column of the stored grid;
+    ``roi = (h0, h1, v0, v1)`` (inclusive seed pixel indices) keeps the part
+    of the grid inside it; ``mask`` (boolean, the stored grid's shape, or
+    the decimated one) is AND-ed with the frame's ``mask`` channel.
+    ``footprint``: ``"auto"`` (from the ``footprint_w_px`` argument or
+    header attribute, else none), ``None`` (none) or a kernel on the
+    output grid's spacing.  ``name`` defaults to the header's
+    ``sample_file`` stem or ``"frame"``.
+    """
+    attrs = dict(getattr(reduced, "attrs", {}) or {})
+    extra = dict(getattr(reduced, "extra", {}) or {})
+    if name is None:
+        stem = Path(str(attrs.get("sample_file", "") or "")).stem
+        name = stem or "frame"
+    owner = _owner(name, source)
+    if not (isinstance(step, int | np.integer) and not isinstance(step, bool) and step >= 1):
+        raise FitInputError(f"{owner}: step must be a positive integer, got {step!r}")
+    brdf = np.asarray(reduced.brdf, dtype=np.float64)
+    if brdf.ndim != 2:
+        raise FitInputError(f"{owner}: 'brdf' must be a 2-D frame, got shape {brdf.shape}")
+    if "sigma_rel" not in extra:
+        raise FitInputError(
+            f"{owner}: no 'sigma_rel' channel; a fit needs each pixel's relative uncertainty "
+            "(a reduced frame from brdfjax reduce has it)"
+        )
+    detector = detector_from_attrs(attrs, owner=owner)
+    grid = _stored_grid(attrs, brdf.shape, owner)
+    sigma = np.asarray(extra["sigma_rel"], dtype=np.float64)
+    keep = np.ones(brdf.shape, bool) if "mask" not in extra else np.asarray(extra["mask"]) > 0.5
+    rows = np.arange(brdf.shape[0])[::step]
+    cols = np.arange(brdf.shape[1])[::step]
+    if roi is not None:
+        h0, h1, v0, v1 = (int(x) for x in roi)
+        cols = cols[(grid.n_h[cols] >= h0) & (grid.n_h[cols] <= h1)]
+        rows = rows[(grid.n_v[rows] >= v0) & (grid.n_v[rows] <= v1)]
+        if rows.size == 0 or cols.size == 0:
+            raise FitInputError(
+                f"{owner}: the region of interest {tuple(roi)} holds no pixel of the frame's grid "
+                f"(n_h {grid.n_h[0]}..{grid.n_h[-1]}, n_v {grid.n_v[0]}..{grid.n_v[-1]})"
+            )
+    ix = np.ix_(rows, cols)
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape == brdf.shape:
+            m = m[ix]
+        elif m.shape != (rows.size, cols.size):
+            raise FitInputError(
+                f"{owner}: mask has shape {m.shape}; expected the stored grid's {brdf.shape} "
+                f"or the decimated grid's {(rows.size, cols.size)}"
+            )
+        keep_out = keep[ix] & m
+    else:
+        keep_out = keep[ix]
+    out_grid = PixelGrid(grid.n_h[cols], grid.n_v[rows])
+    pixel_step = int(attrs["step"]) * int(step)
+    if isinstance(footprint, str):
+        if footprint != "auto":
+            raise FitInputError(f"{owner}: footprint must be 'auto', None or a kernel array, got {footprint!r}")
+        w = footprint_w_px if footprint_w_px is not None else attrs.get("footprint_w_px")
+        kernel = _footprint_for(None if w is None or float(w) <= 0 else float(w), pixel_step)
+    else:
+        kernel = footprint
+    return FrameData(
+        brdf=brdf[ix],
+        sigma_rel=sigma[ix],
+        theta_i=float(attrs["theta_i"]),
+        detector=detector,
+        grid=out_grid,
+        mask=keep_out,
+        phi_ref=float(attrs["phi_ref"]),
+        wavelength=float(attrs["wavelength"]),
+        footprint=kernel,
+        name=name,
+    )
+
+
+def read_frame_data(
+    path: str | os.PathLike,
+    *,
+    name: str | None = None,
+    step: int = 1,
+    mask: Any = None,
+    roi: tuple[int, int, int, int] | None = None,
+    footprint: Any = "auto",
+    footprint_w_px: float | None = None,
+) -> FrameData:
+    """A :class:`FrameData` from a reduced frame EXR (``brdfjax reduce`` output); ``name`` defaults to the file stem.
+
+    Raises :class:`FitInputError` naming the file when it is missing, not a
+    frame file, or lacks ``sigma_rel`` or a header attribute.
+    """
+    from ..instrument.reduce import read_reduced_frame
+    from ..io.exr import ExrError
+
+    path = Path(path)
+    try:
+        reduced = read_reduced_frame(path)
+    except FileNotFoundError:
+        raise FitInputError(f"{path}: no such frame file") from None
+    except ExrError as e:
+        raise FitInputError(str(e)) from None
+    return frame_data_from_reduced(
+        reduced, name=name or path.stem, step=step, mask=mask, roi=roi, footprint=footprint,
+        footprint_w_px=footprint_w_px, source=str(path),
+    )
