@@ -1,0 +1,431 @@
+"""``sample``: parameter posteriors of a fit problem with emcee (the Python API behind ``brdfjax sample``)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..fit import FitResult, FrameData, TableData, fit, prepare
+from ..fit._common import to_natural
+from ..fit._params import as_param
+from ..fit._solvers import get_solver
+from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
+from ._outputs import (
+    plot_corner,
+    plot_predictive,
+    plot_trace,
+    predictive_columns,
+    slice_columns,
+    summarise,
+    write_json_atomic,
+)
+from ._posterior import LogPosterior, build_log_posterior, check_walkers, default_walkers, start_ball
+from ._priors import Prior, SampleError
+
+__all__ = ["sample", "PosteriorResult", "decimate_frame", "sampling_record", "start_from_fit_json"]
+
+#: Options of :func:`brdfjax.fit.prepare` among a fit's keyword arguments.
+_PREPARE_KEYS = (
+    "loss",
+    "loss_scale",
+    "initializer",
+    "init_options",
+    "floor",
+    "precision",
+    "allow_different_detectors",
+    "use_footprint",
+)
+
+
+def decimate_frame(data: FrameData, step: int = 1, roi: tuple[int, int, int, int] | None = None) -> FrameData:
+    """A frame on every ``step``-th point of its grid inside ``roi = (h0, h1, v0, v1)`` (seed pixel indices).
+
+    A footprint is subsampled on the coarser spacing (centred, odd-sided).
+    """
+    if not (isinstance(step, int | np.integer) and step >= 1):
+        raise SampleError(f"step must be a positive integer, got {step!r}")
+    n_h = np.asarray(data.grid.n_h)
+    n_v = np.asarray(data.grid.n_v)
+    if roi is not None:
+        h0, h1, v0, v1 = (int(x) for x in roi)
+        cols = np.flatnonzero((n_h >= h0) & (n_h <= h1))
+        rows = np.flatnonzero((n_v >= v0) & (n_v <= v1))
+        if not cols.size or not rows.size:
+            raise SampleError(
+                f"frame '{data.name}': roi {tuple(roi)} contains no pixel of its grid (columns {n_h.min()}..{n_h.max()}, "
+                f"rows {n_v.min()}..{n_v.max()})"
+            )
+    else:
+        cols, rows = np.arange(n_h.size), np.arange(n_v.size)
+    cols, rows = cols[::step], rows[::step]
+    if step == 1 and roi is None:
+        return data
+    from ..detector import PixelGrid
+
+    grid = PixelGrid(n_h[cols], n_v[rows])
+    ix = np.ix_(rows, cols)
+    brdf = np.asarray(data.brdf)[ix]
+    sig = np.asarray(data.sigma_rel)
+    sig = sig[ix] if sig.ndim == 2 else sig
+    mask = None if data.mask is None else np.asarray(data.mask)[ix]
+    fp = data.footprint
+    if fp is not None and step > 1:
+        k = np.asarray(fp)
+        cy, cx = k.shape[0] // 2, k.shape[1] // 2
+        ry, rx = cy // step, cx // step
+        fp = k[cy - ry * step : cy + ry * step + 1 : step, cx - rx * step : cx + rx * step + 1 : step]
+    return FrameData(
+        brdf=brdf,
+        sigma_rel=sig,
+        theta_i=data.theta_i,
+        detector=data.detector,
+        grid=grid,
+        mask=mask,
+        phi_ref=data.phi_ref,
+        wavelength=data.wavelength,
+        footprint=fp,
+        name=data.name,
+    )
+
+
+def sampling_record(blocks: Sequence[FrameData | TableData], step: int | None, roi: Any) -> dict[str, Any]:
+    """What the sampler saw: per block its grid (step, extent, shape) and usable points."""
+    out = []
+    for b in blocks:
+        if isinstance(b, FrameData):
+            n_h, n_v = np.asarray(b.grid.n_h), np.asarray(b.grid.n_v)
+            st = int(np.min(np.diff(n_h))) if n_h.size > 1 else 1
+            out.append(
+                {
+                    "name": b.name,
+                    "kind": "frame",
+                    "grid_step_px": st,
+                    "extent": [int(n_h.min()), int(n_h.max()), int(n_v.min()), int(n_v.max())],
+                    "grid_shape": list(b.grid.shape),
+                    "n_points": int(b.usable().sum()),
+                }
+            )
+        else:
+            out.append({"name": b.name, "kind": "table", "n_points": int(b.usable().sum())})
+    return {
+        "step": step,
+        "roi": None if roi is None else [int(x) for x in roi],
+        "blocks": out,
+        "n_points": int(sum(d["n_points"] for d in out)),
+    }
+
+
+def start_from_fit_json(data: Mapping[str, Any], names: Sequence[str], units: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Start values and sigmas (stored units) of ``names`` from a fit result JSON (natural units)."""
+    params = data.get("parameters")
+    if not isinstance(params, Mapping):
+        raise SampleError("the fit result has no 'parameters' table (expected the JSON of brdfjax fit / FitResult.to_json)")
+    x, s = [], []
+    for n, u in zip(names, units):
+        if n not in params or not isinstance(params[n], Mapping) or params[n].get("value") is None:
+            raise SampleError(
+                f"the fit result gives no value for the free parameter '{n}' (it has: {', '.join(params)}); "
+                "run the fit with the same [params], or leave the result out to fit first"
+            )
+        f = to_natural(u)
+        x.append(float(params[n]["value"]) / f)
+        sg = params[n].get("sigma")
+        s.append(math.nan if sg is None else float(sg) / f)
+    return np.array(x), np.array(s)
+
+
+def _spec_from_result(spec: Mapping[str, Any], values: Mapping[str, float], block_names: Sequence[str]) -> dict[str, Any]:
+    """The parameter spec with each free 'auto' start replaced by the fit's value (no second auto-init)."""
+    from dataclasses import replace
+
+    out = dict(spec)
+    for k, v in spec.items():
+        p = as_param(k, v)
+        if not (p.free and isinstance(p.value, str) and p.value == "auto"):
+            continue
+        if k in values:
+            out[k] = replace(p, value=float(values[k]))
+        else:
+            per = [f"{k}[{b}]" for b in block_names]
+            have = [values.get(n) for n in per]
+            if all(h is not None for h in have):
+                out[k] = replace(p, value=[float(h) for h in have])
+    return out
+
+
+@dataclass(eq=False)
+class PosteriorResult:
+    """A posterior study's chain, diagnostics and summary (``summary`` is posterior.json's content)."""
+
+    posterior: LogPosterior
+    chain: np.ndarray  # (n_steps, n_walkers, p) stored units
+    log_prob: np.ndarray  # (n_steps, n_walkers)
+    diagnostics: Diagnostics
+    summary: dict[str, Any]
+    run: RunOutcome
+    fit_result: FitResult | None = None
+    files: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.posterior.names
+
+    def flat(self, natural: bool = False) -> np.ndarray:
+        """Samples after burn-in (and thinning), ``(n, p)``; natural units (degrees) when asked."""
+        d = self.diagnostics
+        c = self.chain[d.burn :: d.thin].reshape(-1, self.chain.shape[2])
+        return self.posterior.to_natural(c) if natural else c
+
+    def interval(self, name: str, level: float = 0.68) -> tuple[float, float]:
+        """Equal-tailed credible interval of ``name`` (stored units)."""
+        i = self.names.index(name)
+        lo = 50 - 50 * level
+        return tuple(float(v) for v in np.percentile(self.flat()[:, i], [lo, 100 - lo]))
+
+    def correlation(self) -> np.ndarray:
+        return np.corrcoef(self.flat().T) if len(self.names) > 1 else np.ones((1, 1))
+
+
+def _block_names(blocks):
+    from ..fit._fit import _block_names as bn
+
+    return bn(blocks)
+
+
+def sample(
+    model: Any,
+    data: FrameData | TableData | Sequence[FrameData | TableData],
+    params: Mapping[str, Any] | None = None,
+    *,
+    priors: Mapping[str, Prior] | None = None,
+    n_walkers: int | None = None,
+    n_steps: int = 1000,
+    out_dir: str | Path | None = None,
+    resume: bool = False,
+    start: FitResult | Mapping[str, Any] | None = None,
+    fit_kwargs: Mapping[str, Any] | None = None,
+    seed: int = 0,
+    ball: float = 0.1,
+    burn: int | str = "auto",
+    thin: int = 1,
+    stop_when_converged: bool = False,
+    check_every: int = 100,
+    progress: bool = False,
+    figures: bool = True,
+    predictive_draws: int = 100,
+    step: int | None = None,
+    roi: tuple[int, int, int, int] | None = None,
+    vectorize: bool = True,
+    log: Any = None,
+    extra_record: Mapping[str, Any] | None = None,
+) -> PosteriorResult:
+    """Sample the posterior of ``params`` (as for :func:`brdfjax.fit.fit`) given ``data`` with emcee.
+
+    The likelihood is the fit's (same residuals, weights and loss, from
+    ``fit_kwargs``: loss, loss_scale, floor, precision, use_footprint, ...);
+    ``priors`` (parameter name -> :class:`Prior`, stored units) multiply it,
+    and the physical bounds always apply.  Walkers start in a ball of
+    ``ball`` fit sigmas around the least-squares optimum: ``start`` (a
+    :class:`~brdfjax.fit.FitResult` or its JSON dict), else a fit run here.
+    ``step``/``roi`` decimate the frames for sampling (recorded in the
+    summary).  With ``out_dir`` the chain goes to ``out_dir/chain.h5`` as it
+    is drawn (``resume=True`` continues it to ``n_steps`` in total) and
+    ``posterior.json``, ``corner.png``, ``trace.png`` and
+    ``predictive_<frame>.png`` are written there.
+    """
+    t_start = time.perf_counter()
+    say = log or (lambda msg: None)
+    fit_kwargs = dict(fit_kwargs or {})
+    spec = dict(params or {})
+    blocks = [data] if isinstance(data, FrameData | TableData) else list(data)
+    if step is not None or roi is not None:
+        blocks = [decimate_frame(b, step or 1, roi) if isinstance(b, FrameData) else b for b in blocks]
+    names_b = _block_names(blocks)
+    if thin < 1:
+        raise SampleError(f"thin must be a positive integer, got {thin!r}")
+    if n_steps < 1:
+        raise SampleError(f"n_steps must be a positive integer, got {n_steps!r}")
+
+    # the least-squares optimum
+    fit_res: FitResult | None = None
+    start_json: Mapping[str, Any] | None = None
+    if isinstance(start, FitResult):
+        fit_res = start
+    elif isinstance(start, Mapping):
+        start_json = start
+    elif start is not None:
+        raise SampleError(f"start must be a FitResult or its JSON dict, got {type(start).__name__}")
+    chain_path = None if out_dir is None else Path(out_dir) / "chain.h5"
+    resuming = bool(resume and chain_path is not None and chain_path.exists())
+    if fit_res is None and start_json is None and not resuming:
+        say("no fit result given: fitting first (the walkers start around the least-squares optimum)")
+        fit_res = fit(model, blocks, spec, **fit_kwargs)
+        say(fit_res.summary())
+        if not fit_res.converged:
+            say(f"warning: the fit did not converge ({fit_res.message}); sampling from where it stopped")
+    if fit_res is not None:
+        values = {k: p.value for k, p in fit_res.parameters.items() if p.free}
+    elif start_json is not None:
+        values = {}
+        for k, p in (start_json.get("parameters") or {}).items():
+            if isinstance(p, Mapping) and p.get("free") and p.get("value") is not None:
+                unit = p.get("unit", "")
+                values[k] = float(p["value"]) * (math.pi / 180 if unit == "deg" else 1.0)
+    else:
+        values = {}
+    spec_start = _spec_from_result(spec, values, names_b)
+
+    solver = get_solver(fit_kwargs.get("solver", "levenberg_marquardt"), **dict(fit_kwargs.get("solver_options") or {}))
+    prep = prepare(model, blocks, spec_start, solver=solver, **{k: fit_kwargs[k] for k in _PREPARE_KEYS if k in fit_kwargs})
+    post = build_log_posterior(prep, priors, loss=fit_kwargs.get("loss", "linear"))
+    ndim = post.ndim
+    nw = default_walkers(ndim) if n_walkers is None else n_walkers
+    check_walkers(nw, ndim)
+
+    if fit_res is not None:
+        x0 = np.array([fit_res.value(n) for n in post.names])
+        s0 = np.array([np.nan if fit_res.sigma(n) is None else fit_res.sigma(n) for n in post.names])
+    elif start_json is not None:
+        x0, s0 = start_from_fit_json(start_json, post.names, post.units)
+    else:
+        x0 = np.array([e.x0 for e in prep.layout.free])
+        s0 = np.full(ndim, np.nan)
+
+    meta = {
+        "units": list(post.units),
+        "seed": int(seed),
+        "n_walkers": int(nw),
+        "ball": float(ball),
+        "priors": post.describe_priors(),
+    }
+    backend, info = open_chain(chain_path, post.names, nw, resume=resume, meta=meta)
+    p0 = None
+    if info is None or info.iteration == 0:
+        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
+    else:
+        say(f"resuming {chain_path}: {info.iteration} steps present, running to {n_steps}")
+        if info.meta.get("seed") is not None:
+            seed = int(info.meta["seed"])
+    log_prob = post if vectorize else post.log_prob_one
+    outcome = run_chain(
+        log_prob,
+        backend,
+        p0,
+        n_steps,
+        seed=seed,
+        vectorize=vectorize,
+        progress=progress,
+        stop_when_converged=stop_when_converged,
+        check_every=check_every,
+    )
+    if outcome.iterations == 0:
+        raise SampleError("the run was interrupted before the first step was saved; nothing to summarise")
+    chain = backend.get_chain()
+    lp = backend.get_log_prob()
+    diag = diagnose(backend, post.names, burn=burn, thin=thin, check_every=check_every)
+    if outcome.stopped_converged:
+        diag = Diagnostics(**{**diag.__dict__, "converged": True})
+    flat = chain[diag.burn :: diag.thin].reshape(-1, ndim)
+    flat_nat = post.to_natural(flat)
+    i_map = np.unravel_index(int(np.argmax(lp)), lp.shape)
+    x_map = chain[i_map]
+    f = post.factors
+    fit_x = x0 * f if (fit_res is not None or start_json is not None) else None
+    fit_s = s0 * f if fit_x is not None else None
+    params_summary = summarise(
+        flat_nat, post.names, post.natural_units, diag.tau, diag.ess, x_map * f, fit_x, fit_s, post.describe_priors()
+    )
+    ll_fit = float(post.log_likelihood(x0[None, :])[0])
+    corr = np.corrcoef(flat.T) if ndim > 1 else np.ones((1, 1))
+    from ..fit import versions
+
+    summary: dict[str, Any] = {
+        "parameters": params_summary,
+        "n_steps": int(diag.n_steps),
+        "n_walkers": int(nw),
+        "n_dim": int(ndim),
+        "burn": int(diag.burn),
+        "thin": int(diag.thin),
+        "n_samples": int(flat.shape[0]),
+        "acceptance_fraction_mean": float(diag.acceptance_fraction_mean),
+        "acceptance_fraction": [float(a) for a in diag.acceptance_fraction],
+        "converged": bool(diag.converged),
+        "stopped_when_converged": bool(outcome.stopped_converged),
+        "interrupted": bool(outcome.interrupted),
+        "tau_max": None if not np.any(np.isfinite(diag.tau)) else float(np.nanmax(diag.tau)),
+        "chain_shorter_than_50_tau": list(diag.short),
+        "warnings": list(diag.warnings),
+        "map": {
+            "log_posterior": float(lp[i_map]),
+            "log_likelihood": float(post.log_likelihood(x_map[None, :])[0]),
+            "values": {n: float(v) for n, v in zip(post.names, x_map * f)},
+        },
+        "least_squares": {
+            "values": None if fit_x is None else {n: float(v) for n, v in zip(post.names, fit_x)},
+            "log_likelihood": ll_fit,
+            "chi2": -2.0 * ll_fit,
+        },
+        "correlation": {"names": list(post.names), "matrix": [[float(v) for v in row] for row in np.atleast_2d(corr)]},
+        "likelihood": {"loss": post.loss, "n_points": post.n_points, "form": "log L = -sum rho(r), r = (log(f + floor) - log d) / sigma_rel"},
+        "sampling": {**sampling_record(blocks, step, roi), **dict(extra_record or {})},
+        "seed": int(seed),
+        "ball_sigma": float(ball),
+        "vectorized": bool(vectorize),
+        "wall_s": None,
+        "run_wall_s": float(outcome.wall_s),
+        "new_steps": int(outcome.new_steps),
+        "versions": {**versions(), **_versions()},
+    }
+    result = PosteriorResult(post, chain, lp, diag, summary, outcome, fit_res)
+    if out_dir is not None:
+        out = Path(out_dir)
+        files = {"chain": str(chain_path)}
+        if figures:
+            truths = fit_x
+            files["corner"] = str(plot_corner(out / "corner.png", flat_nat, post.names, post.natural_units, truths))
+            files["trace"] = str(plot_trace(out / "trace.png", chain * f, post.names, post.natural_units, diag.burn))
+            files.update(_predictive(out, post, blocks, flat, predictive_draws, seed))
+        summary["files"] = {k: Path(v).name for k, v in files.items()}
+        summary["wall_s"] = time.perf_counter() - t_start
+        write_json_atomic(out / "posterior.json", summary)
+        files["summary"] = str(out / "posterior.json")
+        result.files = files
+    else:
+        summary["wall_s"] = time.perf_counter() - t_start
+    return result
+
+
+def _versions() -> dict[str, str]:
+    import importlib.metadata
+
+    out = {}
+    for pkg in ("emcee", "h5py", "corner"):
+        try:
+            out[pkg] = importlib.metadata.version(pkg)
+        except importlib.metadata.PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def _predictive(out: Path, post: LogPosterior, blocks, flat: np.ndarray, n_draws: int, seed: int) -> dict[str, str]:
+    files = {}
+    if n_draws <= 0:
+        return files
+    rng = np.random.default_rng(seed + 1)
+    X = flat[rng.choice(flat.shape[0], size=min(n_draws, flat.shape[0]), replace=False)]
+    for k, b in enumerate(blocks[:4]):
+        if not isinstance(b, FrameData):
+            continue
+        cols = slice_columns(b)
+        n_h = np.asarray(b.grid.n_h, np.float64)[cols]
+        n_v = np.asarray(b.grid.n_v, np.float64)
+        bands = predictive_columns(post, X, k, n_h, n_v)
+        safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in b.name)
+        files[f"predictive_{safe}"] = str(plot_predictive(out / f"predictive_{safe}.png", b, bands, cols, b.name))
+    return files

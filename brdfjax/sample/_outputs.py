@@ -1,0 +1,206 @@
+"""Outputs of a posterior study: the summary (posterior.json), corner, trace and posterior-predictive figures.
+
+Every number is reported in natural units (angles in degrees, the rest as
+stored), like the fit's result.  Files are written atomically (temporary
+name, then ``os.replace``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["summarise", "write_json_atomic", "plot_corner", "plot_trace", "plot_predictive", "QUANTILES"]
+
+#: Reported quantiles: key -> percentile.
+QUANTILES = {"q025": 2.5, "q16": 16.0, "median": 50.0, "q84": 84.0, "q975": 97.5}
+
+
+def _num(x: Any) -> Any:
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def _savefig_atomic(fig: Any, path: Path, **kw: Any) -> Path:
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    fig.savefig(tmp, **kw)
+    os.replace(tmp, path)
+    return path
+
+
+def summarise(
+    flat_natural: np.ndarray,
+    names: Sequence[str],
+    units: Sequence[str],
+    tau: np.ndarray,
+    ess: np.ndarray,
+    map_natural: np.ndarray,
+    fit_values: np.ndarray | None,
+    fit_sigmas: np.ndarray | None,
+    priors: dict[str, str],
+) -> dict[str, Any]:
+    """Per-parameter summary: quantiles, mean, std, tau, ESS, MAP (and the fit's value and sigma)."""
+    out: dict[str, Any] = {}
+    q = np.percentile(flat_natural, list(QUANTILES.values()), axis=0)
+    for i, name in enumerate(names):
+        d = {k: _num(q[j, i]) for j, k in enumerate(QUANTILES)}
+        d.update(
+            mean=_num(np.mean(flat_natural[:, i])),
+            std=_num(np.std(flat_natural[:, i], ddof=1)) if flat_natural.shape[0] > 1 else None,
+            map=_num(map_natural[i]),
+            tau=_num(tau[i]),
+            ess=_num(ess[i]),
+            unit=units[i],
+            prior=priors.get(name, ""),
+        )
+        if fit_values is not None:
+            d["fit_value"] = _num(fit_values[i])
+            d["fit_sigma"] = _num(fit_sigmas[i]) if fit_sigmas is not None else None
+        out[name] = d
+    return out
+
+
+def _labels(names: Sequence[str], units: Sequence[str]) -> list[str]:
+    return [f"{n} [{u}]" if u not in ("1", "") else n for n, u in zip(names, units)]
+
+
+def plot_corner(path: Path, flat_natural: np.ndarray, names, units, truths=None, title: str | None = None) -> Path:
+    import corner
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig = corner.corner(
+        flat_natural,
+        labels=_labels(names, units),
+        quantiles=[0.16, 0.5, 0.84],
+        show_titles=True,
+        title_fmt=".3g",
+        truths=None if truths is None else list(truths),
+        truth_color="tab:red",
+        label_kwargs={"fontsize": 9},
+        title_kwargs={"fontsize": 8},
+    )
+    if title:
+        fig.suptitle(title, fontsize=10, y=1.01)
+    _savefig_atomic(fig, path, dpi=80, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def plot_trace(path: Path, chain_natural: np.ndarray, names, units, burn: int, max_params: int = 16) -> Path:
+    """Every walker's trace per parameter (up to ``max_params``), the burn-in marked."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    p = min(len(names), max_params)
+    fig, axes = plt.subplots(p, 1, figsize=(8, 1.3 * p + 0.6), sharex=True, squeeze=False)
+    steps = np.arange(chain_natural.shape[0])
+    for i, ax in enumerate(axes[:, 0]):
+        ax.plot(steps, chain_natural[:, :, i], color="k", alpha=0.15, lw=0.6)
+        ax.axvline(burn, color="tab:red", lw=0.8)
+        ax.set_ylabel(_labels(names, units)[i], fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[-1, 0].set_xlabel("step (red: end of burn-in)")
+    fig.tight_layout()
+    _savefig_atomic(fig, path, dpi=80)
+    plt.close(fig)
+    return path
+
+
+def predictive_columns(post: Any, X: np.ndarray, block_index: int, n_h: np.ndarray, n_v: np.ndarray) -> np.ndarray:
+    """Model BRDF of the draws ``X`` (stored units) at pixel columns ``n_h`` x rows ``n_v`` of frame block ``block_index``.
+
+    Returns ``(n_draws, len(n_h), len(n_v))``; the model is not convolved with
+    a footprint (the fit convolves when one is given).
+    """
+    import jax.numpy as jnp
+
+    problem = post.problem
+    det = problem.block_list()[block_index].detector
+    X = jnp.asarray(np.asarray(X, np.float64), post.dtype)
+    return np.asarray(_predict(X, problem, block_index, det, (n_h, n_v)), np.float64)
+
+
+def _predict(X, problem, k, det, columns):
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from ..render import evaluate_pixels
+
+    n_h, n_v = columns
+
+    @eqx.filter_jit
+    def run(X, problem, det, n_h, n_v):
+        def one(x):
+            model, frame = problem.block_inputs(x)[k]
+            return evaluate_pixels(model, frame, det, n_h[:, None], n_v[None, :])
+
+        return jax.vmap(one)(X)
+
+    return run(X, problem, det, jnp.asarray(n_h, X.dtype), jnp.asarray(n_v, X.dtype))
+
+
+def plot_predictive(path: Path, data: Any, bands: np.ndarray, col_idx: Sequence[int], title: str) -> Path:
+    """Data (with 1-sigma bars, masked points hollow) and the 68/95 % posterior-predictive bands per column."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    brdf = np.asarray(data.brdf, np.float64)
+    sigma = np.broadcast_to(np.asarray(data.sigma_rel, np.float64), brdf.shape)
+    usable = data.usable()
+    n_v = np.asarray(data.grid.n_v)
+    n_h = np.asarray(data.grid.n_h)
+    fig, axes = plt.subplots(1, len(col_idx), figsize=(5.5 * len(col_idx), 3.8), squeeze=False)
+    for j, (ax, c) in enumerate(zip(axes[0], col_idx)):
+        q = np.percentile(bands[:, j, :], [2.5, 16, 50, 84, 97.5], axis=0)
+        ax.fill_between(n_v, q[0], q[4], color="tab:blue", alpha=0.2, label="95 % predictive")
+        ax.fill_between(n_v, q[1], q[3], color="tab:blue", alpha=0.4, label="68 % predictive")
+        ax.plot(n_v, q[2], color="tab:blue", lw=1.0, label="median")
+        d = brdf[:, c]
+        u = usable[:, c]
+        ok = u & (d > 0)
+        ax.errorbar(n_v[ok], d[ok], yerr=d[ok] * sigma[ok, c], fmt=".", ms=3, color="k", lw=0.6, label="data")
+        bad = ~u & (d > 0)
+        if bad.any():
+            ax.plot(n_v[bad], d[bad], "o", mfc="none", ms=3, color="0.6", label="masked")
+        ax.set_yscale("log")
+        ax.set_xlabel("pixel row n_v")
+        ax.set_ylabel("BRDF (sr$^{-1}$)")
+        ax.set_title(f"{title}: column n_h = {int(n_h[c])}", fontsize=9)
+        if j == 0:
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    _savefig_atomic(fig, path, dpi=80)
+    plt.close(fig)
+    return path
+
+
+def slice_columns(data: Any) -> list[int]:
+    """Grid columns to slice a frame along: through the brightest usable pixel and nearest the specular column."""
+    brdf = np.where(data.usable(), np.asarray(data.brdf, np.float64), -np.inf)
+    _, c_max = np.unravel_index(int(np.argmax(brdf)), brdf.shape)
+    c0 = int(np.argmin(np.abs(np.asarray(data.grid.n_h))))
+    return [int(c_max)] if c0 == c_max else [int(c_max), c0]
