@@ -576,6 +576,18 @@ COMMANDS: dict[str, Command] = {
         _reduce_arguments,
         _run_reduce,
     ),
+    "diagnose": Command(
+        "diagnose",
+        "diagnose the gap between a base model and measured frames: where, which effect, how far it shrinks",
+        lambda p: __import__("brdfjax.diagnose.cli", fromlist=["add_arguments"]).add_arguments(p),
+        lambda a: __import__("brdfjax.diagnose.cli", fromlist=["run"]).run(a),
+    ),
+    "capture": Command(
+        "capture",
+        "run a capture plan (beam signature, alignment, samples) on the simulated bench or lab hardware: raw set",
+        lambda p: __import__("brdfjax.devices.capture", fromlist=["capture_arguments"]).capture_arguments(p),
+        lambda a: __import__("brdfjax.devices.capture", fromlist=["run_capture_command"]).run_capture_command(a),
+    ),
 }
 
 

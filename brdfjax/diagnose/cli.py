@@ -1,0 +1,130 @@
+"""``brdfjax diagnose CONFIG --out DIR``: the diagnosis from a fit config with a ``[diagnose]`` table.
+
+The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
+``[model]`` -- the *base* model --, ``[params]``, ``[fit]``) plus::
+
+    [diagnose]
+    effects = ["diffraction", "lambertian"]   # candidates; default: the whole library
+    heldout = ["ti60"]                         # frames (block names) predicted, not fitted; default none
+    bic_threshold = 10.0                       # BIC gain an effect needs to enter the path
+    max_steps = 4                              # the most effects added by the greedy path
+    path_pool = 4                              # candidates re-tried at each later step
+    threshold_sigma = 4.0                      # smoothed |residual| that makes a region significant
+    smooth = 3                                 # box size (points) of that smoothing
+    figures = true                             # embed figures in report.html
+
+Writes ``diagnosis.json``, ``report.md`` and ``report.html`` into ``--out``
+(atomically).  Exit status 2 for bad input (a bad config, frames with no
+usable pixels, an unknown effect name, a candidate the base model already
+contains), 1 for a failure while running, 0 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["DiagnoseSection", "add_arguments", "run", "run_diagnose"]
+
+EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
+
+
+class DiagnoseSection(BaseModel):
+    """The ``[diagnose]`` table of a diagnose config (see the module docstring)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False)
+
+    effects: list[str] | None = None
+    heldout: list[str] = Field(default_factory=list)
+    bic_threshold: float = 10.0
+    max_steps: int = Field(4, ge=0, le=12)
+    path_pool: int = Field(4, ge=1)
+    threshold_sigma: float = Field(4.0, gt=0)
+    smooth: int = Field(3, ge=1, le=31)
+    figures: bool = True
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="fit config (TOML) with a [diagnose] table; the [model] is the base model")
+    p.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, report.html")
+    p.add_argument("--effects", default=None, help="comma-separated candidate effects (overrides [diagnose] effects)")
+    p.add_argument("--no-figures", action="store_true", help="report.html without figures (faster)")
+
+
+def _error(message: str) -> None:
+    sys.stderr.write(f"brdfjax diagnose: error: {message}\n")
+
+
+def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | None = None, figures: bool | None = None, progress: Any = None):
+    """Load the config, build the data, diagnose and write the reports; returns the :class:`Diagnosis`.
+
+    Raises :class:`~brdfjax.config.ConfigError` (bad config),
+    :class:`~brdfjax.diagnose.DiagnoseInputError` or
+    :class:`~brdfjax.fit.FitInputError` (bad input).
+    """
+    from ..config import ConfigError
+    from ..fit.config import build_fit_job, load_fit_config
+    from .engine import diagnose
+
+    cfg = load_fit_config(config, sections={"diagnose": DiagnoseSection})
+    sec: DiagnoseSection = cfg.sections.get("diagnose") or DiagnoseSection()
+    job = build_fit_job(cfg)
+    names = [b.name for b in job.blocks]
+    missing = [h for h in sec.heldout if h not in names]
+    if missing:
+        raise ConfigError(str(cfg.source), [("diagnose.heldout", f"no frame named {missing}; the data's frames are {names}")])
+    fitted = [b for b in job.blocks if b.name not in sec.heldout]
+    held = [b for b in job.blocks if b.name in sec.heldout]
+    if not fitted:
+        raise ConfigError(str(cfg.source), [("diagnose.heldout", "holds out every frame; leave at least one to fit")])
+    fit_kwargs = dict(job.fit_kwargs)
+    if held:
+        fit_kwargs["allow_different_detectors"] = fit_kwargs.get("allow_different_detectors", False)
+    d = diagnose(
+        job.model,
+        fitted,
+        job.params,
+        effects=effects if effects is not None else sec.effects,
+        heldout_blocks=held or None,
+        fit_kwargs=fit_kwargs,
+        bic_threshold=sec.bic_threshold,
+        max_steps=sec.max_steps,
+        path_pool=sec.path_pool,
+        threshold=sec.threshold_sigma,
+        smooth=sec.smooth,
+        progress=progress,
+    )
+    d.settings["config"] = str(cfg.source)
+    d.write(out, figures=sec.figures if figures is None else figures)
+    return d
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from ..config import ConfigError
+    from ..fit import FitInputError
+    from .engine import DiagnoseInputError
+
+    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
+    t0 = time.perf_counter()
+    try:
+        d = run_diagnose(
+            args.config, args.out, effects=effects, figures=False if args.no_figures else None,
+            progress=lambda msg: console.print(msg, markup=False),
+        )
+    except (ConfigError, DiagnoseInputError, FitInputError) as e:
+        _error(str(e))
+        return EXIT_USAGE
+    except OSError as e:
+        _error(str(e))
+        return EXIT_FAILURE
+    console.print(d.summary(), markup=False)
+    console.print(f"wrote {Path(args.out) / 'diagnosis.json'}, report.md, report.html ({time.perf_counter() - t0:.1f} s)", markup=False)
+    return EXIT_OK

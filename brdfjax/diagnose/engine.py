@@ -1,0 +1,634 @@
+"""The diagnosis engine: WHERE the base model misses the data, WHICH effect explains it, HOW FAR it shrinks.
+
+``diagnose(base_model, blocks, params)`` runs, on measured frames
+(:class:`~brdfjax.fit.FrameData`) and/or goniometer tables
+(:class:`~brdfjax.fit.TableData`):
+
+1. the base fit (:func:`brdfjax.fit.fit`);
+2. the :class:`~brdfjax.diagnose.effects.Context` of the fit: per block the
+   normalised residual ``r = (ln d - ln f) / sigma_ln`` on the block's grid
+   (NaN where unused), the fitted model's values and the scatter geometry with
+   the specular-relative coordinates ``sx, sy`` (degrees,
+   :func:`~brdfjax.diagnose.zones.specular_coordinates`);
+3. WHERE: significant residual regions and their zones
+   (:mod:`brdfjax.diagnose.zones`);
+4. WHICH: every candidate effect of :data:`~brdfjax.diagnose.effects.EFFECTS`
+   (or the named ones) is checked (applicable? identifiable?), its
+   refit-independent signature computed, and the model refitted with the
+   effect added (``Effect.extend``: warm start at the base's optimum).
+   ``delta_chi2 = chi2_base - chi2_with`` and ``delta_bic = BIC_base -
+   BIC_with`` (``BIC = chi2 + k ln N``, ``k`` free parameters, ``N`` points)
+   are *decreases*: positive means the effect explains part of the gap.  The
+   ranking is by ``delta_bic``;
+5. HOW FAR: greedy forward selection: the best effect is added when its BIC
+   gain exceeds ``bic_threshold``; the remaining best candidates
+   (``path_pool``) are re-tried on the extended model, and so on up to
+   ``max_steps``.  Every step records the global gap (``chi2_reduced``,
+   ``rms_log10``), the per-zone reduced chi^2 on the base's zones, and, when
+   ``heldout_blocks`` are given, the prediction gap on them (the fitted model
+   evaluated, nothing refitted, at the held-out frames' nominal conditions).
+
+The engine never sees a generator's truth: only the blocks and the library.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from ..fit import FitInputError, FitResult, FrameData, Param, TableData, fit
+from ..fit._params import as_param
+from ..geometry import Directions
+from ..render import render, render_geometry
+from ..terms import Model
+from .zones import Region, find_regions, specular_coordinates, zone_label, zone_masks
+
+__all__ = [
+    "DiagnoseInputError",
+    "Candidate",
+    "Step",
+    "Diagnosis",
+    "diagnose",
+    "build_context",
+    "residual_maps",
+    "gap_measures",
+    "warm_params",
+]
+
+LN10 = math.log(10.0)
+
+
+class DiagnoseInputError(ValueError):
+    """Bad diagnosis input (no usable pixels, unknown effect, effect already in the base); says what to change."""
+
+
+# --- measures --------------------------------------------------------------------------------
+
+
+def _precision_name() -> str:
+    return "float64" if jax.config.jax_enable_x64 else "float32"
+
+
+def residual_maps(result: FitResult, blocks: Sequence[FrameData | TableData]) -> list[np.ndarray]:
+    """Per block ``r = (ln d - ln f) / sigma_ln`` on the block's grid (frames) or rows (tables); NaN where unused."""
+    out = []
+    for b, r in zip(blocks, result.residuals):
+        u = b.usable()
+        m = np.full(u.shape, np.nan)
+        m[u] = -np.asarray(r, float)  # the fit's residuals are (ln f - ln d) / sigma
+        out.append(m)
+    return out
+
+
+def gap_measures(result: FitResult) -> dict[str, float]:
+    """The global gap of a fit: chi2, dof, chi2_reduced, rms_log10 (rms of log10 f - log10 d), BIC."""
+    n = sum(b.n_points for b in result.blocks)
+    ms = sum(b.n_points * b.log_rms**2 for b in result.blocks) / max(n, 1)
+    k = len(result.free_names)
+    return {
+        "chi2": float(result.chi2),
+        "n_points": int(result.n_points),
+        "n_free": k,
+        "dof": int(result.dof),
+        "chi2_reduced": float(result.chi2_reduced),
+        "rms_log10": float(math.sqrt(ms) / LN10),
+        "bic": float(result.chi2 + k * math.log(max(result.n_points, 2))),
+    }
+
+
+def _zone_stats(maps: list[np.ndarray], zones: Mapping[str, list[np.ndarray]]) -> dict[str, dict[str, float]]:
+    out = {}
+    for name, masks in zones.items():
+        vals = np.concatenate([np.asarray(r)[m & np.isfinite(r)] for r, m in zip(maps, masks)])
+        out[name] = {
+            "n_points": int(vals.size),
+            "chi2": float(np.sum(vals**2)),
+            "chi2_reduced": float(np.mean(vals**2)) if vals.size else math.nan,
+            "mean_r": float(np.mean(vals)) if vals.size else math.nan,
+        }
+    return out
+
+
+def warm_params(params: Mapping[str, Any], result: FitResult, block_names: Sequence[str] | None = None) -> dict[str, Any]:
+    """``params`` with every free parameter's start moved to its fitted value (kept strictly inside its bounds).
+
+    Per-frame parameters (``name[block]`` in the result) become per-block lists.
+    """
+    names = [b.name for b in result.blocks] if block_names is None else list(block_names)
+    out: dict[str, Any] = {}
+    for name, spec in params.items():
+        p = as_param(name, spec)
+        if not p.free:
+            out[name] = p
+            continue
+        if name in result.parameters:
+            value: Any = _inside(result.value(name), p)
+        else:
+            keys = [f"{name}[{bn}]" for bn in names]
+            if all(k in result.parameters for k in keys):
+                value = [_inside(result.value(k), p) for k in keys]
+            else:
+                out[name] = p
+                continue
+        out[name] = dataclasses.replace(p, value=value)
+    return out
+
+
+def _inside(x: float, p: Param) -> float:
+    lo = -math.inf if p.lower is None else float(p.lower)
+    hi = math.inf if p.upper is None else float(p.upper)
+    if math.isfinite(lo) and math.isfinite(hi):
+        eps = 1e-6 * (hi - lo)
+        return float(min(max(x, lo + eps), hi - eps))
+    if math.isfinite(lo) and x <= lo:
+        return lo + max(1e-9, 1e-6 * abs(lo))
+    if math.isfinite(hi) and x >= hi:
+        return hi - max(1e-9, 1e-6 * abs(hi))
+    return float(x)
+
+
+# --- context ---------------------------------------------------------------------------------
+
+
+def _block_geometry(b: FrameData | TableData, frame: Any) -> dict[str, np.ndarray]:
+    if isinstance(b, FrameData):
+        g = render_geometry(frame, b.arm_detector(), grid=b.grid, precision=_precision_name())
+        ts, ps = np.asarray(g["theta_s"], float), np.asarray(g["phi_s"], float)
+        sx, sy = specular_coordinates(ts, ps, float(frame.theta_i), 0.0)
+        return {"theta_s": ts, "phi_s": ps, "sx": sx, "sy": sy}
+    ts, ps = np.asarray(b.theta_s, float), np.asarray(b.phi_s, float)
+    sx, sy = specular_coordinates(ts, ps, np.asarray(b.theta_i, float), np.asarray(b.phi_i, float))
+    return {"theta_s": ts, "phi_s": ps, "sx": sx, "sy": sy, "theta_i": np.asarray(b.theta_i, float)}
+
+
+def _block_model(b: FrameData | TableData, model: Model, frame: Any) -> np.ndarray:
+    if isinstance(b, FrameData):
+        return np.asarray(render(model, frame, b.arm_detector(), grid=b.grid, precision=_precision_name()), float)
+    dirs = Directions.from_angles(*(np.asarray(getattr(b, f), float) for f in ("theta_i", "phi_i", "theta_s", "phi_s")))
+    wl = np.broadcast_to(np.asarray(b.wavelength, float), np.shape(b.brdf))
+    return np.asarray(model(dirs, wl), float)
+
+
+def build_context(model_spec: Model, params: Mapping[str, Any], result: FitResult, blocks: Sequence[Any]):
+    """The :class:`~brdfjax.diagnose.effects.Context` of a fit (the fitted model, residual maps, model values, geometry)."""
+    from .effects import Context
+
+    fitted = result.models[0] if result.models else model_spec
+    geometry = [_block_geometry(b, f) for b, f in zip(blocks, result.frames)]
+    values = [_block_model(b, m, f) for b, m, f in zip(blocks, result.models, result.frames)]
+    return Context(
+        model=fitted,
+        params=warm_params(params, result),
+        result=result,
+        blocks=list(blocks),
+        residuals=residual_maps(result, blocks),
+        model_values=values,
+        geometry=geometry,
+    )
+
+
+# --- results ---------------------------------------------------------------------------------
+
+
+def _num(x: Any) -> Any:
+    if x is None:
+        return None
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def _clean(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, bool | str) or obj is None:
+        return obj
+    if isinstance(obj, int | np.integer):
+        return int(obj)
+    if isinstance(obj, float | np.floating):
+        return _num(obj)
+    return str(obj)
+
+
+@dataclass
+class Candidate:
+    """One candidate effect at one step: applicability, signature and the refit with it."""
+
+    effect: str
+    title: str
+    status: str  # "ranked", "skipped", "not identifiable", "failed"
+    note: str = ""
+    signature: dict[str, Any] = field(default_factory=dict)  # value, score, detail
+    n_new: int = 0
+    delta_chi2: float = math.nan
+    delta_bic: float = math.nan
+    gap_after: dict[str, float] = field(default_factory=dict)
+    zones_after: dict[str, dict[str, float]] = field(default_factory=dict)
+    wall_s: float = 0.0
+    # not serialised: the refit's state, to continue the path from it
+    state: Any = field(default=None, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        return _clean(
+            {
+                "effect": self.effect,
+                "title": self.title,
+                "status": self.status,
+                "note": self.note,
+                "delta_chi2": self.delta_chi2,
+                "delta_bic": self.delta_bic,
+                "signature": self.signature,
+                "n_new": self.n_new,
+                "chi2_reduced_after": self.gap_after.get("chi2_reduced"),
+                "rms_log10_after": self.gap_after.get("rms_log10"),
+                "zones_after": {k: v["chi2_reduced"] for k, v in self.zones_after.items()},
+                "wall_s": self.wall_s,
+            }
+        )
+
+
+@dataclass
+class Step:
+    """One step of the explanation path (the base, then each accepted effect)."""
+
+    effect: str
+    gap: dict[str, float]
+    zones: dict[str, dict[str, float]]
+    heldout: dict[str, float] | None
+    delta_bic: float = math.nan
+    parameters: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return _clean(
+            {
+                "effect": self.effect,
+                "chi2": self.gap["chi2"],
+                "chi2_reduced": self.gap["chi2_reduced"],
+                "rms_log10": self.gap["rms_log10"],
+                "bic": self.gap["bic"],
+                "n_free": self.gap["n_free"],
+                "delta_bic": self.delta_bic,
+                "heldout_rms_log10": None if self.heldout is None else self.heldout["rms_log10"],
+                "heldout_chi2_reduced": None if self.heldout is None else self.heldout["chi2_reduced"],
+                "zones": {k: v["chi2_reduced"] for k, v in self.zones.items()},
+                "parameters": self.parameters,
+            }
+        )
+
+
+@dataclass
+class _State:
+    model: Model
+    params: dict[str, Any]
+    blocks: list[Any]
+    fit_kwargs: dict[str, Any]
+    result: FitResult
+    effects: tuple[str, ...]
+
+
+@dataclass
+class Diagnosis:
+    """Everything a diagnosis found; :meth:`to_dict` is the ``diagnosis.json`` contract, :meth:`write` the reports."""
+
+    gap: dict[str, Any]
+    regions: list[Region]
+    block_names: list[str]
+    ranking: list[Candidate]  # ranked candidates at the first step, best first
+    skipped: list[Candidate]  # not applicable / not identifiable / failed, with the reason
+    path: list[Step]
+    significant: bool
+    bic_threshold: float
+    notes: list[str]
+    timings: dict[str, float]
+    settings: dict[str, Any]
+    context: Any = field(default=None, repr=False)  # the base fit's Context
+    final_context: Any = field(default=None, repr=False)
+    path_rankings: list[list[Candidate]] = field(default_factory=list, repr=False)
+    base_result: FitResult | None = field(default=None, repr=False)
+    final_result: FitResult | None = field(default=None, repr=False)
+
+    @property
+    def zones(self) -> list[dict[str, Any]]:
+        return [r.to_dict(self.block_names[r.block]) | {"label": zone_label(r, k)} for k, r in enumerate(self.regions)]
+
+    @property
+    def explained_by(self) -> list[str]:
+        return [s.effect for s in self.path[1:]]
+
+    def to_dict(self) -> dict[str, Any]:
+        return _clean(
+            {
+                "gap": self.gap,
+                "zones": self.zones,
+                "ranking": [c.to_dict() for c in self.ranking],
+                "skipped": [c.to_dict() for c in self.skipped],
+                "path": [s.to_dict() for s in self.path],
+                "path_rankings": [[c.to_dict() for c in r] for r in self.path_rankings],
+                "significant": self.significant,
+                "explained_by": self.explained_by,
+                "bic_threshold": self.bic_threshold,
+                "blocks": self.block_names,
+                "notes": self.notes,
+                "timings_s": self.timings,
+                "settings": self.settings,
+            }
+        )
+
+    def to_json(self, path: str | os.PathLike | None = None, indent: int = 2) -> str:
+        text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        if path is not None:
+            _atomic_write(Path(path), text + "\n")
+        return text
+
+    def summary(self) -> str:
+        lines = [
+            f"base: chi2_reduced {self.gap['chi2_reduced']:.4g}, rms_log10 {self.gap['rms_log10']:.4g}"
+            + ("" if self.gap.get("heldout_rms_log10") is None else f", held-out rms_log10 {self.gap['heldout_rms_log10']:.4g}")
+        ]
+        for k, z in enumerate(self.zones[:6]):
+            lines.append(f"  zone {z['label']}: share {z['share']:.1%}, centre {z['center_deg'][0]:+.3g}/{z['center_deg'][1]:+.3g} deg, {z['sign']}")
+        for c in self.ranking[:6]:
+            lines.append(f"  {c.effect:<22s} dBIC {c.delta_bic:12.1f}  dchi2 {c.delta_chi2:12.1f}  signature {c.signature.get('score', math.nan):.3g}")
+        lines.append("path: " + " -> ".join(f"{s.effect} ({s.gap['chi2_reduced']:.3g})" for s in self.path))
+        lines.append(f"significant: {self.significant}")
+        return "\n".join(lines)
+
+    def write(self, out_dir: str | os.PathLike, *, figures: bool = True) -> dict[str, Path]:
+        """Write ``diagnosis.json``, ``report.md`` and ``report.html`` (figures embedded) into ``out_dir``, atomically."""
+        from .report import html_report, markdown_report
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = {"json": out / "diagnosis.json", "md": out / "report.md", "html": out / "report.html"}
+        self.to_json(paths["json"])
+        _atomic_write(paths["md"], markdown_report(self))
+        _atomic_write(paths["html"], html_report(self, figures=figures))
+        return paths
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+# --- the engine ------------------------------------------------------------------------------
+
+
+def _check_blocks(blocks: Sequence[Any], what: str) -> list[Any]:
+    blocks = [blocks] if isinstance(blocks, FrameData | TableData) else list(blocks)
+    if not blocks:
+        raise DiagnoseInputError(f"{what}: no data blocks given; give at least one FrameData or TableData")
+    for i, b in enumerate(blocks):
+        if not isinstance(b, FrameData | TableData):
+            raise DiagnoseInputError(f"{what}[{i}] is a {type(b).__name__}; expected FrameData or TableData")
+        try:
+            b.check_usable()
+        except FitInputError as e:
+            raise DiagnoseInputError(f"{what}: {e}") from None
+    return blocks
+
+
+def _select_effects(library: Mapping[str, Any], names: Sequence[str] | None, base_model: Model) -> tuple[list[str], list[Candidate]]:
+    explicit = names is not None
+    names = list(library) if names is None else list(names)
+    unknown = [n for n in names if n not in library]
+    if unknown:
+        raise DiagnoseInputError(f"unknown effect(s) {unknown}; known: {', '.join(library)}")
+    chosen, skipped = [], []
+    for n in names:
+        eff = library[n]
+        if eff.present_in(base_model):
+            if explicit:
+                raise DiagnoseInputError(
+                    f"the base model already contains the effect '{n}' ({eff.title}); remove it from the base model "
+                    "or from the candidate effects"
+                )
+            skipped.append(Candidate(n, eff.title, "skipped", "already in the base model"))
+            continue
+        chosen.append(n)
+    return chosen, skipped
+
+
+def _fit_state(model, blocks, params, fit_kwargs, effects) -> _State:
+    return _State(model, dict(params), list(blocks), dict(fit_kwargs), fit(model, blocks, params, **fit_kwargs), tuple(effects))
+
+
+def _heldout_gap(state: _State, heldout: Sequence[Any] | None, base_blocks: Sequence[Any]) -> dict[str, float] | None:
+    """The fitted model evaluated (nothing refitted) on held-out blocks; data-side changes (footprint) carried over."""
+    if not heldout:
+        return None
+    blocks = []
+    fp = None
+    for old, new in zip(base_blocks, state.blocks):
+        if isinstance(new, FrameData) and new.footprint is not None and new is not old:
+            fp = new.footprint
+    for b in heldout:
+        if fp is not None and isinstance(b, FrameData) and b.footprint is None:
+            b = dataclasses.replace(b, footprint=fp)
+        blocks.append(b)
+    kw = {k: v for k, v in state.fit_kwargs.items() if k in ("precision", "floor", "use_footprint", "allow_different_detectors")}
+    kw["allow_different_detectors"] = True
+    model = state.result.models[0] if state.result.models else state.model
+    try:
+        r = fit(model, blocks, {}, **kw)
+    except Exception as e:  # noqa: BLE001 - reported, the diagnosis goes on
+        return {"chi2_reduced": math.nan, "rms_log10": math.nan, "error": str(e)}
+    g = gap_measures(r)
+    return {"chi2_reduced": g["chi2_reduced"], "rms_log10": g["rms_log10"], "n_points": g["n_points"]}
+
+
+def _try_effect(name: str, eff: Any, ctx: Any, state: _State, zones: Mapping[str, list[np.ndarray]], base_gap: dict, has_tables: bool) -> Candidate:
+    t0 = time.perf_counter()
+    c = Candidate(name, eff.title, "ranked")
+    if eff.needs_2d and has_tables:
+        c.status, c.note = "skipped", "needs a 2-D detector frame; the data include goniometer tables"
+        return c
+    try:
+        reason = eff.identifiable(state.model, state.params, state.blocks)
+    except Exception as e:  # noqa: BLE001
+        reason = f"identifiability check failed: {e}"
+    if reason:
+        c.status, c.note = "not identifiable", str(reason)
+        return c
+    try:
+        sig = eff.signature(ctx)
+        c.signature = {"value": _num(sig.value), "score": _num(sig.score), "detail": sig.detail}
+    except Exception as e:  # noqa: BLE001
+        c.signature = {"value": None, "score": None, "detail": f"signature failed: {type(e).__name__}: {e}"}
+    try:
+        ext = eff.extend(ctx)
+        blocks = list(ext.blocks) if ext.blocks is not None else state.blocks
+        kw = {**state.fit_kwargs, **dict(ext.fit_kwargs)}
+        new = _fit_state(ext.model, blocks, ext.params, kw, state.effects + (name,))
+    except Exception as e:  # noqa: BLE001 - one failing effect must not stop the diagnosis
+        c.status, c.note = "failed", f"{type(e).__name__}: {e}"
+        c.wall_s = time.perf_counter() - t0
+        return c
+    g = gap_measures(new.result)
+    c.n_new = int(ext.n_new)
+    c.note = ext.note
+    c.gap_after = g
+    c.delta_chi2 = base_gap["chi2"] - g["chi2"]
+    c.delta_bic = base_gap["bic"] - g["bic"]
+    if not math.isfinite(c.delta_bic):
+        c.status, c.note = "failed", f"refit gave a non-finite chi2 ({new.result.message})"
+    c.zones_after = _zone_stats(residual_maps(new.result, new.blocks), zones)
+    c.state = new
+    c.wall_s = time.perf_counter() - t0
+    return c
+
+
+def _rank(cands: list[Candidate]) -> tuple[list[Candidate], list[Candidate]]:
+    ranked = sorted((c for c in cands if c.status == "ranked"), key=lambda c: -c.delta_bic)
+    return ranked, [c for c in cands if c.status != "ranked"]
+
+
+def _params_report(result: FitResult) -> dict[str, Any]:
+    return {k: p.natural()["value"] for k, p in result.parameters.items() if p.free}
+
+
+def diagnose(
+    base_model: Model,
+    blocks: FrameData | TableData | Sequence[FrameData | TableData],
+    params: Mapping[str, Any],
+    *,
+    effects: Sequence[str] | None = None,
+    heldout_blocks: Sequence[FrameData | TableData] | None = None,
+    fit_kwargs: Mapping[str, Any] | None = None,
+    bic_threshold: float = 10.0,
+    max_steps: int = 4,
+    path_pool: int = 4,
+    threshold: float = 4.0,
+    smooth: int = 3,
+    library: Mapping[str, Any] | None = None,
+    progress: Any = None,
+) -> Diagnosis:
+    """Diagnose the gap between ``base_model`` and the data (see the module docstring).
+
+    ``params``: the base fit's parameter spec (as :func:`brdfjax.fit.fit`);
+    ``effects``: candidate names (default: the whole library; an unknown name,
+    or a name whose effect the base already contains, is an error);
+    ``heldout_blocks``: frames/tables predicted, never fitted; ``fit_kwargs``:
+    passed to every fit; ``bic_threshold``: the BIC gain an effect needs to
+    enter the path; ``max_steps``: the most effects added; ``path_pool``: how
+    many of the previous step's best candidates are re-tried at each later
+    step; ``threshold``/``smooth``: the region detection (smoothed ``|z|`` and
+    box size); ``library``: the effect library (default
+    :data:`brdfjax.diagnose.effects.EFFECTS`); ``progress``: a callable taking
+    a message string.
+    """
+    t_start = time.perf_counter()
+    say = progress or (lambda msg: None)
+    if not isinstance(base_model, Model):
+        raise DiagnoseInputError(f"base_model must be a brdfjax Model, got {type(base_model).__name__}")
+    if library is None:
+        from .effects import EFFECTS as library
+    blocks = _check_blocks(blocks, "data")
+    heldout = _check_blocks(heldout_blocks, "heldout_blocks") if heldout_blocks else None
+    names, skipped = _select_effects(library, effects, base_model)
+    fit_kwargs = dict(fit_kwargs or {})
+    if not (isinstance(max_steps, int) and max_steps >= 0):
+        raise DiagnoseInputError(f"max_steps must be a non-negative integer, got {max_steps!r}")
+    has_tables = any(isinstance(b, TableData) for b in blocks)
+    notes: list[str] = []
+
+    say("fitting the base model")
+    base = _fit_state(base_model, blocks, dict(params), fit_kwargs, ())
+    if not base.result.converged:
+        notes.append(f"the base fit did not converge: {base.result.message}")
+    t_base = time.perf_counter()
+    ctx = build_context(base_model, params, base.result, blocks)
+    base.model, base.params = ctx.model, dict(ctx.params)
+    groups = [None if isinstance(b, FrameData) else np.round(np.asarray(b.theta_i, float), 6) for b in blocks]
+    groups = [None if g is None else np.unique(g, return_inverse=True)[1] for g in groups]
+    regions = find_regions(ctx.residuals, ctx.geometry, ctx.model_values, groups=groups, threshold=threshold, smooth=smooth)
+    zones = zone_masks(regions, ctx.residuals)
+    base_gap = gap_measures(base.result)
+    base_heldout = _heldout_gap(base, heldout, blocks)
+    gap = dict(base_gap)
+    gap["heldout_rms_log10"] = None if base_heldout is None else base_heldout["rms_log10"]
+    gap["heldout_chi2_reduced"] = None if base_heldout is None else base_heldout["chi2_reduced"]
+    gap["regions_share"] = float(sum(r.share for r in regions))
+    t_where = time.perf_counter()
+    if has_tables:
+        notes.append("goniometer tables: zones are angle intervals relative to the specular direction; effects that need a 2-D frame are skipped")
+
+    path = [Step("base", base_gap, _zone_stats(ctx.residuals, zones), base_heldout, math.nan, _params_report(base.result))]
+    state, current_ctx = base, ctx
+    rankings: list[list[Candidate]] = []
+    pool = list(names)
+    first_ranked: list[Candidate] = []
+    for step in range(max(max_steps, 1)):
+        cands = []
+        for n in pool:
+            eff = library[n]
+            if step > 0 and eff.present_in(state.model):
+                continue
+            say(f"step {step + 1}: trying {n}")
+            cands.append(_try_effect(n, eff, current_ctx, state, zones, gap_measures(state.result), has_tables))
+        ranked, rest = _rank(cands)
+        rankings.append(ranked)
+        if step == 0:
+            first_ranked = ranked
+            skipped += rest
+        if max_steps == 0 or not ranked or not (ranked[0].delta_bic > bic_threshold):
+            break
+        best = ranked[0]
+        state = best.state
+        say(f"step {step + 1}: added {best.effect} (delta BIC {best.delta_bic:.1f})")
+        current_ctx = build_context(state.model, state.params, state.result, state.blocks)
+        state.model, state.params = current_ctx.model, dict(current_ctx.params)
+        path.append(
+            Step(
+                best.effect, best.gap_after, _zone_stats(current_ctx.residuals, zones), _heldout_gap(state, heldout, blocks),
+                best.delta_bic, _params_report(state.result),
+            )
+        )
+        pool = [c.effect for c in ranked[1:] if c.delta_bic > 0][:path_pool]
+        if not pool:
+            break
+    for r in rankings:
+        for c in r:
+            c.state = None  # drop the refits' data (memory); the path keeps what it needs
+    t_end = time.perf_counter()
+    return Diagnosis(
+        gap=gap,
+        regions=regions,
+        block_names=[b.name for b in base.result.blocks],
+        ranking=first_ranked,
+        skipped=skipped,
+        path=path,
+        significant=len(path) > 1,
+        bic_threshold=float(bic_threshold),
+        notes=notes + [f"{c.effect}: {c.status}: {c.note}" for c in skipped],
+        timings={"base_fit_s": t_base - t_start, "where_s": t_where - t_base, "which_and_path_s": t_end - t_where, "total_s": t_end - t_start},
+        settings={
+            "effects": list(names),
+            "max_steps": max_steps,
+            "path_pool": path_pool,
+            "threshold_sigma": threshold,
+            "smooth": smooth,
+            "n_blocks": len(blocks),
+            "n_heldout": 0 if heldout is None else len(heldout),
+        },
+        context=ctx,
+        final_context=current_ctx,
+        path_rankings=rankings,
+        base_result=base.result,
+        final_result=state.result,
+    )
