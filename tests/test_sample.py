@@ -1,0 +1,226 @@
+"""Posteriors with emcee (brdfjax.sample): likelihood = the fit's, priors, resume, diagnostics, errors, outputs.
+
+Data: the seed's solar cell rendered around the centre peak (every 6th pixel of
+a 121 x 121 pixel region, 3 % log-normal noise), three free parameters (m1,
+rho_s1, rho_s3); one fit serves the module.  Chains are short (tens of steps):
+the numbers checked are exact identities (chi^2, bit-identical resumed chains)
+or properties that hold for any chain length.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import brdfjax as bj
+from brdfjax.fit import Param, fit, get_solver, prepare, render_noisy_frames
+from brdfjax.sample import Prior, SampleError, build_log_posterior, sample
+from brdfjax.sample._chain import diagnose, run_chain
+from brdfjax.sample._posterior import start_ball
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = bj.solar_cell()
+SPEC = {"m1": 2.1e-4, "rho_s1": 0.016, "rho_s3": 280.0}
+NAMES = ("m1", "rho_s1", "rho_s3")
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return render_noisy_frames(MODEL, [20.0], roi=(-60, 60, -60, 60), step=6, seed=3)
+
+
+@pytest.fixture(scope="module")
+def fitted(frames):
+    res = fit(MODEL, frames, SPEC)
+    assert res.converged, res.message
+    return res
+
+
+@pytest.fixture(scope="module")
+def prepared(frames):
+    return prepare(MODEL, frames, SPEC, solver=get_solver("levenberg_marquardt"))
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory, frames, fitted):
+    out = tmp_path_factory.mktemp("post")
+    res = sample(MODEL, frames, SPEC, start=fitted, n_steps=40, n_walkers=8, out_dir=out, seed=5, predictive_draws=16)
+    return out, res
+
+
+def test_vectorised_log_prob_equals_per_walker_and_the_fit_chi2(prepared, fitted):
+    post = build_log_posterior(prepared, {"rho_s3": Prior.normal(300.0, 20.0)})
+    assert post.names == NAMES
+    x_opt = np.array([fitted.value(n) for n in NAMES])
+    # -2 log L at the least-squares optimum is the fit's chi^2
+    assert -2.0 * post.log_likelihood(x_opt[None, :])[0] == pytest.approx(fitted.chi2, rel=1e-10)
+    rng = np.random.default_rng(0)
+    sig = np.array([fitted.sigma(n) for n in NAMES])
+    X = x_opt + 3 * sig * rng.standard_normal((8, 3))  # emcee's first batch shape: compiled once
+    X[3, 0] = -1e-5  # outside the physical bound m1 >= 0
+    vec = post(X)
+    one = np.array([post.log_prob_one(x) for x in X])
+    assert vec.shape == (8,) and vec.dtype == np.float64
+    np.testing.assert_allclose(vec[np.isfinite(vec)], one[np.isfinite(one)], rtol=1e-12)
+    assert vec[3] == -np.inf and one[3] == -np.inf
+    # log-posterior = log-likelihood + log-prior (normal on rho_s3, flat elsewhere)
+    ll = post.log_likelihood(X[:3])
+    lp = -0.5 * ((X[:3, 2] - 300.0) / 20.0) ** 2 - math.log(20.0 * math.sqrt(2 * math.pi))
+    np.testing.assert_allclose(vec[:3], ll + lp, rtol=1e-12)
+
+
+def test_priors_against_closed_forms(prepared):
+    stats = pytest.importorskip("scipy.stats")
+    priors = {
+        "m1": Prior.log_uniform(1e-4, 4e-4),
+        "rho_s1": Prior.truncated_normal(0.015, 0.002, lower=0.012),
+        "rho_s3": Prior.uniform(200.0, 400.0),
+    }
+    post = build_log_posterior(prepared, priors)
+    x = np.array([[2e-4, 0.016, 310.0], [3e-4, 0.013, 250.0]])
+    want = (
+        stats.loguniform(1e-4, 4e-4).logpdf(x[:, 0])
+        + stats.truncnorm((0.012 - 0.015) / 0.002, np.inf, loc=0.015, scale=0.002).logpdf(x[:, 1])
+        + stats.uniform(200.0, 200.0).logpdf(x[:, 2])
+    )
+    np.testing.assert_allclose(post.log_prior(x), want, rtol=1e-9)
+    # a normal prior on a positive parameter is truncated at the physical bound 0
+    post2 = build_log_posterior(prepared, {"rho_s1": Prior.normal(0.001, 0.002)})
+    z = stats.norm(0.001, 0.002).sf(0.0)
+    assert post2.log_prior(np.array([[2e-4, 0.001, 300.0]]))[0] == pytest.approx(
+        stats.norm(0.001, 0.002).logpdf(0.001) - math.log(z), rel=1e-9
+    )
+    # outside any support: -inf, also through the JAX path
+    out = np.array([[5e-4, 0.016, 310.0], [2e-4, 0.011, 310.0], [2e-4, 0.016, 401.0], [2e-4, -0.1, 310.0]])
+    assert np.all(post.log_prior(out) == -np.inf)
+    assert np.all(post(out) == -np.inf)
+    assert post.describe_priors()["rho_s3"] == "uniform[200, 400] sr^-1"
+
+
+@pytest.mark.parametrize(
+    "priors, n_walkers, match",
+    [
+        ({"rho_s3": Prior.uniform(100.0, 200.0)}, 8, r"prior excludes the starting point: 'rho_s3' = \d+\.\d+ sr\^-1"),
+        ({"m2": Prior.uniform(1e-4, 3e-4)}, 8, r"prior on 'm2', which is held fixed"),
+        ({"bogus": Prior.uniform(0.0, 1.0)}, 8, r"prior on unknown parameter 'bogus'.*free parameters are m1, rho_s1, rho_s3"),
+        ({"m1": Prior.log_uniform(0.0, 1.0)}, 8, r"prior on 'm1': a log_uniform prior needs lower > 0"),
+        ({"m1": Prior.normal(2e-4, -1.0)}, 8, r"prior on 'm1': sigma must be a positive number"),
+        ({"m1": Prior("gamma", 1.0, 2.0)}, 8, r"prior on 'm1': unknown kind 'gamma'; known: uniform, log_uniform"),
+        ({}, 5, r"n_walkers = 5 is fewer than twice the 3 free parameters"),
+    ],
+)
+def test_bad_input_is_a_clear_error(frames, fitted, tmp_path, priors, n_walkers, match):
+    with pytest.raises(SampleError, match=match):
+        sample(MODEL, frames, SPEC, priors=priors, start=fitted, n_steps=5, n_walkers=n_walkers, out_dir=tmp_path)
+    assert not (tmp_path / "posterior.json").exists()
+
+
+def test_corrupted_or_foreign_chain_files_are_errors_and_left_untouched(frames, fitted, tmp_path):
+    chain = tmp_path / "chain.h5"
+    chain.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(range(256)) * 8)
+    before = chain.read_bytes()
+    with pytest.raises(SampleError, match=r"chain\.h5: the chain file cannot be read .*left untouched"):
+        sample(MODEL, frames, SPEC, start=fitted, n_steps=5, n_walkers=8, out_dir=tmp_path, resume=True)
+    with pytest.raises(SampleError, match=r"chain\.h5 already holds a chain; continue it with --resume"):
+        sample(MODEL, frames, SPEC, start=fitted, n_steps=5, n_walkers=8, out_dir=tmp_path)
+    assert chain.read_bytes() == before
+    with pytest.raises(SampleError, match=r"no chain to resume"):
+        sample(MODEL, frames, SPEC, start=fitted, n_steps=5, n_walkers=8, out_dir=tmp_path / "new", resume=True)
+
+
+def test_output_contract(short_run, fitted):
+    out, res = short_run
+    s = json.loads((out / "posterior.json").read_text())
+    for key in ("n_steps", "n_walkers", "acceptance_fraction_mean", "converged", "sampling", "map", "warnings"):
+        assert key in s
+    assert s["n_steps"] == 40 and s["n_walkers"] == 8 and isinstance(s["converged"], bool)
+    assert len(s["acceptance_fraction"]) == 8 and 0 < s["acceptance_fraction_mean"] < 1
+    for name in NAMES:
+        p = s["parameters"][name]
+        for key in ("median", "q16", "q84", "q025", "q975", "tau", "ess", "map", "unit"):
+            assert key in p, (name, key)
+        assert p["q025"] <= p["q16"] <= p["median"] <= p["q84"] <= p["q975"]
+        assert p["ess"] == pytest.approx(8 * (40 - s["burn"]) / p["tau"], rel=1e-9)
+    # a 40-step chain is shorter than 50 tau: warned, not converged
+    assert not s["converged"] and s["chain_shorter_than_50_tau"]
+    assert any("shorter than 50 autocorrelation times" in w for w in s["warnings"])
+    assert s["least_squares"]["chi2"] == pytest.approx(fitted.chi2, rel=1e-10)
+    assert s["sampling"]["blocks"][0]["grid_step_px"] == 6 and s["sampling"]["blocks"][0]["grid_shape"] == [21, 21]
+    for f in ("chain.h5", "corner.png", "trace.png", "predictive_ti20.png"):
+        assert (out / f).stat().st_size > 1000, f
+    # the chain in the file is the one summarised; MAP is the best sample
+    assert res.chain.shape == (40, 8, 3)
+    assert s["map"]["log_posterior"] == pytest.approx(float(res.log_prob.max()))
+
+
+def test_resume_continues_the_same_chain_bit_identically(frames, fitted, tmp_path):
+    kw = dict(start=fitted, n_walkers=8, seed=11, figures=False)
+    full = sample(MODEL, frames, SPEC, n_steps=30, out_dir=tmp_path / "full", **kw)
+    part = sample(MODEL, frames, SPEC, n_steps=12, out_dir=tmp_path / "part", **kw)
+    first_k = part.chain.copy()
+    resumed = sample(MODEL, frames, SPEC, n_steps=30, out_dir=tmp_path / "part", resume=True, **kw)
+    assert resumed.chain.shape == (30, 8, 3)
+    assert np.array_equal(resumed.chain[:12], first_k)  # the interrupted steps, untouched
+    assert np.array_equal(resumed.chain, full.chain)  # and the same chain as an uninterrupted run
+    assert np.array_equal(resumed.log_prob, full.log_prob)
+    assert resumed.summary["new_steps"] == 18
+    # a resumed run must keep the walkers
+    with pytest.raises(SampleError, match=r"8 walkers x 3 parameters, but this run asks for 10 x 3"):
+        sample(MODEL, frames, SPEC, n_steps=40, out_dir=tmp_path / "part", resume=True, **{**kw, "n_walkers": 10})
+
+
+def test_run_chain_stops_when_converged_and_diagnoses_a_gaussian():
+    """Pure NumPy: a 2-d Gaussian, the stop rule (chain > 50 tau, tau stable to 1 %) and ESS = walkers * steps / tau."""
+    import emcee
+
+    cov = np.array([[1.0, 0.8], [0.8, 1.0]])
+    icov = np.linalg.inv(cov)
+
+    def logp(X):
+        return -0.5 * np.einsum("ni,ij,nj->n", X, icov, X)
+
+    backend = emcee.backends.Backend()
+    p0 = 0.1 * np.random.default_rng(1).standard_normal((16, 2))
+    out = run_chain(logp, backend, p0, 20000, seed=3, progress=False, stop_when_converged=True, check_every=100)
+    assert out.stopped_converged and out.iterations < 20000 and out.iterations % 100 == 0
+    tau = np.array(out.tau_history[-1][1])
+    assert np.all(50 * tau < out.iterations)
+    d = diagnose(backend, ["x", "y"], burn=0, check_every=100)
+    np.testing.assert_allclose(d.ess, 16 * out.iterations / d.tau)
+    flat = backend.get_chain(flat=True)
+    assert np.corrcoef(flat.T)[0, 1] == pytest.approx(0.8, abs=0.05)
+    assert 0.2 < d.acceptance_fraction_mean < 0.9
+
+
+def test_start_ball_stays_inside_the_prior(prepared, fitted):
+    post = build_log_posterior(prepared, {"rho_s1": Prior.uniform(0.0, fitted.value("rho_s1") + 1e-9)})
+    x0 = np.array([fitted.value(n) for n in NAMES])
+    sig = np.array([fitted.sigma(n) for n in NAMES])
+    X = start_ball(post, x0, sig, 8, 1.0, np.random.default_rng(0))
+    assert X.shape == (8, 3) and np.all(np.isfinite(post(X)))
+    assert np.all(X[:, 1] <= fitted.value("rho_s1") + 1e-9)
+
+
+def test_decimated_sampling_grid_is_recorded(frames):
+    from brdfjax.sample import decimate_frame
+    from brdfjax.sample._api import sampling_record
+
+    small = [decimate_frame(f, 2, (-30, 30, -30, 30)) for f in frames]
+    rec = sampling_record(small, 2, (-30, 30, -30, 30))
+    assert rec["step"] == 2 and rec["roi"] == [-30, 30, -30, 30]
+    assert rec["blocks"][0]["grid_step_px"] == 12 and rec["blocks"][0]["grid_shape"] == [6, 6]
+    assert rec["blocks"][0]["extent"] == [-30, 30, -30, 30]
+    np.testing.assert_array_equal(small[0].brdf, np.asarray(frames[0].brdf)[5:16:2, 5:16:2])
+    prep = prepare(MODEL, small, SPEC, solver=get_solver("levenberg_marquardt"))
+    assert sum(prep.problem.counts) == rec["n_points"] == int(small[0].usable().sum())
+    with pytest.raises(SampleError, match=r"roi \(500, 600, 0, 10\) contains no pixel of its grid"):
+        decimate_frame(frames[0], 1, (500, 600, 0, 10))
