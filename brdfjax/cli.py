@@ -588,6 +588,12 @@ COMMANDS: dict[str, Command] = {
         lambda p: __import__("brdfjax.devices.capture", fromlist=["capture_arguments"]).capture_arguments(p),
         lambda a: __import__("brdfjax.devices.capture", fromlist=["run_capture_command"]).run_capture_command(a),
     ),
+    "sample": Command(
+        "sample",
+        "parameter posteriors with emcee from a fit config ([sample] table): chain.h5, posterior.json, corner/trace plots",
+        lambda p: __import__("brdfjax.sample.cli", fromlist=["add_arguments"]).add_arguments(p),
+        lambda a: __import__("brdfjax.sample.cli", fromlist=["run"]).run(a),
+    ),
 }
 
 

@@ -21,12 +21,24 @@ angles share one detector (a joint fit needs no
 incidence, not the camera.  Otherwise the arm stays at the stored
 ``theta_c``.
 
+The weights: ``sigma="total"`` (default) takes the ``sigma_rel`` channel,
+the quadrature total of every contribution of the reduction, frame-wide ones
+included (the ND filters' tolerance, the incident flux, the geometry: one
+scale error shared by every pixel of the frame, which per-pixel weights
+would count as independent noise); ``"pixel"`` takes ``u_scatter_flux``
+(each pixel's own noise and non-linearity) and ``"noise"`` only
+``u_scatter_noise``.  ``sigma_floor`` is added in quadrature (a per-pixel
+error the reduction does not carry, e.g. the residual pixel-to-pixel gain
+error after a non-linearity correction).
+
 The instrument function: a frame attribute ``footprint_w_px`` (the 1/e^2
 radius of a Gaussian beam footprint, Eq 73, in raw detector pixels), or the
 ``footprint_w_px`` argument, gives the footprint kernel sampled on the
 frame's grid (:func:`brdfjax.instrument.synthetic.footprint_kernel` with the
 radius divided by the grid's pixel step); ``footprint`` may also be given as
-a kernel array directly.  Files written before ``detector_n_v`` /
+a kernel array directly.  With a footprint, a region of interest is widened
+by the kernel's half-width: the margin is evaluated (light from it reaches
+the region through the convolution) but masked.  Files written before ``detector_n_v`` /
 ``detector_n_h`` existed get the smallest even-sized array that holds the roi
 (pixel geometry depends on the indices only, not on the array size).
 """
@@ -45,7 +57,9 @@ from ..detector import Detector, PixelGrid
 from ._common import FitInputError
 from ._data import FrameData
 
-__all__ = ["frame_data_from_reduced", "read_frame_data", "detector_from_attrs"]
+__all__ = ["frame_data_from_reduced", "read_frame_data", "detector_from_attrs", "SIGMA_CHOICES"]
+
+SIGMA_CHOICES = {"total": "sigma_rel", "pixel": "u_scatter_flux", "noise": "u_scatter_noise"}
 
 _REQUIRED = ("theta_i", "phi_ref", "wavelength", "R", "pixel_pitch", "step", "roi")
 
@@ -116,7 +130,7 @@ def _footprint_for(w_px: float | None, pixel_step: int):
         return None
     from ..instrument.synthetic import footprint_kernel
 
-    return footprint_kernel(float(w_px) / pixel_step, tail=1e-9)
+    return footprint_kernel(float(w_px) / pixel_step, tail=1e-6)
 
 
 def frame_data_from_reduced(
@@ -128,6 +142,8 @@ def frame_data_from_reduced(
     roi: tuple[int, int, int, int] | None = None,
     footprint: Any = "auto",
     footprint_w_px: float | None = None,
+    sigma: str = "total",
+    sigma_floor: float = 0.0,
     source: str | None = None,
 ) -> FrameData:
     """A :class:`FrameData` from a reduced frame (a ``ReducedFrame`` or anything with ``brdf``, ``extra``, ``attrs``).
@@ -138,7 +154,8 @@ def frame_data_from_reduced(
     the decimated one) is AND-ed with the frame's ``mask`` channel.
     ``footprint``: ``"auto"`` (from the ``footprint_w_px`` argument or
     header attribute, else none), ``None`` (none) or a kernel on the
-    output grid's spacing.  ``name`` defaults to the header's
+    output grid's spacing.  ``sigma`` (``"total"``, ``"pixel"``, ``"noise"``) and
+    ``sigma_floor``: the weights (module docstring).  ``name`` defaults to the header's
     ``sample_file`` stem or ``"frame"``.
     """
     attrs = dict(getattr(reduced, "attrs", {}) or {})
@@ -152,26 +169,50 @@ def frame_data_from_reduced(
     brdf = np.asarray(reduced.brdf, dtype=np.float64)
     if brdf.ndim != 2:
         raise FitInputError(f"{owner}: 'brdf' must be a 2-D frame, got shape {brdf.shape}")
-    if "sigma_rel" not in extra:
+    if sigma not in SIGMA_CHOICES:
+        raise FitInputError(f"{owner}: sigma must be one of {', '.join(SIGMA_CHOICES)}, got {sigma!r}")
+    channel = SIGMA_CHOICES[sigma]
+    if channel not in extra:
         raise FitInputError(
-            f"{owner}: no 'sigma_rel' channel; a fit needs each pixel's relative uncertainty "
+            f"{owner}: no '{channel}' channel (sigma = {sigma!r}); a fit needs each pixel's relative uncertainty "
             "(a reduced frame from brdfjax reduce has it)"
         )
+    if not (np.isfinite(sigma_floor) and sigma_floor >= 0):
+        raise FitInputError(f"{owner}: sigma_floor must be a non-negative number, got {sigma_floor!r}")
     detector = detector_from_attrs(attrs, owner=owner)
     grid = _stored_grid(attrs, brdf.shape, owner)
-    sigma = np.asarray(extra["sigma_rel"], dtype=np.float64)
+    sig = np.asarray(extra[channel], dtype=np.float64)
+    if sigma_floor > 0:
+        sig = np.hypot(sig, float(sigma_floor))
     keep = np.ones(brdf.shape, bool) if "mask" not in extra else np.asarray(extra["mask"]) > 0.5
+    pixel_step = int(attrs["step"]) * int(step)
+    if isinstance(footprint, str):
+        if footprint != "auto":
+            raise FitInputError(f"{owner}: footprint must be 'auto', None or a kernel array, got {footprint!r}")
+        w = footprint_w_px if footprint_w_px is not None else attrs.get("footprint_w_px")
+        kernel = _footprint_for(None if w is None or float(w) <= 0 else float(w), pixel_step)
+    else:
+        kernel = footprint
     rows = np.arange(brdf.shape[0])[::step]
     cols = np.arange(brdf.shape[1])[::step]
+    inside = None
     if roi is not None:
         h0, h1, v0, v1 = (int(x) for x in roi)
-        cols = cols[(grid.n_h[cols] >= h0) & (grid.n_h[cols] <= h1)]
-        rows = rows[(grid.n_v[rows] >= v0) & (grid.n_v[rows] <= v1)]
-        if rows.size == 0 or cols.size == 0:
+        in_c = (grid.n_h[cols] >= h0) & (grid.n_h[cols] <= h1)
+        in_r = (grid.n_v[rows] >= v0) & (grid.n_v[rows] <= v1)
+        if not in_r.any() or not in_c.any():
             raise FitInputError(
                 f"{owner}: the region of interest {tuple(roi)} holds no pixel of the frame's grid "
                 f"(n_h {grid.n_h[0]}..{grid.n_h[-1]}, n_v {grid.n_v[0]}..{grid.n_v[-1]})"
             )
+        mr = mc = 0
+        if kernel is not None:
+            mr, mc = (int(n) // 2 for n in np.shape(kernel))
+        ir, ic = np.flatnonzero(in_r), np.flatnonzero(in_c)
+        r_sel = np.arange(max(0, ir[0] - mr), min(rows.size, ir[-1] + mr + 1))
+        c_sel = np.arange(max(0, ic[0] - mc), min(cols.size, ic[-1] + mc + 1))
+        inside = np.outer(in_r[r_sel], in_c[c_sel])
+        rows, cols = rows[r_sel], cols[c_sel]
     ix = np.ix_(rows, cols)
     if mask is not None:
         m = np.asarray(mask, dtype=bool)
@@ -185,18 +226,12 @@ def frame_data_from_reduced(
         keep_out = keep[ix] & m
     else:
         keep_out = keep[ix]
+    if inside is not None:
+        keep_out = keep_out & inside
     out_grid = PixelGrid(grid.n_h[cols], grid.n_v[rows])
-    pixel_step = int(attrs["step"]) * int(step)
-    if isinstance(footprint, str):
-        if footprint != "auto":
-            raise FitInputError(f"{owner}: footprint must be 'auto', None or a kernel array, got {footprint!r}")
-        w = footprint_w_px if footprint_w_px is not None else attrs.get("footprint_w_px")
-        kernel = _footprint_for(None if w is None or float(w) <= 0 else float(w), pixel_step)
-    else:
-        kernel = footprint
     return FrameData(
         brdf=brdf[ix],
-        sigma_rel=sigma[ix],
+        sigma_rel=sig[ix],
         theta_i=float(attrs["theta_i"]),
         detector=detector,
         grid=out_grid,
@@ -217,6 +252,8 @@ def read_frame_data(
     roi: tuple[int, int, int, int] | None = None,
     footprint: Any = "auto",
     footprint_w_px: float | None = None,
+    sigma: str = "total",
+    sigma_floor: float = 0.0,
 ) -> FrameData:
     """A :class:`FrameData` from a reduced frame EXR (``brdfjax reduce`` output); ``name`` defaults to the file stem.
 
@@ -235,5 +272,5 @@ def read_frame_data(
         raise FitInputError(str(e)) from None
     return frame_data_from_reduced(
         reduced, name=name or path.stem, step=step, mask=mask, roi=roi, footprint=footprint,
-        footprint_w_px=footprint_w_px, source=str(path),
+        footprint_w_px=footprint_w_px, sigma=sigma, sigma_floor=sigma_floor, source=str(path),
     )

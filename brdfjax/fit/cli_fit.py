@@ -1,0 +1,65 @@
+"""``brdfjax fit CONFIG --out DIR``: fit a model to data from a TOML config (see :mod:`brdfjax.fit.config`).
+
+Writes ``DIR/result.json`` (the output contract of issue 4: ``parameters``
+name -> ``{value, sigma, unit, free}`` in natural units, ``chi2``,
+``chi2_reduced``, ``dof``, ``converged``, ``message``, ``n_iterations``,
+``wall_s``, ...) and the figures.  Exit codes: 0 when the fit ran (also when
+it did not converge: the message says so and ``result.json`` holds what it
+found), 2 for a bad config or unreadable data (the message names the file and
+the key), 1 for a failure while writing the output.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", metavar="CONFIG", help="a fit config (TOML; see configs/fit_synthetic_solar_cell.toml)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder: result.json, figures, work files")
+    p.add_argument("--no-figures", action="store_true", help="write result.json only")
+
+
+def run(args: argparse.Namespace) -> int:
+    import sys
+
+    from rich.console import Console
+
+    from ..config import ConfigError
+    from ..instrument.raw import RawFormatError
+    from ..instrument.reduce import ReductionError
+    from ..io.exr import ExrError
+    from ._common import FitInputError
+
+    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    prog = "brdfjax fit"
+    # An edge may flip the process-wide switch; the library never does.  Read the precision first.
+    try:
+        import tomllib
+
+        precision = tomllib.loads(Path(args.config).read_text()).get("precision", "float64")
+    except Exception:  # the loader reports the problem properly below
+        precision = "float64"
+    if precision == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    from .config import run_fit
+
+    try:
+        result = run_fit(args.config, args.out, console=console, figures=False if args.no_figures else None)
+    except (ConfigError, FitInputError, ReductionError, RawFormatError, ExrError, FileNotFoundError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        print(f"{prog}: error: cannot write the output: {e}", file=sys.stderr)
+        return 1
+    state = "converged" if result.converged else "did NOT converge"
+    console.print(
+        f"{prog}: {state} ({result.message}); chi2_reduced = {result.chi2_reduced:.4g}; wrote {Path(args.out) / 'result.json'}",
+        markup=False,
+    )
+    return 0

@@ -1,0 +1,277 @@
+"""``brdfjax sample CONFIG --out DIR [--resume]``: parameter posteriors with emcee from a fit config.
+
+The config is a fit config (:mod:`brdfjax.fit.config`: data, model, [params],
+[fit]) plus an optional ``[sample]`` table (:class:`SampleSection`)::
+
+    [sample]
+    n_walkers = 32                  # default max(32, 4 x free parameters); >= 2 x free parameters, even
+    n_steps = 2000                  # total chain length (a resumed run continues to this length)
+    burn = "auto"                   # discarded steps: an integer or "auto" (2 x the largest tau, <= half)
+    thin = 1
+    seed = 0
+    ball = 0.1                      # walkers start within ball x the fit's sigma around the optimum
+    stop_when_converged = false     # stop once the chain is > 50 tau and tau is stable to 1 %
+    check_every = 100               # steps between convergence checks
+    # fit_result = "runs/fit/result.json"   # the least-squares optimum (default: fit first)
+    # step = 2                      # sample on every step-th point of the fit's grid ...
+    # roi = [-60, 60, -60, 60]      # ... inside this region [h0, h1, v0, v1] (seed pixel indices)
+    predictive_draws = 100          # posterior draws for the predictive bands
+
+    [sample.priors]                 # keys and units as in [params] (angles <name>_deg, lengths <name>_m)
+    rho_s3 = { kind = "uniform", lower = 100.0, upper = 600.0 }
+    m1 = { kind = "log_uniform", lower = 5e-5, upper = 1e-3 }
+    dtheta_deg = { kind = "normal", mu = 0.5, sigma = 0.1 }
+    n1 = { kind = "truncated_normal", mu = 3.6, sigma = 0.5, lower = 1.0, upper = 6.0 }
+    "phi_ref_deg[ti20]" = { kind = "normal", mu = 0.0, sigma = 0.05 }   # one frame's entry
+
+Writes ``DIR/chain.h5`` (emcee's HDF5 backend, written as drawn),
+``posterior.json``, ``corner.png``, ``trace.png``, ``predictive_<frame>.png``
+and, when it fitted first, ``fit_result.json``.  ``--resume`` continues the
+chain in ``DIR/chain.h5`` to ``n_steps`` (``--steps`` to extend it).  Ctrl-C
+stops after the step in flight; what was drawn is kept and summarised.
+
+Exit codes: 0 done, 130 interrupted (resumable), 2 bad config, priors,
+walkers or chain file (the message names the file and key), 1 failure while
+writing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+__all__ = ["SampleSection", "PriorConfig", "add_arguments", "run", "priors_from_config"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=True)
+
+
+class PriorConfig(_Strict):
+    """One entry of ``[sample.priors]``, numbers in the key's unit (degrees for ``<name>_deg``)."""
+
+    kind: Literal["uniform", "log_uniform", "normal", "truncated_normal"] = Field(
+        description="'uniform', 'log_uniform', 'normal' or 'truncated_normal'"
+    )
+    lower: float | None = Field(None, description="lower end (uniform, log_uniform, truncated_normal)")
+    upper: float | None = Field(None, description="upper end (uniform, log_uniform, truncated_normal)")
+    mu: float | None = Field(None, description="mean (normal, truncated_normal)")
+    sigma: float | None = Field(None, description="standard deviation > 0 (normal, truncated_normal)")
+
+
+class SampleSection(_Strict):
+    """The ``[sample]`` table of a fit config (see the module docstring)."""
+
+    n_walkers: int | None = Field(None, ge=2, description="number of walkers, even, >= 2 x the free parameters")
+    n_steps: int = Field(2000, ge=1, description="total chain length in steps, >= 1")
+    burn: int | Literal["auto"] = Field("auto", description="steps discarded as burn-in: an integer >= 0 or 'auto'")
+    thin: int = Field(1, ge=1, description="keep every thin-th step of the chain for the summary")
+    seed: int = Field(0, description="seed of the walkers' start and of the sampler")
+    ball: float = Field(0.1, gt=0, description="start ball radius in units of the fit's sigma, > 0")
+    stop_when_converged: bool = Field(False, description="stop early once converged (> 50 tau, tau stable to 1 %)")
+    check_every: int = Field(100, ge=10, description="steps between convergence checks, >= 10")
+    progress: bool = Field(True, description="show a progress bar")
+    fit_result: str | None = Field(None, description="a fit result JSON (brdfjax fit's result.json), relative to the config")
+    step: int | None = Field(None, ge=1, description="sample on every step-th point of the fit's grid")
+    roi: list[int] | None = Field(None, min_length=4, max_length=4, description="[h0, h1, v0, v1] seed pixel indices")
+    predictive_draws: int = Field(100, ge=0, description="posterior draws for the predictive bands (0: none)")
+    priors: dict[str, PriorConfig] = Field(default_factory=dict, description="parameter key -> prior table")
+
+    @field_validator("burn")
+    @classmethod
+    def _burn(cls, v: Any) -> Any:
+        if isinstance(v, int) and v < 0:
+            raise ValueError(f"burn must be >= 0 or 'auto', got {v}")
+        return v
+
+    @field_validator("roi")
+    @classmethod
+    def _roi(cls, v: Any) -> Any:
+        if v is not None and not (v[0] <= v[1] and v[2] <= v[3]):
+            raise ValueError(f"{list(v)} is not ordered; expected [h0, h1, v0, v1] with h0 <= h1 and v0 <= v1")
+        return v
+
+
+_ENTRY = re.compile(r"^(?P<key>[^\[\]]+)\[(?P<block>[^\[\]]+)\]$")
+
+
+def priors_from_config(source: str, sec: SampleSection, model: Any) -> dict[str, Any]:
+    """``[sample.priors]`` -> {parameter name: Prior (stored units)}; unknown keys raise ConfigError."""
+    from ..config import ConfigError, _unknown_key_message, parameter_keys
+    from ..fit._common import FRAME_PARAMETERS
+    from ._priors import Prior, SampleError
+
+    keys = parameter_keys({**model.parameter_units(), **FRAME_PARAMETERS})
+    out: dict[str, Any] = {}
+    problems = []
+    for key, p in sec.priors.items():
+        m = _ENTRY.match(key)
+        base_key, block = (m.group("key"), m.group("block")) if m else (key, None)
+        if base_key not in keys:
+            problems.append((f"sample.priors.{key}", "prior on unknown parameter: " + _unknown_key_message(base_key, keys, "this model")))
+            continue
+        name, scale, _ = keys[base_key]
+        full = name if block is None else f"{name}[{block}]"
+        prior = Prior(p.kind, **{f: (None if getattr(p, f) is None else getattr(p, f) * scale) for f in ("lower", "upper", "mu", "sigma")})
+        try:
+            prior.check(full)
+        except SampleError as e:
+            problems.append((f"sample.priors.{key}", str(e)))
+            continue
+        out[full] = prior
+    if problems:
+        raise ConfigError(source, problems)
+    return out
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", metavar="CONFIG", help="a fit config with an optional [sample] table (configs/sample_*.toml)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder: chain.h5, posterior.json, figures")
+    p.add_argument("--resume", action="store_true", help="continue the chain in DIR/chain.h5")
+    p.add_argument("--steps", type=int, default=None, metavar="N", help="total chain length (overrides sample.n_steps)")
+    p.add_argument("--walkers", type=int, default=None, metavar="N", help="number of walkers (overrides sample.n_walkers)")
+    p.add_argument("--fit-result", default=None, metavar="JSON", help="least-squares result to start from (brdfjax fit's result.json)")
+    p.add_argument("--no-figures", action="store_true", help="write chain.h5 and posterior.json only")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _print_summary(console: Any, s: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"posterior: {s['n_steps']} steps x {s['n_walkers']} walkers, burn {s['burn']}")
+    for col in ("parameter", "median", "-1 sigma", "+1 sigma", "unit", "tau", "ESS", "fit"):
+        t.add_column(col, justify="right" if col not in ("parameter", "unit") else "left")
+    for name, p in s["parameters"].items():
+        fmt = lambda v: "-" if v is None else f"{v:.5g}"  # noqa: E731
+        t.add_row(
+            name, fmt(p["median"]), fmt(p["median"] - p["q16"]), fmt(p["q84"] - p["median"]), p["unit"],
+            fmt(p["tau"]), fmt(p["ess"]), fmt(p.get("fit_value")),
+        )
+    console.print(t)
+    console.print(
+        f"acceptance fraction: mean {s['acceptance_fraction_mean']:.3f} (per walker "
+        f"{min(s['acceptance_fraction']):.3f} .. {max(s['acceptance_fraction']):.3f}); "
+        f"converged: {s['converged']}",
+        markup=False,
+    )
+    for w in s["warnings"]:
+        console.print(f"warning: {w}", markup=False, style="yellow")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from ..config import ConfigError
+    from ..fit._common import FitInputError
+
+    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    prog = "brdfjax sample"
+    try:
+        import tomllib
+
+        precision = tomllib.loads(Path(args.config).read_text()).get("precision", "float64")
+    except Exception:  # the loader reports the problem properly below
+        precision = "float64"
+    if precision == "float64":
+        import jax
+
+        # An edge may flip the process-wide switch; the library never does.
+        jax.config.update("jax_enable_x64", True)
+
+    from ..fit.config import build_fit_job, load_fit_config
+    from ._api import sample
+    from ._priors import SampleError
+
+    errors: tuple[type[BaseException], ...] = (ConfigError, FitInputError, SampleError, FileNotFoundError)
+    try:
+        from ..instrument.raw import RawFormatError
+        from ..instrument.reduce import ReductionError
+        from ..io.exr import ExrError
+
+        errors = errors + (RawFormatError, ReductionError, ExrError)
+    except ImportError:  # pragma: no cover
+        pass
+    out = Path(args.out)
+    try:
+        cfg = load_fit_config(args.config, sections={"sample": SampleSection})
+        sec: SampleSection = cfg.sections.get("sample") or SampleSection()
+        model = cfg.build_model()
+        priors = priors_from_config(str(cfg.source), sec, model)
+        if args.steps is not None and args.steps < 1:
+            raise SampleError(f"--steps must be a positive integer, got {args.steps}")
+        chain_exists = (out / "chain.h5").exists()
+        if chain_exists and not args.resume:
+            raise SampleError(
+                f"{out / 'chain.h5'} already holds a chain; continue it with --resume, or choose another --out "
+                "(an existing chain is never overwritten)"
+            )
+        out.mkdir(parents=True, exist_ok=True)
+        job = build_fit_job(cfg, work_dir=out)
+        for note in job.notes:
+            console.print(note, markup=False)
+        start: Any = None
+        fit_path = args.fit_result or (None if sec.fit_result is None else str(cfg.resolve(sec.fit_result)))
+        if fit_path is None and (out / "fit_result.json").is_file():
+            fit_path = str(out / "fit_result.json")
+        if fit_path is not None:
+            try:
+                start = json.loads(Path(fit_path).read_text())
+            except FileNotFoundError:
+                raise SampleError(f"{fit_path}: fit result not found (sample.fit_result / --fit-result)") from None
+            except (OSError, ValueError) as e:
+                raise SampleError(f"{fit_path}: cannot read the fit result JSON: {e}") from None
+            console.print(f"starting from the fit result {fit_path}", markup=False)
+        elif not (args.resume and chain_exists):
+            console.print("fitting first (no fit result given) ...", markup=False)
+            start = job.run()
+            start.to_json(out / "fit_result.json")
+            console.print(start.summary(), markup=False)
+            fit_path = str(out / "fit_result.json")
+        record = {"config": str(cfg.source), "fit_result": fit_path, "data_step": cfg.data.step, "data_roi": cfg.data.roi,
+                  "data_roi_deg": cfg.data.roi_deg}
+        res = sample(
+            job.model,
+            job.blocks,
+            job.params,
+            priors=priors,
+            n_walkers=args.walkers if args.walkers is not None else sec.n_walkers,
+            n_steps=args.steps if args.steps is not None else sec.n_steps,
+            out_dir=out,
+            resume=args.resume,
+            start=start,
+            fit_kwargs=job.fit_kwargs,
+            seed=sec.seed,
+            ball=sec.ball,
+            burn=sec.burn,
+            thin=sec.thin,
+            stop_when_converged=sec.stop_when_converged,
+            check_every=sec.check_every,
+            progress=sec.progress and not args.no_progress,
+            figures=cfg.output.figures and not args.no_figures,
+            predictive_draws=sec.predictive_draws,
+            step=sec.step,
+            roi=None if sec.roi is None else tuple(sec.roi),
+            log=lambda m: console.print(m, markup=False),
+            extra_record=record,
+        )
+    except errors as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        print(f"{prog}: error: cannot write the output: {e}", file=sys.stderr)
+        return 1
+    _print_summary(console, res.summary)
+    console.print(f"wrote {', '.join(sorted(Path(f).name for f in res.files.values()))} in {out}", markup=False)
+    if res.run.interrupted:
+        console.print(
+            f"{prog}: interrupted after {res.run.iterations} steps; the chain is saved: continue with --resume",
+            markup=False,
+        )
+        return 130
+    return 0
