@@ -576,6 +576,12 @@ COMMANDS: dict[str, Command] = {
         _reduce_arguments,
         _run_reduce,
     ),
+    "fit": Command(
+        "fit",
+        "fit a model to frames/tables from a TOML fit config: result.json (parameters, uncertainties, chi2) + figures",
+        lambda p: __import__("brdfjax.fit.cli_fit", fromlist=["add_arguments"]).add_arguments(p),
+        lambda a: __import__("brdfjax.fit.cli_fit", fromlist=["run"]).run(a),
+    ),
     "diagnose": Command(
         "diagnose",
         "diagnose the gap between a base model and measured frames: where, which effect, how far it shrinks",
