@@ -142,26 +142,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _print_summary(console: Any, s: dict[str, Any]) -> None:
-    from rich.table import Table
-
-    t = Table(title=f"posterior: {s['n_steps']} steps x {s['n_walkers']} walkers, burn {s['burn']}")
-    for col in ("parameter", "median", "-1 sigma", "+1 sigma", "unit", "tau", "ESS", "fit"):
-        t.add_column(col, justify="right" if col not in ("parameter", "unit") else "left")
+    fmt = lambda v: "-" if v is None else f"{v:.5g}"  # noqa: E731
+    lines = [
+        f"posterior: {s['n_steps']} steps x {s['n_walkers']} walkers, burn-in {s['burn']}, {s['n_samples']} samples",
+        f"{'parameter':<18s} {'median':>12s} {'-1 sigma':>11s} {'+1 sigma':>11s} {'unit':<6s} {'tau':>7s} {'ESS':>8s} {'fit':>12s}",
+    ]
     for name, p in s["parameters"].items():
-        fmt = lambda v: "-" if v is None else f"{v:.5g}"  # noqa: E731
-        t.add_row(
-            name, fmt(p["median"]), fmt(p["median"] - p["q16"]), fmt(p["q84"] - p["median"]), p["unit"],
-            fmt(p["tau"]), fmt(p["ess"]), fmt(p.get("fit_value")),
+        lines.append(
+            f"{name:<18s} {fmt(p['median']):>12s} {fmt(p['median'] - p['q16']):>11s} {fmt(p['q84'] - p['median']):>11s} "
+            f"{p['unit']:<6s} {fmt(p['tau']):>7s} {fmt(p['ess']):>8s} {fmt(p.get('fit_value')):>12s}"
         )
-    console.print(t)
-    console.print(
+    lines.append(
         f"acceptance fraction: mean {s['acceptance_fraction_mean']:.3f} (per walker "
-        f"{min(s['acceptance_fraction']):.3f} .. {max(s['acceptance_fraction']):.3f}); "
-        f"converged: {s['converged']}",
-        markup=False,
+        f"{min(s['acceptance_fraction']):.3f} .. {max(s['acceptance_fraction']):.3f}); converged: {s['converged']}"
     )
-    for w in s["warnings"]:
-        console.print(f"warning: {w}", markup=False, style="yellow")
+    lines.extend(f"warning: {w}" for w in s["warnings"])
+    console.print("\n".join(lines), markup=False)
 
 
 def run(args: argparse.Namespace) -> int:
