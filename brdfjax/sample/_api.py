@@ -19,8 +19,8 @@ from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
 from ._outputs import (
     plot_corner,
     plot_predictive,
+    model_at_points,
     plot_trace,
-    predictive_columns,
     slice_columns,
     summarise,
     write_json_atomic,
@@ -415,17 +415,16 @@ def _versions() -> dict[str, str]:
 
 def _predictive(out: Path, post: LogPosterior, blocks, flat: np.ndarray, n_draws: int, seed: int) -> dict[str, str]:
     files = {}
-    if n_draws <= 0:
+    if n_draws <= 0 or not any(isinstance(b, FrameData) for b in blocks):
         return files
     rng = np.random.default_rng(seed + 1)
     X = flat[rng.choice(flat.shape[0], size=min(n_draws, flat.shape[0]), replace=False)]
+    f_blocks = model_at_points(post, X)
     for k, b in enumerate(blocks[:4]):
         if not isinstance(b, FrameData):
             continue
-        cols = slice_columns(b)
-        n_h = np.asarray(b.grid.n_h, np.float64)[cols]
-        n_v = np.asarray(b.grid.n_v, np.float64)
-        bands = predictive_columns(post, X, k, n_h, n_v)
         safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in b.name)
-        files[f"predictive_{safe}"] = str(plot_predictive(out / f"predictive_{safe}.png", b, bands, cols, b.name))
+        files[f"predictive_{safe}"] = str(
+            plot_predictive(out / f"predictive_{safe}.png", b, f_blocks[k], slice_columns(b), b.name, seed)
+        )
     return files

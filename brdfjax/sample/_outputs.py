@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["summarise", "write_json_atomic", "plot_corner", "plot_trace", "plot_predictive", "QUANTILES"]
+__all__ = ["summarise", "write_json_atomic", "plot_corner", "plot_trace", "plot_predictive", "model_at_points", "QUANTILES"]
 
 #: Reported quantiles: key -> percentile.
 QUANTILES = {"q025": 2.5, "q16": 16.0, "median": 50.0, "q84": 84.0, "q975": 97.5}
@@ -127,42 +127,38 @@ def plot_trace(path: Path, chain_natural: np.ndarray, names, units, burn: int, m
     return path
 
 
-def predictive_columns(post: Any, X: np.ndarray, block_index: int, n_h: np.ndarray, n_v: np.ndarray) -> np.ndarray:
-    """Model BRDF of the draws ``X`` (stored units) at pixel columns ``n_h`` x rows ``n_v`` of frame block ``block_index``.
+def model_at_points(post: Any, X: np.ndarray) -> list[np.ndarray]:
+    """The model at every usable point of every block for the draws ``X`` (stored units), per block ``(n_draws, n_k)``.
 
-    Returns ``(n_draws, len(n_h), len(n_v))``; the model is not convolved with
-    a footprint (the fit convolves when one is given).
+    Recovered from the fit's weighted residuals ``r = (log(f + floor) - log d) / sigma_rel``, so it is
+    exactly the model the likelihood sees (convolved with the footprint where the fit convolves).
     """
     import jax.numpy as jnp
 
     problem = post.problem
-    det = problem.block_list()[block_index].detector
-    X = jnp.asarray(np.asarray(X, np.float64), post.dtype)
-    return np.asarray(_predict(X, problem, block_index, det, (n_h, n_v)), np.float64)
+    R = np.asarray(_weighted_residuals(jnp.asarray(np.asarray(X, np.float64), post.dtype), problem), np.float64)
+    out, off = [], 0
+    for block, n in zip(problem.block_list(), problem.counts):
+        d = np.asarray(block.data, np.float64)[:n]
+        inv = np.asarray(block.inv_sigma, np.float64)[:n]
+        floor = float(np.asarray(block.floor))
+        out.append(d * np.exp(R[:, off : off + n] / inv) - floor)
+        off += n
+    return out
 
 
-def _predict(X, problem, k, det, columns):
+def _weighted_residuals(X, problem):
     import equinox as eqx
     import jax
-    import jax.numpy as jnp
 
-    from ..render import evaluate_pixels
-
-    n_h, n_v = columns
-
-    @eqx.filter_jit
-    def run(X, problem, det, n_h, n_v):
-        def one(x):
-            model, frame = problem.block_inputs(x)[k]
-            return evaluate_pixels(model, frame, det, n_h[:, None], n_v[None, :])
-
-        return jax.vmap(one)(X)
-
-    return run(X, problem, det, jnp.asarray(n_h, X.dtype), jnp.asarray(n_v, X.dtype))
+    return eqx.filter_jit(lambda X, p: jax.vmap(p.weighted_residuals)(X))(X, problem)
 
 
-def plot_predictive(path: Path, data: Any, bands: np.ndarray, col_idx: Sequence[int], title: str) -> Path:
-    """Data (with 1-sigma bars, masked points hollow) and the 68/95 % posterior-predictive bands per column."""
+def plot_predictive(
+    path: Path, data: Any, f_points: np.ndarray, col_idx: Sequence[int], title: str, seed: int = 0
+) -> Path:
+    """Data (1-sigma bars) and, along grid columns, the model's 95 % credible band and the 95 % posterior-
+    predictive band (model draws times the data's log-normal noise), at the usable points."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -171,21 +167,23 @@ def plot_predictive(path: Path, data: Any, bands: np.ndarray, col_idx: Sequence[
     brdf = np.asarray(data.brdf, np.float64)
     sigma = np.broadcast_to(np.asarray(data.sigma_rel, np.float64), brdf.shape)
     usable = data.usable()
+    rows, cols = np.nonzero(usable)
     n_v = np.asarray(data.grid.n_v)
     n_h = np.asarray(data.grid.n_h)
+    rng = np.random.default_rng(seed)
+    noisy = f_points * np.exp(sigma[rows, cols][None, :] * rng.standard_normal(f_points.shape))
     fig, axes = plt.subplots(1, len(col_idx), figsize=(5.5 * len(col_idx), 3.8), squeeze=False)
     for j, (ax, c) in enumerate(zip(axes[0], col_idx)):
-        q = np.percentile(bands[:, j, :], [2.5, 16, 50, 84, 97.5], axis=0)
-        ax.fill_between(n_v, q[0], q[4], color="tab:blue", alpha=0.2, label="95 % predictive")
-        ax.fill_between(n_v, q[1], q[3], color="tab:blue", alpha=0.4, label="68 % predictive")
-        ax.plot(n_v, q[2], color="tab:blue", lw=1.0, label="median")
-        d = brdf[:, c]
-        u = usable[:, c]
-        ok = u & (d > 0)
-        ax.errorbar(n_v[ok], d[ok], yerr=d[ok] * sigma[ok, c], fmt=".", ms=3, color="k", lw=0.6, label="data")
-        bad = ~u & (d > 0)
-        if bad.any():
-            ax.plot(n_v[bad], d[bad], "o", mfc="none", ms=3, color="0.6", label="masked")
+        sel = np.flatnonzero(cols == c)
+        r = rows[sel]
+        q = np.percentile(f_points[:, sel], [2.5, 50, 97.5], axis=0)
+        qn = np.percentile(noisy[:, sel], [2.5, 97.5], axis=0)
+        x = n_v[r]
+        ax.fill_between(x, qn[0], qn[1], color="tab:orange", alpha=0.25, step="mid", label="95 % posterior predictive")
+        ax.fill_between(x, q[0], q[2], color="tab:blue", alpha=0.5, step="mid", label="95 % model band")
+        ax.plot(x, q[1], color="tab:blue", lw=0.8, label="posterior median model")
+        d = brdf[r, c]
+        ax.errorbar(x, d, yerr=d * sigma[r, c], fmt=".", ms=3, color="k", lw=0.6, label="data (usable)")
         ax.set_yscale("log")
         ax.set_xlabel("pixel row n_v")
         ax.set_ylabel("BRDF (sr$^{-1}$)")
