@@ -101,6 +101,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import equinox as eqx
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -118,6 +119,7 @@ __all__ = [
     "Ambient",
     "SourceDrift",
     "NDError",
+    "Source",
     "ShotNoise",
     "NonLinearity",
     "Dark",
@@ -240,6 +242,38 @@ class SourceDrift(_Strict):
     rel_std: float = Field(0.0101, ge=0)
 
 
+class Source(_Strict):
+    """The source's spectrum: a Gaussian line of relative rms width ``rel_width`` (sigma_lambda / lambda).
+
+    0 (the default): the monochromatic HeNe.  A finite width (a broadband LED, a
+    multimode laser) renders the model at ``n_nodes`` wavelengths (Gauss-Hermite
+    nodes about the frame's wavelength) and averages them: diffraction orders
+    smear into stripes.  ``spectrum`` instead gives explicit ``(wavelength_nm,
+    relative power)`` samples (a ``colour.SpectralDistribution``'s pairs); the
+    frame's wavelength is then ignored.  Not one of :data:`EFFECTS` (nothing
+    to switch off in the seed's instrument).
+    """
+
+    rel_width: float = Field(0.0, ge=0, lt=0.5)
+    n_nodes: int = Field(15, ge=1, le=101)
+    spectrum: tuple[tuple[float, float], ...] = ()
+
+    def samples(self, wavelength: float) -> list[tuple[float, float]]:
+        """``(wavelength in m, weight)`` pairs, weights summing to 1."""
+        if self.spectrum:
+            lam = np.array([w for w, _ in self.spectrum], float) * 1e-9
+            val = np.clip(np.array([v for _, v in self.spectrum], float), 0.0, None)
+            if not val.sum() > 0:
+                raise ValueError("source.spectrum: no positive power")
+            keep = val > 0
+            return list(zip(lam[keep].tolist(), (val[keep] / val.sum()).tolist()))
+        if self.rel_width == 0 or self.n_nodes == 1:
+            return [(float(wavelength), 1.0)]
+        x, w = np.polynomial.hermite_e.hermegauss(self.n_nodes)
+        w = w / w.sum()
+        return [(float(wavelength) * (1.0 + self.rel_width * xi), float(wi)) for xi, wi in zip(x, w)]
+
+
 class NDError(_Strict):
     """True OD of each physical filter = nominal + U(-tol, tol); tolerances by nominal OD (seed §4.3)."""
 
@@ -292,6 +326,7 @@ class InstrumentConfig(_Strict):
     black_level: BlackLevel = BlackLevel()
     quantisation: Quantisation = Quantisation()
     saturation: Saturation = Saturation()
+    source: Source = Source()
 
     @field_validator("exposures_s")
     @classmethod
@@ -570,7 +605,9 @@ class SyntheticInstrument:
     """The synthetic scatterometer: a detector, an :class:`InstrumentConfig` and a seeded noise generator.
 
     ``detector`` is the true geometry (misalignment included); its array
-    shape is the raw frames' shape.  ``seed`` seeds the noise Generator
+    shape is the raw frames' shape.  ``nominal_detector`` (default: the same)
+    is the geometry written to the files, i.e. what the reduction believes:
+    a true camera that differs from it is an unknown misalignment.  ``seed`` seeds the noise Generator
     (NumPy ``default_rng``); measurements made in the same order give the
     same stacks.
     """
@@ -582,8 +619,15 @@ class SyntheticInstrument:
         *,
         seed: int | None = 0,
         block_rows: int = 256,
+        nominal_detector: Detector | None = None,
     ):
         self.detector = Detector.seed() if detector is None else detector
+        self.nominal_detector = self.detector if nominal_detector is None else nominal_detector
+        if self.nominal_detector.shape != self.detector.shape:
+            raise ValueError(
+                f"nominal_detector has shape {self.nominal_detector.shape}, the detector {self.detector.shape}; "
+                "they must describe the same array"
+            )
         self.config = InstrumentConfig() if config is None else config
         self.rng = np.random.default_rng(seed)
         self.block_rows = int(block_rows)
@@ -601,7 +645,7 @@ class SyntheticInstrument:
 
     # -- attributes ------------------------------------------------------------------------------
     def _attrs(self, kind: str, nd_filters: str, theta_i: float, theta_c: float, frame: Frame, sample: str) -> RawAttrs:
-        d = self.detector
+        d = self.nominal_detector
         f = lambda x: float(np.asarray(x))  # noqa: E731
         filters = parse_nd_filters(nd_filters)
         return RawAttrs(
@@ -644,8 +688,18 @@ class SyntheticInstrument:
         return convolve_footprint(brdf, footprint_kernel(self.config.footprint.w_px))
 
     def render_brdf(self, model: AbstractTerm, frame: Frame, *, precision: str = "float32") -> np.ndarray:
-        """The model's BRDF on every pixel of the (true) detector, sr^-1, float32 ``(n_v, n_h)``."""
-        return np.asarray(render(model, frame, self.detector, precision=precision), dtype=np.float32)
+        """The model's BRDF on every pixel of the (true) detector, sr^-1, float32 ``(n_v, n_h)``.
+
+        With a spectral source (``config.source``) the average over its wavelengths.
+        """
+        samples = self.config.source.samples(float(np.asarray(frame.wavelength)))
+        if len(samples) == 1 and samples[0][0] == float(np.asarray(frame.wavelength)):
+            return np.asarray(render(model, frame, self.detector, precision=precision), dtype=np.float32)
+        out = np.zeros(self.shape, np.float64)
+        for wl, w in samples:
+            f = eqx.tree_at(lambda fr: fr.wavelength, frame, np.float64(wl))
+            out += w * np.asarray(render(model, f, self.detector, precision=precision), dtype=np.float64)
+        return out.astype(np.float32)
 
     def sample_flux(self, brdf: np.ndarray, frame: Frame, nd_filters: str) -> np.ndarray:
         """Light rate on every pixel of a sample measurement, counts/s, float32 (steps 1-3 of the module doc)."""

@@ -1,0 +1,246 @@
+"""Model-side pieces the effect library adds to a base model (pure JAX, differentiable).
+
+- :class:`Oriented`: any term turned about the sample normal by its own angle
+  ``psi`` (the orientation of diffraction bars or of an anisotropic lobe
+  relative to the sample frame; the frame's ``phi_ref`` turns everything).
+- :class:`SpectralDiffraction`: the Fraunhofer bars of
+  :class:`brdfjax.terms.Diffraction` integrated over a source spectrum, so the
+  diffraction orders smear into stripes.  The spectrum is a set of relative
+  wavelength offsets ``x_k`` with weights ``w_k`` (sum 1) scaled by the
+  relative rms width ``width``: ``lambda_k = lambda (1 + width x_k)``, with
+  ``lambda`` the frame's (centroid) wavelength.  The default offsets are the
+  Gauss-Hermite nodes of a Gaussian line (``width`` = sigma_lambda / lambda);
+  :meth:`SpectralDiffraction.from_spectrum` takes any
+  ``colour.SpectralDistribution`` (a broadband LED, a laser line of finite width).
+- :class:`InstrumentResponse`: a :class:`~brdfjax.terms.Model` (same terms,
+  same parameter names) with instrument-side responses switched on by
+  ``features``; their parameters are named ``instrument.<name>``:
+
+  ========================  ===============================================  ==========================
+  feature                   measured BRDF                                     parameters
+  ========================  ===============================================  ==========================
+  ``misalignment``          ``f`` at the scatter direction turned by          ``rx, ry, rz`` (rad)
+                            ``Rz(rz) Ry(ry) Rx(rx)`` (sample frame): a
+                            detector offset ``m_h, m_v`` (pixels * pitch / R)
+                            and roll to first order
+  ``aperture``              ``f`` averaged over a square angular footprint     ``aperture`` (rad, full
+                            of each sample (midpoint rule on a grid of          width)
+                            turned scatter directions)
+  ``stray_light``           ``f + ghost f(turned by ghost_x, ghost_y) +       ``ghost`` (1), ``ghost_x``,
+                            background``: a faint displaced copy (a sub-peak)   ``ghost_y`` (rad),
+                            and a uniform background                            ``background`` (sr^-1)
+  ``flux_scale``            ``flux_scale f`` (an OD or incident-flux error)    ``flux_scale`` (1)
+  ``nonlinearity``          ``f_ref (f / f_ref)^gamma`` (a power-law response   ``gamma`` (1); ``f_ref``
+                            of the measured signal about ``f_ref``)            static (sr^-1)
+  ========================  ===============================================  ==========================
+
+  Applied in the order geometry (misalignment, aperture) -> optics (stray
+  light) -> detector (flux scale, non-linearity).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .._params import check_param, param
+from ..geometry import Directions, Rx, Ry, Rz, rotate
+from ..terms import AbstractTerm, Diffraction, Model, _param_fields
+
+__all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter"]
+
+
+class Oriented(AbstractTerm):
+    """A term turned about the sample normal by ``psi`` (rad): evaluated on directions rotated by ``Rz(-psi)``."""
+
+    kind: ClassVar[str] = "oriented"
+    term: AbstractTerm
+    psi: Array = param("rad", "orientation of the wrapped term about the sample normal")
+
+    def __call__(self, dirs, wavelength):
+        return self.term(dirs.rotated(Rz(-self.psi)), wavelength)
+
+
+def _gauss_hermite(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    x, w = np.polynomial.hermite_e.hermegauss(n)
+    w = w / w.sum()
+    return tuple(float(v) for v in x), tuple(float(v) for v in w)
+
+
+class SpectralDiffraction(AbstractTerm):
+    """:class:`~brdfjax.terms.Diffraction` averaged over a spectrum: ``sum_k w_k Diffraction(lambda (1 + width x_k))``."""
+
+    kind: ClassVar[str] = "spectral_diffraction"
+    rho: Array = param("sr^-1", "peak magnitude")
+    a: Array = param("m", "bar spacing")
+    b: Array = param("m", "bar width")
+    c: Array = param("m", "Gaussian half-width of the band along the bars")
+    width: Array = param("1", "relative rms spectral width sigma_lambda / lambda")
+    nodes: tuple[float, ...] = eqx.field(static=True, default=_gauss_hermite(15)[0])
+    weights: tuple[float, ...] = eqx.field(static=True, default=_gauss_hermite(15)[1])
+    distance: float = eqx.field(static=True, default=0.325)
+    grating_factor: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        check_param("spectral_diffraction", "width", self.width, lambda v: v >= 0, "width >= 0 (relative)")
+        if len(self.nodes) != len(self.weights) or not self.nodes:
+            raise ValueError("SpectralDiffraction: nodes and weights must be non-empty and of equal length")
+
+    @classmethod
+    def from_diffraction(cls, d: Diffraction, width: float, n_nodes: int = 15) -> "SpectralDiffraction":
+        """A Gaussian line of relative rms width ``width`` about the frame's wavelength."""
+        x, w = _gauss_hermite(n_nodes)
+        return cls(d.rho, d.a, d.b, d.c, width, x, w, d.distance, d.grating_factor)
+
+    @classmethod
+    def from_spectrum(cls, d: Diffraction, sd: Any, max_samples: int = 41) -> "SpectralDiffraction":
+        """The bars under a source of spectral distribution ``sd`` (a ``colour.SpectralDistribution``, nm).
+
+        The frame's wavelength is taken as the spectrum's centroid; ``width``
+        is its relative rms width and the nodes the spectrum's samples in
+        units of that width (resampled to at most ``max_samples``).
+        """
+        lam = np.asarray(sd.wavelengths, float)
+        val = np.clip(np.asarray(sd.values, float), 0.0, None)
+        if lam.size < 1 or val.sum() <= 0:
+            raise ValueError("SpectralDiffraction.from_spectrum: the spectrum has no positive values")
+        keep = val > 1e-6 * val.max()
+        lam, val = lam[keep], val[keep]
+        if lam.size > max_samples:
+            edges = np.linspace(lam[0], lam[-1], max_samples + 1)
+            idx = np.clip(np.digitize(lam, edges) - 1, 0, max_samples - 1)
+            wsum = np.bincount(idx, val, max_samples)
+            lsum = np.bincount(idx, val * lam, max_samples)
+            ok = wsum > 0
+            lam, val = lsum[ok] / wsum[ok], wsum[ok]
+        w = val / val.sum()
+        centre = float(np.sum(w * lam))
+        sigma = float(np.sqrt(np.sum(w * (lam - centre) ** 2)))
+        if sigma <= 0:
+            return cls(d.rho, d.a, d.b, d.c, 0.0, (0.0,), (1.0,), d.distance, d.grating_factor)
+        x = (lam / centre - 1.0) / (sigma / centre)
+        return cls(d.rho, d.a, d.b, d.c, sigma / centre, tuple(map(float, x)), tuple(map(float, w)), d.distance, d.grating_factor)
+
+    def __call__(self, dirs, wavelength):
+        h = dirs.half_vector()
+        hx, hy = h[..., 0], h[..., 1]
+        scale = 2.0 * dirs.cos_theta_i if self.grating_factor else 1.0
+        band = jnp.exp(-jnp.square(self.distance * hx / self.c))
+        total = 0.0
+        for x, w in zip(self.nodes, self.weights):
+            u = hy * scale / (wavelength * (1.0 + self.width * x))
+            total = total + w * jnp.square(jnp.cos(np.pi * self.a * u)) * jnp.square(jnp.sinc(self.b * u))
+        f = self.rho * total * band
+        return jnp.where((dirs.cos_theta_i > 0) & (dirs.cos_theta_s > 0), f, 0.0)
+
+
+def turn_scatter(dirs: Directions, ax: Any, ay: Any, az: Any = 0.0) -> Directions:
+    """Directions with only ``w_s`` turned by ``Rz(az) Ry(ay) Rx(ax)``; ``w_sum`` updated without cancellation."""
+    R = Rz(az) @ Ry(ay) @ Rx(ax)
+    dws = rotate(R - jnp.eye(3, dtype=R.dtype), dirs.w_s)
+    return Directions(dirs.w_i, dirs.w_s + dws, dirs.w_sum + dws)
+
+
+#: Feature -> its parameter fields on :class:`InstrumentResponse`.
+FEATURES: dict[str, tuple[str, ...]] = {
+    "misalignment": ("rx", "ry", "rz"),
+    "aperture": ("aperture",),
+    "stray_light": ("ghost", "ghost_x", "ghost_y", "background"),
+    "flux_scale": ("flux_scale",),
+    "nonlinearity": ("gamma",),
+}
+
+
+def _midpoints(n: int) -> tuple[float, ...]:
+    return tuple(float(v) for v in (np.arange(n) + 0.5) / n - 0.5)
+
+
+class InstrumentResponse(Model):
+    """A :class:`~brdfjax.terms.Model` seen through instrument-side responses (module docstring).
+
+    Build with :meth:`wrap` (keeps the terms, aliases and any response
+    already switched on) and switch features on by name; parameters are
+    addressed as ``instrument.<field>``.
+    """
+
+    kind: ClassVar[str] = "instrument_response"
+    features: tuple[str, ...] = eqx.field(static=True, default=())
+    flux_scale: Array = param("1", "global scale of the measured BRDF (flux/OD error)", default=1.0)
+    gamma: Array = param("1", "power-law exponent of the signal response", default=1.0)
+    f_ref: float = eqx.field(static=True, default=1.0)
+    rx: Array = param("rad", "scatter-direction turn about x (sample frame)", default=0.0)
+    ry: Array = param("rad", "scatter-direction turn about y (sample frame)", default=0.0)
+    rz: Array = param("rad", "scatter-direction turn about z (sample frame)", default=0.0)
+    ghost: Array = param("1", "relative amplitude of the stray-light copy", default=0.0)
+    ghost_x: Array = param("rad", "turn of the copy about x", default=0.0)
+    ghost_y: Array = param("rad", "turn of the copy about y", default=0.0)
+    background: Array = param("sr^-1", "uniform stray background", default=0.0)
+    aperture: Array = param("rad", "full width of each sample's square angular footprint", default=0.0)
+    aperture_n: tuple[int, int] = eqx.field(static=True, default=(21, 5))
+
+    def __check_init__(self):
+        unknown = [f for f in self.features if f not in FEATURES]
+        if unknown:
+            raise ValueError(f"InstrumentResponse: unknown feature(s) {unknown}; known: {', '.join(FEATURES)}")
+
+    @classmethod
+    def wrap(cls, model: Model, *features: str, **values: Any) -> "InstrumentResponse":
+        """``model`` with ``features`` switched on and response fields set from ``values``."""
+        fields = {}
+        if isinstance(model, InstrumentResponse):
+            fields = {f.name: getattr(model, f.name) for f in _param_fields(model)}
+            fields.update(features=model.features, f_ref=model.f_ref, aperture_n=model.aperture_n)
+        fields.update(values)
+        feats = tuple(fields.pop("features", ())) + tuple(f for f in features if f not in fields.get("features", ()))
+        feats = tuple(dict.fromkeys(feats))
+        return cls(terms=dict(model.terms), aliases=model.aliases, features=feats, **fields)
+
+    def unwrap(self) -> Model:
+        """The plain model (no instrument response)."""
+        return Model(terms=dict(self.terms), aliases=self.aliases)
+
+    def _paths(self):
+        out = super()._paths()
+        units = {f.name: f.metadata["unit"] for f in _param_fields(self)}
+        for feat in self.features:
+            for name in FEATURES[feat]:
+                out[f"instrument.{name}"] = ((name,), units[name])
+        return out
+
+    def _sum(self, dirs, wavelength):
+        return Model.__call__(self, dirs, wavelength)
+
+    def __call__(self, dirs, wavelength):
+        on = self.features
+        if "misalignment" in on:
+            dirs = turn_scatter(dirs, self.rx, self.ry, self.rz)
+        if "aperture" in on:
+            nx, ny = self.aperture_n
+            f = 0.0
+            for x in _midpoints(nx):
+                for y in _midpoints(ny):
+                    # in-plane (about y) along x-nodes, out-of-plane (about x) along y-nodes
+                    f = f + self._sum(turn_scatter(dirs, self.aperture * y, self.aperture * x), wavelength)
+            f = f / (nx * ny)
+        else:
+            f = self._sum(dirs, wavelength)
+        if "stray_light" in on:
+            f = f + self.ghost * self._sum(turn_scatter(dirs, self.ghost_x, self.ghost_y), wavelength) + self.background
+        if "flux_scale" in on:
+            f = self.flux_scale * f
+        if "nonlinearity" in on:
+            pos = f > 0
+            f = jnp.where(pos, self.f_ref * jnp.exp(self.gamma * jnp.log(jnp.where(pos, f, 1.0) / self.f_ref)), 0.0)
+        return f
+
+    def term_values(self, dirs, wavelength):
+        return Model.term_values(self, dirs, wavelength)
+
+
+def response_features(model: Model) -> Sequence[str]:
+    return model.features if isinstance(model, InstrumentResponse) else ()
