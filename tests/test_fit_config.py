@@ -79,3 +79,187 @@ def test_frame_data_errors_name_the_file(reduced_example, tmp_path):
     nan = dataclasses.replace(r, brdf=np.full_like(r.brdf, np.nan))
     with pytest.raises(FitInputError, match="'brdf' is all NaN"):
         frame_data_from_reduced(nan)
+
+
+# --- the TOML fit config ------------------------------------------------------------------------
+
+import textwrap  # noqa: E402
+
+from pydantic import BaseModel, ConfigDict  # noqa: E402
+
+from brdfjax.config import ConfigError  # noqa: E402
+from brdfjax.fit import Param  # noqa: E402
+from brdfjax.fit.config import build_fit_job, load_fit_config  # noqa: E402
+from brdfjax.instrument.reduce import write_reduced_frame  # noqa: E402
+
+HEAD = """
+precision = "float64"
+[data]
+frames = ["{frame}"]
+footprint_w_px = 3.125
+sigma = "noise"
+[model]
+preset = "solar_cell"
+"""
+
+
+def _config(tmp_path, body, frame, name="fit.toml"):
+    p = tmp_path / name
+    p.write_text(HEAD.format(frame=Path(frame).as_posix()) + textwrap.dedent(body))
+    return p
+
+
+def _error(path, **kw) -> str:
+    with pytest.raises(ConfigError) as e:
+        load_fit_config(path, **kw)
+    return str(e.value)
+
+
+def test_params_convert_units_and_shorthands(tmp_path, reduced_example):
+    p = _config(tmp_path, """
+        [params]
+        m1 = "auto"
+        rho_s1 = 0.02
+        n1 = { value = "auto", lower = 1.0, upper = 6.0 }
+        dtheta_deg = { value = 0.5, lower = -5.0, upper = 5.0 }
+        a_m = { value = 8e-4, free = false }
+        phi_ref_deg = { value = [0.1], per_frame = true }
+        offset = { k = "fixed" }
+        """, reduced_example)
+    cfg = load_fit_config(p)
+    ps = cfg.build_params()
+    assert ps["m1"] == Param("auto")
+    assert ps["rho_s1"] == Param(0.02)
+    assert ps["n1"] == Param("auto", lower=1.0, upper=6.0)
+    assert ps["dtheta"].value == pytest.approx(np.radians(0.5))
+    assert (ps["dtheta"].lower, ps["dtheta"].upper) == pytest.approx((np.radians(-5.0), np.radians(5.0)))
+    assert ps["a"] == Param(8e-4, free=False)
+    assert ps["phi_ref"].value == pytest.approx([np.radians(0.1)]) and ps["phi_ref"].per_frame is True
+    assert ps["offset.k"] == Param.fixed()
+    assert cfg.source == p and cfg.data.frames == [Path(reduced_example).as_posix()]
+
+
+def test_unknown_parameter_is_named_with_the_known_ones(tmp_path, reduced_example):
+    msg = _error(_config(tmp_path, "[params]\nm3 = 'auto'\n", reduced_example))
+    assert "fit.toml: params.m3: unknown parameter 'm3' for this model" in msg
+    assert "known: m1, rho_s1, n1" in msg and "dtheta_deg" in msg and "phi_ref_deg" in msg
+    msg = _error(_config(tmp_path, "[params]\ndtheta = 0.5\n", reduced_example))
+    assert "params.dtheta: unknown parameter 'dtheta'" in msg and "did you mean 'dtheta_deg'?" in msg
+
+
+def test_lower_above_upper_is_an_error(tmp_path, reduced_example):
+    msg = _error(_config(tmp_path, "[params]\nn1 = { value = 'auto', lower = 6.0, upper = 1.0 }\n", reduced_example))
+    assert "params.n1: lower (6.0) must be below upper (1.0)" in msg
+    msg = _error(_config(tmp_path, "[params]\nn1 = { value = 9.0, lower = 1.0, upper = 6.0 }\n", reduced_example))
+    assert "params.n1.value: 9.0 is outside [1.0, 6.0]" in msg
+
+
+def test_unknown_keys_and_bad_values_name_the_key(tmp_path, reduced_example):
+    msg = _error(_config(tmp_path, "[fit]\nsolvr = 'lbfgsb'\n", reduced_example))
+    assert "fit.solvr: unknown key (did you mean 'solver'?)" in msg
+    msg = _error(_config(tmp_path, "[fit]\nsolver = 'newton'\n", reduced_example))
+    assert "fit.solver: unknown solver 'newton'; known: levenberg_marquardt, lbfgsb" in msg
+    msg = _error(_config(tmp_path, "[fit]\nloss = 'l1'\n", reduced_example))
+    assert "fit.loss:" in msg and "'linear', 'huber' or 'cauchy'" in msg
+    msg = _error(_config(tmp_path, "[params]\nn1 = { value = 1.5, lowr = 1.0 }\n", reduced_example))
+    assert "params.n1: unknown key(s) ['lowr']" in msg
+    msg = _error(_config(tmp_path, "[sample]\nn_walkers = 8\n", reduced_example))
+    assert "sample: unknown key" in msg
+
+
+def test_missing_files_and_bad_toml(tmp_path, reduced_example):
+    msg = _error(_config(tmp_path, "", tmp_path / "nope.exr"))
+    assert "data.frames[0]: no such frame file" in msg and "nope.exr" in msg
+    msg = _error(tmp_path / "absent.toml")
+    assert "absent.toml: config file not found" in msg
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[data\n")
+    assert "not valid TOML" in _error(bad)
+    t = tmp_path / "t.toml"
+    t.write_text('[[data.tables]]\npath = "missing.csv"\n[model]\npreset = "solar_cell"\n')
+    msg = _error(t)
+    assert "data.tables[0]: format 'table' needs 'columns'" in msg
+    t.write_text('[[data.tables]]\npath = "missing.csv"\nformat = "merl"\n[model]\npreset = "solar_cell"\n')
+    assert "data.tables[0].path: no such table file" in _error(t)
+
+
+def test_extra_sections_are_validated_by_their_models(tmp_path, reduced_example):
+    class Sample(BaseModel):
+        model_config = ConfigDict(extra="forbid", strict=True)
+        n_walkers: int = 32
+
+    p = _config(tmp_path, "[sample]\nn_walkers = 8\n", reduced_example)
+    cfg = load_fit_config(p, sections={"sample": Sample})
+    assert cfg.sections["sample"].n_walkers == 8
+    p = _config(tmp_path, "[sample]\nn_walker = 8\n", reduced_example)
+    assert "sample.n_walker: unknown key" in _error(p, sections={"sample": Sample})
+
+
+def test_empty_mask_is_an_error_naming_the_options(tmp_path, reduced_example):
+    p = _config(tmp_path, "", reduced_example)
+    assert len(build_fit_job(load_fit_config(p)).blocks) == 1
+    p.write_text(p.read_text().replace('sigma = "noise"', 'sigma = "noise"\nmin_brdf = 1e12'))
+    with pytest.raises(ConfigError, match=r"data.frames\[0\]: empty mask: frame 'solar_cell_20deg': no usable points: "
+                       r"the mask selects none of the 3072 points \(after min_brdf = 1000000000000.0\)"):
+        build_fit_job(load_fit_config(p))
+    p.write_text(p.read_text().replace("min_brdf = 1e12", "roi = [100, 120, 0, 5]"))
+    with pytest.raises(ConfigError, match=r"data.frames\[0\]: .*region of interest \(100, 120, 0, 5\) holds no pixel"):
+        build_fit_job(load_fit_config(p))
+
+
+def test_all_nan_frame_is_an_error(tmp_path, reduced_example):
+    r = read_reduced_frame(reduced_example)
+    nan = write_reduced_frame(tmp_path / "nan.exr", dataclasses.replace(r, brdf=np.full_like(r.brdf, np.nan)))
+    with pytest.raises(ConfigError, match=r"data.frames\[0\]: frame 'nan': 'brdf' is all NaN"):
+        build_fit_job(load_fit_config(_config(tmp_path, "", nan)))
+
+
+def test_frames_from_different_detectors_need_to_say_so(tmp_path, reduced_example):
+    r = read_reduced_frame(reduced_example)
+    other = write_reduced_frame(tmp_path / "other.exr", dataclasses.replace(r, attrs={**r.attrs, "R": 0.3}))
+    body = HEAD.format(frame=Path(reduced_example).as_posix()).replace(
+        "frames = [", f'frames = ["{other.as_posix()}", '
+    )
+    p = tmp_path / "two.toml"
+    p.write_text(body)
+    with pytest.raises(ConfigError, match=r"two.toml: data: frames 'other' and 'solar_cell_20deg' were taken with "
+                       "different detectors.*allow_different_detectors = true"):
+        build_fit_job(load_fit_config(p))
+    p.write_text(body.replace("[model]", "allow_different_detectors = true\n[model]"))
+    job = build_fit_job(load_fit_config(p))
+    assert [b.name for b in job.blocks] == ["other", "solar_cell_20deg"]
+    assert job.fit_kwargs["allow_different_detectors"] is True
+
+
+def test_a_table_with_a_column_mapping(tmp_path):
+    csv = tmp_path / "gonio.csv"
+    rows = ["inc_deg,scat_deg,azi_deg,f"]
+    for ti in (20, 40):
+        for ts in (10, 20, 30, 40, 50):
+            rows.append(f"{ti},{ts},180,{1.0 + 0.1 * ts}")
+    csv.write_text("\n".join(rows) + "\n")
+    p = tmp_path / "tab.toml"
+    p.write_text(textwrap.dedent("""
+        [[data.tables]]
+        path = "gonio.csv"
+        columns = { theta_i = "inc_deg", theta_s = "scat_deg", phi_s = "azi_deg", brdf = "f" }
+        angle_unit = "deg"
+        theta_i_deg = [40]
+        max_theta_s_deg = 45
+        sigma_rel = 0.05
+        [model.terms.diffuse]
+        kind = "lambertian"
+        params = { rho_d = 0.5 }
+        [params]
+        "diffuse.rho_d" = "auto"
+    """))
+    job = build_fit_job(load_fit_config(p))
+    (t,) = job.blocks
+    assert t.name == "gonio" and len(t) == 10
+    assert t.usable().sum() == 4  # theta_i = 40, theta_s <= 45
+    np.testing.assert_allclose(np.asarray(t.theta_s)[t.usable()], np.radians([10, 20, 30, 40]))
+    np.testing.assert_allclose(np.asarray(t.phi_s), np.pi)
+    np.testing.assert_allclose(np.asarray(t.sigma_rel), 0.05)
+    p.write_text(p.read_text().replace("theta_i_deg = [40]", "theta_i_deg = [30]"))
+    with pytest.raises(ConfigError, match=r"data.tables\[0\].theta_i_deg: none of \[30.0\] is in .*gonio.csv \(it has: 20, 40\)"):
+        build_fit_job(load_fit_config(p))

@@ -379,7 +379,7 @@ def _flatten_spec(v: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for k, x in v.items():
         name = f"{prefix}{k}"
-        if isinstance(x, Mapping) and x and not set(x) <= set(_SPEC_KEYS):
+        if isinstance(x, Mapping) and x and not set(x) & set(_SPEC_KEYS):
             out.update(_flatten_spec(x, name + "."))
         else:
             out[name] = x
