@@ -62,7 +62,17 @@ def _check_01_forward_model(r: dict) -> None:
     assert _rel(r["offset_peak_total_max_60"], 4.19e5) < 0.02
 
 
-CHECKS = {"01_forward_model": _check_01_forward_model}
+def _check_03_diagnosis(r: dict) -> None:
+    # diffraction withheld from the base model: found first, in the path, the gap shrinks (fitted and held out)
+    assert r["top1"] == "diffraction"
+    assert r["path"][:2] == ["base", "diffraction"] and r["significant"]
+    assert r["chi2_reduced_after"] < 0.5 * r["chi2_reduced_before"]
+    assert r["heldout_after"] < r["heldout_before"]
+    assert "band" in r["zone_names"]
+    assert {"gap", "zones", "ranking", "path", "significant"} <= set(r["json_keys"])
+
+
+CHECKS = {"01_forward_model": _check_01_forward_model, "03_diagnosis": _check_03_diagnosis}
 
 
 def _set_parameters(nb, step: int) -> None:

@@ -12,6 +12,9 @@ The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
     threshold_sigma = 4.0                      # smoothed |residual| that makes a region significant
     smooth = 3                                 # box size (points) of that smoothing
     figures = true                             # embed figures in report.html
+    [diagnose.truth]                           # optional, with [data.synthetic] only: the model that
+    preset = "solar_cell"                      # generates the synthetic frames (default: [model]); the
+                                               # diagnosis itself never sees it
 
 Writes ``diagnosis.json``, ``report.md`` and ``report.html`` into ``--out``
 (atomically).  Exit status 2 for bad input (a bad config, frames with no
@@ -28,6 +31,8 @@ from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from ..config import ModelConfig
 
 __all__ = ["DiagnoseSection", "add_arguments", "run", "run_diagnose"]
 
@@ -47,6 +52,7 @@ class DiagnoseSection(BaseModel):
     threshold_sigma: float = Field(4.0, gt=0)
     smooth: int = Field(3, ge=1, le=31)
     figures: bool = True
+    truth: ModelConfig | None = None
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -69,11 +75,19 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
     """
     from ..config import ConfigError
     from ..fit.config import build_fit_job, load_fit_config
-    from .engine import diagnose
+    from .engine import DiagnoseInputError, diagnose
 
     cfg = load_fit_config(config, sections={"diagnose": DiagnoseSection})
     sec: DiagnoseSection = cfg.sections.get("diagnose") or DiagnoseSection()
-    job = build_fit_job(cfg)
+    out = Path(out)
+    names_asked = effects if effects is not None else sec.effects
+    if names_asked is not None:  # before generating or reducing any data
+        from .effects import EFFECTS
+
+        unknown = [n for n in names_asked if n not in EFFECTS]
+        if unknown:
+            raise DiagnoseInputError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+    job = build_fit_job(cfg, work_dir=out) if sec.truth is None else _truth_job(cfg, sec.truth, out)
     names = [b.name for b in job.blocks]
     missing = [h for h in sec.heldout if h not in names]
     if missing:
@@ -104,6 +118,32 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
     return d
 
 
+def _truth_job(cfg: Any, truth: ModelConfig, out: Path):
+    """The fit job of ``cfg`` whose synthetic frames are generated from ``truth`` instead of ``[model]``."""
+    from ..config import ConfigError
+    from ..fit.config import build_fit_job
+
+    if cfg.data.synthetic is None:
+        raise ConfigError(str(cfg.source), [("diagnose.truth", "applies only to generated data: add [data.synthetic]")])
+    truth_cfg = cfg.model_copy(update={"model": truth})
+    truth_cfg._model = None  # the copy must build the truth, not reuse the base model
+    job = build_fit_job(truth_cfg, work_dir=out)
+    job.model = cfg.build_model()
+    job.params = dict(cfg.build_params())
+    job.truth = None  # the diagnosis never sees the generator's truth
+    return job
+
+
+def _enable_x64_if_asked(config: str | Path) -> None:
+    """The command line (not the library) turns 64-bit JAX on when the config asks for float64, as ``brdfjax fit`` does."""
+    import jax
+
+    from ..fit.config import load_fit_config
+
+    if load_fit_config(config, sections={"diagnose": DiagnoseSection}).precision == "float64":
+        jax.config.update("jax_enable_x64", True)
+
+
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
@@ -115,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
     effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
     t0 = time.perf_counter()
     try:
+        _enable_x64_if_asked(args.config)
         d = run_diagnose(
             args.config, args.out, effects=effects, figures=False if args.no_figures else None,
             progress=lambda msg: console.print(msg, markup=False),

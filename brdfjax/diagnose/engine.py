@@ -556,7 +556,8 @@ def diagnose(
     base.model, base.params = ctx.model, dict(ctx.params)
     groups = [None if isinstance(b, FrameData) else np.round(np.asarray(b.theta_i, float), 6) for b in blocks]
     groups = [None if g is None else np.unique(g, return_inverse=True)[1] for g in groups]
-    regions = find_regions(ctx.residuals, ctx.geometry, ctx.model_values, groups=groups, threshold=threshold, smooth=smooth)
+    data_values = [np.where(b.usable(), np.asarray(b.brdf, float), np.nan) for b in blocks]
+    regions = find_regions(ctx.residuals, ctx.geometry, data_values, groups=groups, threshold=threshold, smooth=smooth)
     zones = zone_masks(regions, ctx.residuals)
     base_gap = gap_measures(base.result)
     base_heldout = _heldout_gap(base, heldout, blocks)

@@ -22,20 +22,22 @@ the positions weighted by ``r^2``), its orientation (major axis, degrees from
 ``+sx`` toward ``+sy``, in [0, 180)), its sign, its share of the total misfit
 (``sum r^2`` in the region over the total chi^2) and a zone name:
 
-- ``peak core``: the centroid within the base model's peak core (where the
-  model is above 10 % of its maximum) and the region not elongated;
+- ``peak core``: the centroid within the peak core (where the data are
+  above half their maximum) and the region not elongated;
 - ``band``: an elongated region (axis ratio > 3, longer than the peak core's
   diameter) whose axis passes through the peak: a band through the peak with
   its orientation (diffraction bars, anisotropy);
-- ``peak wings``: the centroid within the wings (the model above 1e-4 of its
-  maximum) but outside the core;
+- ``peak wings``: the centroid within the wings (the data above 1e-3 of their
+  maximum, at most 6 core radii) but outside the core;
 - ``secondary lobe``: a compact region outside the wings (an offset peak,
   a stray-light sub-peak);
 - ``far field``: anything else (background, a diffuse floor).
 
 The remaining points form the ``background`` zone.  The peak is located at
-the model's maximum, so that a base model whose brightest lobe is itself
-offset still has its core where the light is.
+the data's maximum (not the fitted model's: a base fit that absorbs a
+missing effect by widening its peak must not widen the zones), so that a
+sample whose brightest lobe is itself offset still has its core where the
+light is.
 """
 
 from __future__ import annotations
@@ -180,7 +182,7 @@ def _moments(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float,
 
 
 def peak_scales(model: np.ndarray, sx: np.ndarray, sy: np.ndarray, usable: np.ndarray) -> dict[str, float]:
-    """The model's peak location and its core (> 10 % of max) and wing (> 1e-4 of max) radii, degrees."""
+    """The peak location of ``model`` (any BRDF values) and its core (> 50 % of max) and wing (> 1e-3 of max) radii, degrees."""
     m = np.where(usable & np.isfinite(model), model, -np.inf)
     if not np.isfinite(m).any():
         return {"px": 0.0, "py": 0.0, "core": 0.0, "wings": 0.0}
@@ -188,11 +190,12 @@ def peak_scales(model: np.ndarray, sx: np.ndarray, sy: np.ndarray, usable: np.nd
     px, py = float(sx.flat[k]), float(sy.flat[k])
     top = float(m.flat[k])
     d = np.hypot(sx - px, sy - py)
-    core = float(np.max(d[m >= 0.1 * top])) if np.any(m >= 0.1 * top) else 0.0
-    wings = float(np.max(d[m >= 1e-4 * top])) if np.any(m >= 1e-4 * top) else core
+    core = float(np.max(d[m >= 0.5 * top])) if np.any(m >= 0.5 * top) else 0.0
+    wings = float(np.max(d[m >= 1e-3 * top])) if np.any(m >= 1e-3 * top) else core
     # a peak narrower than the sampling: at least one grid spacing
     spacing = float(np.nanmedian(np.abs(np.diff(np.sort(np.unique(np.round(sx[usable], 6))))))) if usable.sum() > 2 else 0.0
-    return {"px": px, "py": py, "core": max(core, spacing), "wings": max(wings, 2 * spacing, core)}
+    core = max(core, spacing)
+    return {"px": px, "py": py, "core": core, "wings": max(min(wings, 6 * core), 2 * spacing, core)}
 
 
 def _classify(cx, cy, major, minor, ang, scales, one_d: bool) -> tuple[str, str]:
@@ -216,7 +219,7 @@ def _classify(cx, cy, major, minor, ang, scales, one_d: bool) -> tuple[str, str]
 def find_regions(
     residuals: list[np.ndarray],
     geometry: list[dict[str, np.ndarray]],
-    model_values: list[np.ndarray],
+    values: list[np.ndarray],
     *,
     groups: list[np.ndarray | None] | None = None,
     threshold: float = 4.0,
@@ -226,13 +229,15 @@ def find_regions(
 ) -> list[Region]:
     """Significant regions of every block, largest share first (see the module docstring).
 
-    ``groups``: per block, for tables, an integer group per row (one group per
-    incidence angle); ``None`` for frames.
+    ``values``: per block the BRDF that locates the peak and sets its core and
+    wing radii (the engine passes the data: a distorted base fit must not move
+    the zones).  ``groups``: per block, for tables, an integer group per row
+    (one group per incidence angle); ``None`` for frames.
     """
     total = float(sum(np.nansum(np.square(r)) for r in residuals))
     total = total if total > 0 else 1.0
     out: list[Region] = []
-    for bi, (r, geo, mv) in enumerate(zip(residuals, geometry, model_values)):
+    for bi, (r, geo, mv) in enumerate(zip(residuals, geometry, values)):
         r = np.asarray(r, float)
         usable = np.isfinite(r)
         sx, sy = np.asarray(geo["sx"], float), np.asarray(geo["sy"], float)

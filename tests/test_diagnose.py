@@ -1,0 +1,125 @@
+"""The diagnosis engine (issue 6): zones, a withheld effect found, a null case, frames read back from disk,
+the output contract, bad input and the CLI.
+
+Budget: about 150 s on an idle 2-core box.  The fits are on tiny decimated
+grids and the candidate lists are short (each candidate is a refit with its
+own compilation); the full library and the benchmark live in
+``experiments/withheld_effects.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import brdfjax as bj
+from brdfjax.diagnose import DiagnoseInputError, diagnose
+from brdfjax.diagnose.zones import find_regions, label, smoothed_z, specular_coordinates
+from brdfjax.fit import FrameData, render_noisy_frames
+
+SLOW = os.environ.get("BRDFJAX_SLOW") == "1"
+ROI = (-320, 320, -320, 320)
+
+
+def _without(model: bj.Model, term: str) -> bj.Model:
+    return bj.Model(
+        terms={k: v for k, v in model.terms.items() if k != term},
+        aliases=tuple(a for a in model.aliases if not a[1].startswith(term + ".")),
+    )
+
+
+# --- WHERE: geometry, labelling, regions -------------------------------------------------------------
+
+
+def test_specular_coordinates():
+    ti = np.radians(20.0)
+    sx, sy = specular_coordinates(np.radians([20.0, 21.0, 20.0]), np.radians([180.0, 180.0, 181.0]), ti)
+    np.testing.assert_allclose(sx, [0.0, 1.0, -0.0028046], atol=1e-6)
+    # one degree of azimuth at theta_s = 20 deg is sin(20 deg) degrees out of plane, toward +y
+    np.testing.assert_allclose(sy, [0.0, 0.0, np.sin(ti)], rtol=1e-4, atol=1e-9)
+
+
+def test_label_and_smoothing():
+    lab, n = label(np.array([[1, 1, 0, 1], [0, 0, 0, 1], [1, 0, 0, 0]], bool))
+    assert n == 3
+    assert lab[0, 0] == lab[0, 1] != lab[0, 3] == lab[1, 3]
+    # pure noise smoothed over 5 x 5 keeps unit variance
+    z = smoothed_z(np.random.default_rng(0).standard_normal((200, 200)), 5)
+    assert abs(np.nanstd(z[10:-10, 10:-10]) - 1.0) < 0.05
+
+
+def test_regions_band_and_lobe():
+    y, x = np.mgrid[-40:41, -40:41] * 0.01
+    peak = 1e4 * np.exp(-(x**2 + y**2) / (2 * 0.02**2)) + 1.0
+    r = np.random.default_rng(0).standard_normal(x.shape)
+    ang = np.radians(30.0)
+    r += 6.0 * (np.abs(-x * np.sin(ang) + y * np.cos(ang)) < 0.03)  # a band through the peak at 30 deg
+    r -= 8.0 * (np.hypot(x - 0.25, y + 0.25) < 0.04)  # a dark lobe away from it
+    regions = find_regions([r], [{"sx": x, "sy": y}], [peak])
+    assert [g.name for g in regions] == ["band", "secondary lobe"]
+    band, lobe = regions
+    assert band.sign == 1 and abs(band.orientation_deg - 30.0) < 2.0
+    assert lobe.sign == -1 and np.allclose(lobe.center_deg, (0.25, -0.25), atol=0.01)
+    assert 0.6 < band.share < 0.8 and band.share > lobe.share
+
+
+# --- bad input ------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    truth = bj.solar_cell()
+    frames = render_noisy_frames(truth, [20.0], roi=ROI, step=16, seed=3)
+    return truth, frames
+
+
+def test_no_usable_pixels(tiny):
+    truth, frames = tiny
+    f = frames[0]
+    empty = FrameData(f.brdf, f.sigma_rel, f.theta_i, f.detector, f.grid, mask=np.zeros(f.shape, bool), name="dark")
+    with pytest.raises(DiagnoseInputError, match="frame 'dark': no usable points: the mask selects none"):
+        diagnose(_without(truth, "bars"), [empty], {"m1": "free"})
+
+
+def test_unknown_effect(tiny):
+    truth, frames = tiny
+    with pytest.raises(DiagnoseInputError, match=r"unknown effect\(s\) \['difraction'\]; known: .*diffraction"):
+        diagnose(_without(truth, "bars"), frames, {"m1": "free"}, effects=["difraction"])
+
+
+def test_candidate_already_in_base(tiny):
+    truth, frames = tiny
+    with pytest.raises(DiagnoseInputError, match="base model already contains the effect 'diffraction'"):
+        diagnose(truth, frames, {"m1": "free"}, effects=["diffraction"])
+
+
+# --- goniometer tables: zones are angle intervals, 2-D effects skipped -------------------------------
+
+
+def test_table_diffuse_floor_withheld():
+    """In-plane scans of a GGX lobe on a diffuse floor, diagnosed with the lobe alone."""
+    from brdfjax.fit import TableData
+    from brdfjax.geometry import Directions
+
+    truth = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5), "floor": bj.Lambertian(0.3)})
+    base = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5)})
+    ti = np.repeat(np.radians([20.0, 40.0]), 60)
+    ts = np.tile(np.radians(np.linspace(1.0, 80.0, 60)), 2)
+    phi_s = np.full(ti.shape, np.pi)
+    f = np.asarray(truth(Directions.from_angles(ti, np.zeros_like(ti), ts, phi_s), 632.8e-9))
+    rng = np.random.default_rng(4)
+    table = TableData(ti, np.zeros_like(ti), ts, phi_s, f * np.exp(0.02 * rng.standard_normal(f.shape)), sigma_rel=0.02, name="scan")
+    d = diagnose(base, [table], {"spec.alpha": 0.1, "spec.rho_s": 0.8}, effects=["lambertian", "diffraction"], max_steps=1)
+    assert [c.effect for c in d.ranking] == ["lambertian"]
+    assert [(c.effect, c.status) for c in d.skipped] == [("diffraction", "skipped")]
+    assert "needs a 2-D detector frame" in d.skipped[0].note
+    assert d.significant and d.explained_by == ["lambertian"]
+    assert d.path[-1].gap["chi2_reduced"] < 1.3 < d.path[0].gap["chi2_reduced"]
+    # the misfit lies far from the specular direction: zones are intervals of the in-plane angle
+    assert all(z["extent_deg"][1] == 0.0 and z["center_deg"][1] == 0.0 for z in d.zones)
+    outside = [z for z in d.zones if z["name"] != "peak core"]
+    assert outside and all(abs(z["center_deg"][0]) > 10.0 for z in outside)
