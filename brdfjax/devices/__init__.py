@@ -1,0 +1,28 @@
+"""The device layer: bench interfaces, the simulated bench (default), pylablib lab adapters, capture plans.
+
+* :mod:`.interfaces` -- Protocols for the camera, rotation/translation stages, ND filters, beam block,
+  sample mount and power meter; :class:`~.interfaces.Bench` groups them.
+* :mod:`.simulated` -- :class:`~.simulated.SimulatedBench`, every interface driven by the synthetic instrument.
+* :mod:`.lab` -- thin adapters onto pylablib's Thorlabs classes (``pip install brdfjax[lab]``; imported lazily;
+  untested on physical hardware).
+* :mod:`.plans` -- plan entries, the seed's OD rule and the damage interlock.
+* :mod:`.alignment` -- the seed §3.4 alignment (roll, yaw, pitch).
+* :mod:`.capture` -- ``brdfjax capture``: durable, resumable capture into the raw format.
+* :mod:`.liveview` -- the live BRDF preview (window or PNG/HTML) .
+"""
+
+from .interfaces import (
+    Bench as Bench,
+    Camera as Camera,
+    CameraFrame as CameraFrame,
+    DeviceError as DeviceError,
+    FilterChanger as FilterChanger,
+    PowerMeter as PowerMeter,
+    RotationStage as RotationStage,
+    SampleMount as SampleMount,
+    Shutter as Shutter,
+    TranslationStage as TranslationStage,
+    check_bench as check_bench,
+)
+from .plans import Interlock as Interlock, InterlockError as InterlockError, Measurement as Measurement
+from .simulated import SimulatedBench as SimulatedBench
