@@ -72,7 +72,20 @@ def _check_03_diagnosis(r: dict) -> None:
     assert {"gap", "zones", "ranking", "path", "significant"} <= set(r["json_keys"])
 
 
-CHECKS = {"01_forward_model": _check_01_forward_model, "03_diagnosis": _check_03_diagnosis}
+def _check_04_posterior(r: dict) -> None:
+    # the sampled grid is never coarser than every 6th pixel of a 181 px square (the peak is ~24 px wide)
+    assert r["grid_shape"] == [31, 31]
+    assert r["n_steps"] == 300
+    # the likelihood is the fit's: -2 log L at the optimum is its chi^2
+    assert _rel(r["chi2_at_fit"], r["fit_chi2"]) < 1e-9
+    # the degeneracy: rho_s1 and n1 anti-correlated along a ridge; m1 stays sharp
+    assert r["corr_rho_s1_n1"] < -0.8
+    assert r["m1_rel_err"] < 0.01
+    assert 0.1 < r["acceptance"] < 0.9
+    assert {"chain.h5", "corner.png", "posterior.json", "predictive_ti20.png", "trace.png"} <= set(r["files"])
+
+
+CHECKS = {"01_forward_model": _check_01_forward_model, "03_diagnosis": _check_03_diagnosis, "04_posterior": _check_04_posterior}
 
 
 def _set_parameters(nb, step: int) -> None:
