@@ -224,3 +224,137 @@ def test_decimated_sampling_grid_is_recorded(frames):
     assert sum(prep.problem.counts) == rec["n_points"] == int(small[0].usable().sum())
     with pytest.raises(SampleError, match=r"roi \(500, 600, 0, 10\) contains no pixel of its grid"):
         decimate_frame(frames[0], 1, (500, 600, 0, 10))
+
+
+# --- brdfjax sample CONFIG --out DIR -------------------------------------------------------------
+
+import textwrap  # noqa: E402
+
+from brdfjax.cli import main  # noqa: E402
+
+DATA = Path(__file__).parent / "data"
+slow = [pytest.mark.slow, pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1")]
+
+TINY = """
+precision = "float64"
+[data]
+frames = ["{frame}"]
+footprint_w_px = 3.125
+sigma = "noise"
+sigma_floor = 0.0068
+max_sigma_rel = 0.1
+[model]
+preset = "solar_cell"
+[params]
+m1 = {{ value = 2.0e-4, lower = 1e-5, upper = 1e-3 }}
+rho_s1 = 0.015
+[output]
+figures = {figures}
+[sample]
+n_walkers = 8
+n_steps = 20
+seed = 4
+fit_result = "start.json"
+predictive_draws = 0
+[sample.priors]
+rho_s1 = {{ kind = "uniform", lower = 0.0, upper = 0.1 }}
+{priors}
+"""
+
+#: A least-squares result in the JSON form of brdfjax fit (natural units): the walkers' start.
+START = {"parameters": {"m1": {"value": 2.0e-4, "sigma": 2e-7, "unit": "1", "free": True},
+                        "rho_s1": {"value": 0.015, "sigma": 5e-5, "unit": "1", "free": True}}}
+
+
+@pytest.fixture(scope="module")
+def example_frame(tmp_path_factory):
+    from brdfjax.instrument.reduce import reduce_measurement_set
+
+    (path,) = reduce_measurement_set(DATA / "example_set" / "manifest.toml", tmp_path_factory.mktemp("reduced"),
+                                     correct_nonlinearity=True)
+    return path
+
+
+def _tiny(tmp_path, frame, priors="", figures="true") -> Path:
+    (tmp_path / "start.json").write_text(json.dumps(START))
+    p = tmp_path / "tiny.toml"
+    p.write_text(TINY.format(frame=Path(frame).as_posix(), priors=textwrap.dedent(priors), figures=figures))
+    return p
+
+
+def test_cli_runs_resumes_and_writes_the_contract(tmp_path, example_frame, capsys):
+    cfg = _tiny(tmp_path, example_frame)
+    out = tmp_path / "out"
+    assert main(["sample", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    doc = json.loads((out / "posterior.json").read_text())
+    assert doc["n_steps"] == 20 and doc["n_walkers"] == 8 and set(doc["parameters"]) == {"m1", "rho_s1"}
+    for k in ("median", "q16", "q84", "q025", "q975", "tau", "ess", "map"):
+        assert k in doc["parameters"]["m1"]
+    assert doc["parameters"]["rho_s1"]["prior"] == "uniform[0, 0.1] 1"
+    assert doc["sampling"]["config"].endswith("tiny.toml") and doc["sampling"]["fit_result"].endswith("start.json")
+    assert doc["sampling"]["blocks"][0]["name"] == "solar_cell_20deg"
+    for f in ("chain.h5", "corner.png", "trace.png"):
+        assert (out / f).is_file(), f
+    err = capsys.readouterr().err
+    assert "acceptance fraction: mean" in err and "shorter than 50 autocorrelation times" in err
+    from brdfjax.sample import read_chain
+
+    first = read_chain(out / "chain.h5").get_chain()
+    # a second run without --resume refuses to touch the chain; --resume --steps 28 continues it
+    assert main(["sample", str(cfg), "--out", str(out), "--no-progress"]) == 2
+    assert "already holds a chain; continue it with --resume" in capsys.readouterr().err
+    assert main(["sample", str(cfg), "--out", str(out), "--resume", "--steps", "28", "--no-figures", "--no-progress"]) == 0
+    chain = read_chain(out / "chain.h5").get_chain()
+    assert chain.shape == (28, 8, 2) and np.array_equal(chain[:20], first)
+    assert json.loads((out / "posterior.json").read_text())["n_steps"] == 28
+
+
+def test_cli_bad_input_names_the_key_or_file(tmp_path, example_frame, capsys):
+    cfg = _tiny(tmp_path, example_frame, priors='bogus_deg = { kind = "normal", mu = 0.0, sigma = 1.0 }', figures="false")
+    assert main(["sample", str(cfg), "--out", str(tmp_path / "o1")]) == 2
+    err = capsys.readouterr().err
+    assert "tiny.toml: sample.priors.bogus_deg: prior on unknown parameter" in err
+    cfg = _tiny(tmp_path, example_frame, priors='m1 = { kind = "uniform", lower = 5e-4, upper = 8e-4 }', figures="false")
+    assert main(["sample", str(cfg), "--out", str(tmp_path / "o2")]) == 2
+    assert "prior excludes the starting point: 'm1' = 0.0002" in capsys.readouterr().err
+    cfg = _tiny(tmp_path, example_frame, figures="false")
+    assert main(["sample", str(cfg), "--out", str(tmp_path / "o3"), "--walkers", "3"]) == 2
+    assert "n_walkers = 3 is fewer than twice the 2 free parameters" in capsys.readouterr().err
+    (tmp_path / "o4").mkdir()
+    (tmp_path / "o4" / "chain.h5").write_bytes(b"garbage" * 100)
+    assert main(["sample", str(cfg), "--out", str(tmp_path / "o4"), "--resume"]) == 2
+    assert "chain.h5: the chain file cannot be read" in capsys.readouterr().err
+    assert (tmp_path / "o4" / "chain.h5").read_bytes() == b"garbage" * 100
+
+
+@pytest.mark.parametrize("_", [pytest.param(0, marks=slow)])
+def test_cli_interrupted_by_a_signal_resumes(tmp_path, example_frame, _):
+    """A subprocess stopped by SIGINT (Ctrl-C) mid-run keeps its steps and exits 130; --resume completes the chain."""
+    cfg = _tiny(tmp_path, example_frame, figures="false")
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "brdfjax", "sample", str(cfg), "--out", str(out), "--steps", "100000", "--no-progress"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )
+    from brdfjax.sample._chain import read_chain_info
+
+    deadline = time.time() + 300
+    while time.time() < deadline:
+        time.sleep(1.0)
+        try:
+            if read_chain_info(out / "chain.h5").iteration >= 30:
+                break
+        except (SampleError, FileNotFoundError, OSError):
+            continue
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err.decode()[-2000:]
+    k = read_chain_info(out / "chain.h5").iteration
+    assert k >= 30
+    from brdfjax.sample import read_chain
+
+    before = read_chain(out / "chain.h5").get_chain()
+    assert main(["sample", str(cfg), "--out", str(out), "--resume", "--steps", str(k + 10), "--no-progress"]) == 0
+    after = read_chain(out / "chain.h5").get_chain()
+    assert after.shape[0] == k + 10 and np.array_equal(after[:k], before)
