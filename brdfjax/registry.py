@@ -13,6 +13,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from . import distributions as _d
+from . import presets as _presets
 from .terms import AbstractTerm, Diffraction, Lambertian, Model, OffsetNormal, Specular, solar_cell
 
 __all__ = ["DISTRIBUTIONS", "TERMS", "PRESETS", "lookup", "parameter_names", "build_term", "build_model"]
@@ -46,7 +47,14 @@ TERMS: dict[str, Any] = {
     "diffraction": Diffraction,
 }
 
-PRESETS: dict[str, Any] = {"solar_cell": solar_cell}
+#: Model presets: the seed's solar cell and its other materials (``brdfjax.presets``: mirror, polished
+#: aluminium, Kapton; plausible values, see that module).
+PRESETS: dict[str, Any] = {
+    "solar_cell": solar_cell,
+    "mirror": _presets.mirror,
+    "polished_aluminium": _presets.polished_aluminium,
+    "kapton": _presets.kapton,
+}
 
 _REGISTRIES = {"distribution": DISTRIBUTIONS, "term": TERMS, "preset": PRESETS}
 

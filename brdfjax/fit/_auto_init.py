@@ -35,6 +35,11 @@ by name (:data:`INITIALIZERS`) and called as ``init(model, blocks,
    problem in the amplitudes (Gauss-Newton on ``log rho``) over every usable
    pixel of every frame.
 
+``specular_peak`` (one Specular term, possibly turned by
+:class:`~brdfjax.presets.Oriented`, with an optional Lambertian term; detector
+frames): the mirror, polished-aluminium and Kapton presets; see
+:func:`init_specular_peak`.
+
 ``specular_lambertian`` (one specular term with a Beckmann- or GGX-type width,
 plus one Lambertian term; tables or frames): ``rho_d`` from the low
 quantile of the data, the width from a log-quadratic in ``tan^2 theta_h``
@@ -52,14 +57,17 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..distributions import GGX, Beckmann
+from ..distributions import GGX, Beckmann, BeckmannAniso, GGXAniso
 from ..geometry import Directions
 from ..render import Frame, sample_directions
 from ..terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
 from ._common import FitInputError
 from ._data import FrameData, TableData
 
-__all__ = ["INITIALIZERS", "get_initializer", "init_solar_cell", "init_specular_lambertian", "fit_amplitudes"]
+__all__ = [
+    "INITIALIZERS", "get_initializer", "init_solar_cell", "init_specular_lambertian", "init_specular_peak",
+    "fit_amplitudes",
+]
 
 
 # --- helpers ------------------------------------------------------------------------------
@@ -432,9 +440,204 @@ def init_specular_lambertian(
     }
 
 
+
+# --- a single specular peak (mirror, polished aluminium, Kapton presets) ------------------
+
+
+def _peak_terms(model: Model) -> tuple[str, Specular, Any, str | None] | None:
+    """``(name, specular, oriented wrapper or None, lambertian name or None)`` of a one-peak model, else None."""
+    from ..presets import Oriented
+
+    spec, lamb = [], []
+    for name, t in model.terms.items():
+        if isinstance(t, Specular):
+            spec.append((name, t, None))
+        elif isinstance(t, Oriented) and isinstance(t.term, Specular):
+            spec.append((name, t.term, t))
+        elif isinstance(t, Lambertian):
+            lamb.append(name)
+        else:
+            return None
+    if len(spec) != 1 or len(lamb) > 1:
+        return None
+    name, term, wrapper = spec[0]
+    return name, term, wrapper, (lamb[0] if lamb else None)
+
+
+#: Distribution -> (width fields, factor from the Beckmann-equivalent slope width to the field's width).
+#: Near its maximum GGX is ``(1 + t^2/alpha^2)^-2 ~ exp(-2 t^2 / alpha^2)``: alpha = sqrt(2) m.
+_PEAK_WIDTHS = {
+    Beckmann: (("m",), 1.0),
+    GGX: (("alpha",), math.sqrt(2.0)),
+    BeckmannAniso: (("mx", "my"), 1.0),
+    GGXAniso: (("alpha_x", "alpha_y"), math.sqrt(2.0)),
+}
+
+
+def _quadratic_peak(sx, sy, L, ok, seed: int, ggx: bool = False, depth: float = 3.0):
+    """A general quadratic peak ``(s - s0)^T M (s - s0)`` over the top ``depth`` of the peak at ``seed``.
+
+    Beckmann-type (``ggx=False``): ``L = A - (s - s0)^T M (s - s0)``.  GGX-type: ``exp(-(L - A) / 2) =
+    1 + (s - s0)^T M (s - s0)`` (``D^-1/2`` is quadratic in the slopes), fitted as a quadratic and
+    normalised by its value at ``s0``; its ``M^-1`` is ``diag(alpha_x^2, alpha_y^2)`` turned, returned as the
+    Beckmann-equivalent ``M^-1 / 2`` (the peaks agree to second order).  Returns ``(s0, C)`` with ``C`` the
+    Beckmann-equivalent ``diag(mx^2, my^2)`` in the axes of the peak.  Two passes: a window from an
+    isotropic first guess, then the top ``depth`` within 3.5 widths.
+    """
+    cx, cy, m, _ = _find_peak(sx, sy, L, ok, seed)
+    top = L.flat[seed]
+    radius = 4.0 * m
+    for _ in range(2):
+        d2 = (sx - cx) ** 2 + (sy - cy) ** 2
+        sel = ok & (L > top - depth) & (d2 < radius**2)
+        if sel.sum() < 8:
+            raise FitInputError("automatic initialisation: fewer than 8 usable pixels on the peak; use a finer grid or give starts")
+        x, y = sx[sel] - cx, sy[sel] - cy
+        X = np.stack([np.ones(x.size), x, y, x * x, x * y, y * y], -1)
+        v = np.exp(-(L[sel] - top) / 2.0) if ggx else L[sel]
+        c, *_ = np.linalg.lstsq(X, v, rcond=None)
+        Q = np.array([[c[3], c[4] / 2], [c[4] / 2, c[5]]])
+        M = Q if ggx else -Q
+        if not np.all(np.linalg.eigvalsh(M) > 0):
+            raise FitInputError("automatic initialisation: the peak is not peaked (its quadratic has no extremum)")
+        shift = np.linalg.solve(2 * M, -c[1:3] if ggx else c[1:3])
+        cx, cy = cx + shift[0], cy + shift[1]
+        if ggx:
+            v0 = c[0] - 0.25 * c[1:3] @ np.linalg.solve(Q, c[1:3])  # the quadratic's value at its minimum
+            C = np.linalg.inv(M / max(v0, 1e-12)) / 2.0
+        else:
+            C = np.linalg.inv(M)
+        radius = 3.5 * math.sqrt(float(np.max(np.linalg.eigvalsh(C))) * (2.0 if ggx else 1.0))
+    return np.array([cx, cy]), C
+
+
+def _footprint_cov(fr: FrameData, sx: np.ndarray, sy: np.ndarray, idx: int) -> np.ndarray:
+    """The footprint's contribution to ``C`` in slope space: ``2 J cov_k J^T`` (``C = M^-1`` adds as 2 cov)."""
+    k = np.asarray(fr.footprint, np.float64)
+    k = k / k.sum()
+    r = np.arange(k.shape[0]) - k.shape[0] // 2
+    c = np.arange(k.shape[1]) - k.shape[1] // 2
+    R, Cc = np.meshgrid(r, c, indexing="ij")
+    cov_pix = np.array([[np.sum(k * Cc * Cc), np.sum(k * Cc * R)], [np.sum(k * Cc * R), np.sum(k * R * R)]])
+    i, j = np.unravel_index(idx, sx.shape)
+    i0, i1 = max(i - 1, 0), min(i + 1, sx.shape[0] - 1)
+    j0, j1 = max(j - 1, 0), min(j + 1, sx.shape[1] - 1)
+    J = np.array(
+        [
+            [(sx[i, j1] - sx[i, j0]) / max(j1 - j0, 1), (sx[i1, j] - sx[i0, j]) / max(i1 - i0, 1)],
+            [(sy[i, j1] - sy[i, j0]) / max(j1 - j0, 1), (sy[i1, j] - sy[i0, j]) / max(i1 - i0, 1)],
+        ]
+    )  # d(sx, sy) / d(column, row)
+    return 2.0 * J @ cov_pix @ J.T
+
+
+def init_specular_peak(
+    model: Model, blocks: Sequence[FrameData | TableData], *, n: float | None = None, k: float | None = None,
+    diffuse_quantile: float = 0.05,
+) -> dict[str, Any]:
+    """Start values of a one-peak model (a Specular term, possibly :class:`~brdfjax.presets.Oriented`, and an
+    optional Lambertian) from detector frames: the mirror, polished-aluminium and Kapton presets.
+
+    Per frame, a general log-quadratic in the sample-frame half-vector slopes over the top e^-3 of the
+    brightest peak gives its centre and its matrix ``C`` (``diag(mx^2, my^2)`` turned by the orientation);
+    with a footprint on the frame, the footprint's own ``C`` (its second moments mapped to slopes) is
+    subtracted first.  The widths are the square roots of ``C``'s eigenvalues (times sqrt(2) for GGX), the
+    orientation ``psi`` the azimuth of the x axis (the branch of ``psi`` modulo 90 deg nearest the model's
+    ``psi``; an un-oriented anisotropic D takes ``C``'s diagonal); medians over frames.  ``rho_s`` (and
+    ``rho_d``) from the amplitude fit of :func:`fit_amplitudes` over every usable pixel (footprint
+    applied); the index ``n`` (``k``) from its prior, default the model's.  ``theta_i`` per frame from the
+    peak's in-plane slope.
+    """
+    found = _peak_terms(model)
+    if found is None:
+        raise FitInputError(
+            "initializer 'specular_peak' needs a model of one Specular term (or Oriented(Specular)) and at most one "
+            "Lambertian term, got " + ", ".join(f"{k_}: {type(t).__name__}" for k_, t in model.terms.items())
+        )
+    sname, sterm, wrapper, lname = found
+    dist = type(sterm.distribution)
+    if dist not in _PEAK_WIDTHS:
+        raise FitInputError(
+            f"initializer 'specular_peak': no width estimate for the {dist.__name__} distribution "
+            f"(known: {', '.join(c.__name__ for c in _PEAK_WIDTHS)}); give its start values"
+        )
+    fields, factor = _PEAK_WIDTHS[dist]
+    frames = [b for b in blocks if isinstance(b, FrameData)]
+    if len(frames) != len(blocks):
+        raise FitInputError("initializer 'specular_peak' works on detector frames only; give starts for tables")
+    n = float(np.asarray(sterm.n)) if n is None else float(n)
+    k = float(np.asarray(sterm.k)) if k is None else float(k)
+    psi_prior = float(np.asarray(wrapper.psi)) if wrapper is not None else 0.0
+    widths, psis, theta_is = [], [], []
+    for fr in frames:
+        geo = _frame_geometry(fr)
+        cph, sph = math.cos(float(fr.phi_ref)), math.sin(float(fr.phi_ref))
+        sx = cph * geo["sx"] + sph * geo["sy"]  # sample frame
+        sy = -sph * geo["sx"] + cph * geo["sy"]
+        d = np.asarray(fr.brdf, np.float64)
+        ok = fr.check_usable()
+        L = np.where(ok, np.log(np.where(ok, d, 1.0)), -np.inf)
+        seed = int(np.argmax(L))
+        s0, C = _quadratic_peak(sx, sy, L, ok, seed, ggx=dist in (GGX, GGXAniso))
+        if fr.footprint is not None:
+            Cb = _footprint_cov(fr, sx, sy, seed)
+            ev_obs = np.linalg.eigvalsh(C)
+            C = C - Cb
+            ev, vec = np.linalg.eigh(C)
+            ev = np.maximum(ev, 0.01 * float(ev_obs.min()))  # a peak narrower than the beam: keep it positive
+            C = vec @ np.diag(ev) @ vec.T
+        theta_is.append(float(fr.theta_i) + 2.0 * math.atan(s0[0] * cph - s0[1] * sph))
+        if len(fields) == 1:
+            widths.append([math.sqrt(math.sqrt(float(np.linalg.det(C))))])
+            continue
+        if wrapper is None:
+            widths.append([math.sqrt(C[0, 0]), math.sqrt(C[1, 1])])
+            continue
+        ev, vec = np.linalg.eigh(C)
+        psi = math.atan2(vec[1, 0], vec[0, 0])  # axis of ev[0]
+        cands = [(psi, ev[0], ev[1]), (psi + math.pi / 2, ev[1], ev[0])]
+        best = min(cands, key=lambda c_: abs(_wrap(2 * (c_[0] - psi_prior))))
+        p = best[0] + math.pi * round((psi_prior - best[0]) / math.pi)  # nearest the prior modulo 180 deg
+        psis.append(p)
+        widths.append([math.sqrt(best[1]), math.sqrt(best[2])])
+    w = np.median(np.array(widths), axis=0) * factor
+    values: dict[str, Any] = {f"{sname}.{f}": float(x) for f, x in zip(fields, w)}
+    if wrapper is not None:
+        values[f"{sname}.psi"] = float(np.median(psis)) if psis else psi_prior
+    shape_values = {**values, f"{sname}.n": n, f"{sname}.k": k, f"{sname}.rho_s": 1.0}
+    if lname is not None:
+        shape_values[f"{lname}.rho_d"] = 1.0
+    shape = model.with_params(shape_values)
+    units: dict[str, list[np.ndarray]] = {sname: [], **({lname: []} if lname else {})}
+    data = []
+    for fr in frames:
+        frame = Frame(np.float64(fr.theta_i), np.float64(fr.phi_ref), np.float64(fr.wavelength))
+        tv = _grid_term_values(shape, frame, fr)
+        ok = fr.check_usable()
+        for name in units:
+            img = tv[name]
+            if fr.footprint is not None:
+                from ..instrument.synthetic import convolve_footprint
+
+                kern = np.asarray(fr.footprint, np.float64)
+                img = np.asarray(convolve_footprint(img.astype(np.float32), (kern / kern.sum()).astype(np.float32)), np.float64)
+            units[name].append(img[ok])
+        data.append(np.asarray(fr.brdf, np.float64)[ok])
+    amp = fit_amplitudes([np.concatenate(units[nm]) for nm in units], np.concatenate(data))
+    values[f"{sname}.rho_s"] = float(amp[0])
+    values[f"{sname}.n"] = n
+    values[f"{sname}.k"] = k
+    if lname is not None:
+        d_all = np.concatenate(data)
+        values[f"{lname}.rho_d"] = float(amp[1]) if amp[1] > 0 else math.pi * float(np.quantile(d_all, diffuse_quantile))
+    out: dict[str, Any] = {_public(model, key): v for key, v in values.items()}
+    out["theta_i"] = theta_is
+    return out
+
 INITIALIZERS: dict[str, Callable[..., Mapping[str, Any]]] = {
     "solar_cell": init_solar_cell,
     "specular_lambertian": init_specular_lambertian,
+    "specular_peak": init_specular_peak,
 }
 
 
@@ -449,6 +652,8 @@ def get_initializer(initializer: str | Callable | None, model: Model) -> Callabl
         kinds = sorted(type(t).__name__ for t in terms.values())
         if kinds == ["Lambertian", "Specular"]:
             return init_specular_lambertian
+        if _peak_terms(model) is not None:
+            return init_specular_peak
         raise FitInputError(
             "'auto' start values need an initializer for this model (terms "
             + ", ".join(f"{k}: {type(t).__name__}" for k, t in terms.items())
