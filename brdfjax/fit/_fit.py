@@ -126,6 +126,21 @@ def _floor(block: Data, usable: np.ndarray, floor: float | str) -> float:
     return floor
 
 
+#: With a footprint, the model is evaluated only at the grid points within the kernel's reach of a
+#: usable point when they are fewer than this fraction of the grid (else on the whole grid).
+SUPPORT_FRACTION = 0.7
+
+
+def _dilate(mask: np.ndarray, r: int, c: int) -> np.ndarray:
+    """``mask`` dilated by a ``(2r+1) x (2c+1)`` rectangle (the kernel's reach)."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    m = np.pad(np.asarray(mask, bool), ((r, r), (0, 0)))
+    m = sliding_window_view(m, 2 * r + 1, axis=0).any(-1)
+    m = np.pad(m, ((0, 0), (c, c)))
+    return sliding_window_view(m, 2 * c + 1, axis=1).any(-1)
+
+
 def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame, floor: float, use_footprint: bool):
     brdf = np.asarray(b.brdf, np.float64)
     sigma = np.broadcast_to(np.asarray(b.sigma_rel, np.float64), brdf.shape)
@@ -135,10 +150,16 @@ def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame
     detector = b.arm_detector()
     if b.footprint is not None and use_footprint:
         k = np.asarray(b.footprint, np.float64)
+        n_h, n_v = np.asarray(b.grid.n_h, np.float64), np.asarray(b.grid.n_v, np.float64)
+        reach = _dilate(usable, k.shape[0] // 2, k.shape[1] // 2)
+        support = {}
+        if reach.sum() < SUPPORT_FRACTION * reach.size:  # evaluate the model only where the convolution looks
+            rows, cols = np.nonzero(reach)
+            support = dict(support_index=np.flatnonzero(reach.ravel()), support_h=n_h[cols], support_v=n_v[rows])
         return FrameBlock(
-            template, frame, detector,
-            np.asarray(b.grid.n_h, np.float64), np.asarray(b.grid.n_v, np.float64),
+            template, frame, detector, n_h, n_v,
             data, inv_sigma, np.float64(floor), np.float64(soft), k / k.sum(), np.flatnonzero(usable.ravel()),
+            **support,
         )
     rows, cols = np.nonzero(usable)
     return FrameBlock(

@@ -20,7 +20,9 @@ the solar-cell model slowly, ~7 s per copy):
   are padded to one length (a multiple of :data:`PAD_MULTIPLE`, zero weight
   on the padding) and the model is evaluated under ``vmap`` over frames, so
   one copy of the model serves every frame and data sets whose point counts
-  round to the same length reuse the compiled program.
+  round to the same length reuse the compiled program.  Frames with a
+  footprint stack too (same grid and kernel shapes); the model is evaluated
+  only on the grid points within the kernel's reach of a usable point.
 - :func:`residuals` carries a **custom JVP** that materialises the Jacobian
   once (forward mode) and applies it as a matrix: optimistix uses the
   derivative several times per step (the QR of the damped system, the
@@ -78,11 +80,22 @@ class FrameBlock(eqx.Module):
     soft_level: Array  # scalar, sr^-1: the softening level of a first stage
     kernel: Array | None = None  # normalised footprint on the grid spacing
     flat_index: Array | None = None  # (n,) indices of the points in the raveled grid
+    # With a footprint, the grid points within the kernel's reach of a usable point (the only ones
+    # the convolution at the usable points sees): the model is evaluated there and zero elsewhere.
+    # None: the whole grid.
+    support_index: Array | None = None  # (m,) indices in the raveled grid
+    support_h: Array | None = None  # (m,) their pixel columns
+    support_v: Array | None = None  # (m,) their pixel rows
 
     def model_values(self, model: AbstractTerm, frame: Frame) -> Array:
         if self.kernel is None:
             return evaluate_pixels(model, frame, self.detector, self.n_h, self.n_v)
-        image = evaluate_pixels(model, frame, self.detector, self.n_h[None, :], self.n_v[:, None])
+        if self.support_index is None:
+            image = evaluate_pixels(model, frame, self.detector, self.n_h[None, :], self.n_v[:, None])
+        else:
+            values = evaluate_pixels(model, frame, self.detector, self.support_h, self.support_v)
+            shape = (self.n_v.shape[0], self.n_h.shape[0])
+            image = jnp.zeros(shape[0] * shape[1], values.dtype).at[self.support_index].set(values).reshape(shape)
         return convolve_same(image, self.kernel).ravel()[self.flat_index]
 
     def residuals(self, model: AbstractTerm, frame: Frame, soften: Array) -> Array:
@@ -139,23 +152,46 @@ class FrameStack(eqx.Module):
         return r.ravel()[self.valid]
 
 
+def _pad_to(n: int) -> int:
+    return -(-n // PAD_MULTIPLE) * PAD_MULTIPLE
+
+
 def stack_frames(blocks: list[FrameBlock]) -> FrameStack:
-    """Stack frame blocks (no footprint) padded to a common multiple of :data:`PAD_MULTIPLE` points."""
-    n = [int(b.n_h.shape[0]) for b in blocks]
-    n_pad = -(-max(n) // PAD_MULTIPLE) * PAD_MULTIPLE
+    """Stack frame blocks, their usable points padded to a common multiple of :data:`PAD_MULTIPLE`.
+
+    Padding points carry zero weight.  Blocks with a footprint (same grid shape and kernel shape) also
+    pad their support (the grid points the model is evaluated at) by repeating its first point, which
+    writes the same value twice.
+    """
+    n = [int(b.data.shape[0]) for b in blocks]
+    n_pad = _pad_to(max(n))
+    with_support = blocks[0].support_index is not None
+    m_pad = _pad_to(max(int(b.support_index.shape[0]) for b in blocks)) if with_support else 0
+
+    def ext(a, k, fill):
+        a = np.asarray(a)
+        return np.concatenate([a, np.full(k - a.shape[0], fill, a.dtype)])
 
     def pad(b: FrameBlock, k: int) -> FrameBlock:
-        extra = n_pad - k
-
-        def ext(a, fill):
-            a = np.asarray(a)
-            return np.concatenate([a, np.full(extra, fill, a.dtype)])
-
-        return eqx.tree_at(
-            lambda x: (x.n_h, x.n_v, x.data, x.inv_sigma),
+        if b.kernel is None:
+            return eqx.tree_at(
+                lambda x: (x.n_h, x.n_v, x.data, x.inv_sigma),
+                b,
+                (ext(b.n_h, n_pad, np.asarray(b.n_h)[0]), ext(b.n_v, n_pad, np.asarray(b.n_v)[0]),
+                 ext(b.data, n_pad, 1.0), ext(b.inv_sigma, n_pad, 0.0)),
+            )
+        b = eqx.tree_at(
+            lambda x: (x.flat_index, x.data, x.inv_sigma),
             b,
-            (ext(b.n_h, np.asarray(b.n_h)[0]), ext(b.n_v, np.asarray(b.n_v)[0]), ext(b.data, 1.0), ext(b.inv_sigma, 0.0)),
+            (ext(b.flat_index, n_pad, np.asarray(b.flat_index)[0]), ext(b.data, n_pad, 1.0), ext(b.inv_sigma, n_pad, 0.0)),
         )
+        if with_support:
+            b = eqx.tree_at(
+                lambda x: (x.support_index, x.support_h, x.support_v),
+                b,
+                tuple(ext(a, m_pad, np.asarray(a)[0]) for a in (b.support_index, b.support_h, b.support_v)),
+            )
+        return b
 
     padded = [pad(b, k) for b, k in zip(blocks, n)]
     stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *padded)
@@ -164,10 +200,19 @@ def stack_frames(blocks: list[FrameBlock]) -> FrameStack:
 
 
 def can_stack(blocks: list[Any]) -> bool:
-    if len(blocks) < 2 or not all(isinstance(b, FrameBlock) and b.kernel is None for b in blocks):
+    """Frames of one structure: all without a footprint, or all with one on grids and kernels of one shape."""
+    if len(blocks) < 2 or not all(isinstance(b, FrameBlock) for b in blocks):
         return False
     s0 = jax.tree_util.tree_structure(blocks[0])
-    return all(jax.tree_util.tree_structure(b) == s0 for b in blocks[1:])
+    if not all(jax.tree_util.tree_structure(b) == s0 for b in blocks[1:]):
+        return False
+    if blocks[0].kernel is None:
+        return True
+
+    def shapes(b):
+        return (np.shape(b.n_h), np.shape(b.n_v), np.shape(b.kernel))
+
+    return all(shapes(b) == shapes(blocks[0]) for b in blocks[1:])
 
 
 class Problem(eqx.Module):
