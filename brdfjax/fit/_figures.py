@@ -63,7 +63,7 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
         ld = np.log10(data_shown)
         res = np.where(u, (np.log(model_img) - np.log(d)) / sig, np.nan)
     vmin = min(vmin, float(np.nanmin(ld))) if np.isfinite(ld).any() else vmin
-    lm = np.clip(lm, vmin, None)
+    lm = np.where(np.isfinite(lm), np.maximum(lm, vmin), vmin)  # zero / underflowing model: the floor
     rmax = float(np.nanpercentile(np.abs(res), 99)) if np.isfinite(res).any() else 1.0
     rmax = max(3.0, min(rmax, 50.0))
 
@@ -158,9 +158,7 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
 def _with_bad(name: str):
     import matplotlib
 
-    cmap = matplotlib.colormaps[name].copy()
-    cmap.set_bad("#bbbbbb")
-    return cmap
+    return matplotlib.colormaps[name].with_extremes(bad="#bbbbbb")
 
 
 def table_model(model: Any, block: TableData) -> np.ndarray:
