@@ -263,3 +263,32 @@ def test_a_table_with_a_column_mapping(tmp_path):
     p.write_text(p.read_text().replace("theta_i_deg = [40]", "theta_i_deg = [30]"))
     with pytest.raises(ConfigError, match=r"data.tables\[0\].theta_i_deg: none of \[30.0\] is in .*gonio.csv \(it has: 20, 40\)"):
         build_fit_job(load_fit_config(p))
+
+
+def test_a_raw_manifest_is_reduced_into_the_work_dir(tmp_path):
+    p = tmp_path / "raw.toml"
+    manifest = (DATA / "example_set" / "manifest.toml").as_posix()
+    p.write_text(textwrap.dedent(f"""
+        [data]
+        manifest = "{manifest}"
+        roi = [-20, 20, -15, 15]
+        exclude = [[-20, -10, -15, 15]]
+        [data.reduce]
+        step = 2
+        [model]
+        preset = "solar_cell"
+    """))
+    job = build_fit_job(load_fit_config(p), work_dir=tmp_path / "work")
+    (f,) = job.blocks
+    assert (tmp_path / "work" / "reduced" / "solar_cell_20deg.exr").is_file()
+    assert f.grid.n_h[0] == -19 and f.grid.n_h[-1] == 19 and f.grid.n_v[0] == -15  # the step-2 grid inside the roi
+    assert not f.mask[:, f.grid.n_h <= -10].any()
+    r = read_reduced_frame(tmp_path / "work" / "reduced" / "solar_cell_20deg.exr")
+    u = f.usable()
+    assert r.attrs["step"] == 2 and u.sum() > 20
+    # "pixel" weights (the default): u_scatter_flux, without the frame-wide terms of sigma_rel (ND, incident flux)
+    rows = np.searchsorted(np.arange(-23, 25, 2), f.grid.n_v)
+    cols = np.searchsorted(np.arange(-31, 33, 2), f.grid.n_h)
+    np.testing.assert_allclose(f.sigma_rel[u], r.extra["u_scatter_flux"][np.ix_(rows, cols)][u], rtol=1e-6)
+    assert np.all(f.sigma_rel[u] < r.extra["sigma_rel"][np.ix_(rows, cols)][u])
+    assert job.fit_kwargs["precision"] == "float64" and job.fit_kwargs["solver"] == "levenberg_marquardt"
