@@ -156,7 +156,7 @@ def test_capture_writes_the_raw_format_that_reduce_reads(captured):
 def test_live_view_renders_headless_and_updates(captured, tmp_path):
     _, _, live, _ = captured
     assert live.mode == "png" and live.png.is_file() and live.page.is_file()
-    assert live.updates == 4  # beam + 3 samples, each redrawn at its last exposure
+    assert live.updates == 5  # the first frame, then beam + 3 samples each redrawn at its last exposure
     assert "live.png" in live.page.read_text()
     # a fresh view: two updates rewrite the PNG with different content
     sim = _sim()
