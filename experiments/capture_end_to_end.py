@@ -25,7 +25,6 @@ import time
 import tomllib
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 

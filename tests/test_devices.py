@@ -281,6 +281,12 @@ def test_retryable_camera_error_is_retried_and_a_stage_fault_stops_with_a_messag
     assert "theta_i 40.0000 deg" in msg and "theta_c 20.0000 deg" in msg  # left where it was
     state = tomllib.loads((tmp_path / "stop" / "manifest.toml").read_text())["capture"]
     assert state["done"] == ["beam", "ti20"] and state["status"] == "in progress"
+    # after the fix: --resume finishes the plan without repeating the finished measurements
+    bench, sim = build_bench(cfg)
+    run_capture(cfg, tmp_path / "stop", bench=bench, sim=sim, resume=True)
+    state = tomllib.loads((tmp_path / "stop" / "manifest.toml").read_text())["capture"]
+    assert state["done"] == ["beam", "ti20", "ti40", "ti60"] and state["status"] == "complete"
+    assert sim.calls["move_theta_c"] == 2  # only ti40 and ti60 were measured again
 
 
 # --- resume ---------------------------------------------------------------------------------------
@@ -312,7 +318,6 @@ def test_killed_capture_resumes_bit_identical(tmp_path):
     # without --resume the folder is refused
     with pytest.raises(FileExistsError, match="pass --resume"):
         run_capture(load_capture_config(slow_cfg), out)
-    cfg = load_capture_config(slow_cfg).model_copy()
     resumed = run_capture(load_capture_config(slow_cfg), out, resume=True)
     # reference: the same seed, uninterrupted (no acquisition delay: the delay does not change the data)
     ref = run_capture(load_capture_config(_config(tmp_path, "ref.toml")), tmp_path / "ref")
@@ -328,7 +333,6 @@ def test_killed_capture_resumes_bit_identical(tmp_path):
         assert a.attrs == b.attrs, name
         assert (out / name).read_bytes() == (tmp_path / "ref" / name).read_bytes(), name
     assert not (out / ".parts").exists()
-    del cfg
 
 
 # --- config errors --------------------------------------------------------------------------------
