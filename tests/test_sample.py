@@ -137,7 +137,7 @@ def test_corrupted_or_foreign_chain_files_are_errors_and_left_untouched(frames, 
         sample(MODEL, frames, SPEC, start=fitted, n_steps=5, n_walkers=8, out_dir=tmp_path / "new", resume=True)
 
 
-def test_output_contract(short_run, fitted):
+def test_output_contract(short_run, fitted, frames):
     out, res = short_run
     s = json.loads((out / "posterior.json").read_text())
     for key in ("n_steps", "n_walkers", "acceptance_fraction_mean", "converged", "sampling", "map", "warnings"):
@@ -160,6 +160,15 @@ def test_output_contract(short_run, fitted):
     # the chain in the file is the one summarised; MAP is the best sample
     assert res.chain.shape == (40, 8, 3)
     assert s["map"]["log_posterior"] == pytest.approx(float(res.log_prob.max()))
+    # the predictive bands' model is the likelihood's: at the optimum, the fitted model at the usable pixels
+    from brdfjax.sample._outputs import model_at_points
+
+    x_opt = np.array([fitted.value(n) for n in NAMES])
+    f = model_at_points(res.posterior, np.tile(x_opt, (16, 1)))[0][0]  # 16 draws: the shape compiled above
+    data = frames[0]
+    rows, cols = np.nonzero(data.usable())
+    want = bj.evaluate_pixels(fitted.models[0], fitted.frames[0], data.arm_detector(), data.grid.n_h[cols], data.grid.n_v[rows])
+    np.testing.assert_allclose(f, np.asarray(want), rtol=1e-8)
 
 
 def test_resume_continues_the_same_chain_bit_identically(frames, fitted, tmp_path):
@@ -239,7 +248,7 @@ TINY = """
 precision = "float64"
 [data]
 frames = ["{frame}"]
-footprint_w_px = 3.125
+footprint_w_px = 0.0
 sigma = "noise"
 sigma_floor = 0.0068
 max_sigma_rel = 0.1
