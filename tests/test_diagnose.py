@@ -123,3 +123,90 @@ def test_table_diffuse_floor_withheld():
     assert all(z["extent_deg"][1] == 0.0 and z["center_deg"][1] == 0.0 for z in d.zones)
     outside = [z for z in d.zones if z["name"] != "peak core"]
     assert outside and all(abs(z["center_deg"][0]) > 10.0 for z in outside)
+
+
+# --- a null case: the base model is the truth -----------------------------------------------------------
+
+
+def test_null_claims_nothing(tiny):
+    truth, frames = tiny
+    d = diagnose(truth, frames, {"m1": 2.4e-4, "rho_s1": 0.02}, effects=["lambertian"], max_steps=1)
+    assert not d.significant and d.explained_by == []
+    assert d.ranking[0].delta_bic < d.bic_threshold
+    assert 0.8 < d.gap["chi2_reduced"] < 1.2
+    assert d.to_dict()["path"] == [d.path[0].to_dict()] and d.to_dict()["path"][0]["effect"] == "base"
+
+
+# --- the CLI: synthetic frames written to disk and read back, diffraction withheld ------------------------
+
+CONFIG = """
+precision = "float64"
+[data]
+roi_deg = [-0.2, 0.2, -0.4, 0.4]
+sigma = "noise"
+sigma_floor = 0.0068
+max_sigma_rel = 0.1
+[data.reduce]
+merge = "weighted"
+correct_nonlinearity = true
+[data.synthetic]
+theta_i_deg = [20.0]
+seed = 5
+camera_seed = 3
+bin = 8
+[model.terms.center]
+kind = "specular"
+distribution = "beckmann"
+params = { m = 2e-4, rho_s = 0.015, n = 3.6 }
+[params]
+"center.m" = { value = 3e-4, lower = 1e-5, upper = 1e-2 }
+"center.rho_s" = { value = 0.03, lower = 1e-4, upper = 10.0 }
+[diagnose]
+effects = EFFECTS
+max_steps = 1
+figures = false
+[diagnose.truth]
+preset = "solar_cell"
+"""
+
+
+def _write_config(tmp_path: Path, effects: str = '["diffraction", "lambertian"]') -> Path:
+    p = tmp_path / "diag.toml"
+    p.write_text(CONFIG.replace("EFFECTS", effects))
+    return p
+
+
+def test_cli_withheld_diffraction_from_disk(tmp_path, capsys):
+    from brdfjax.cli import main
+
+    cfg = _write_config(tmp_path)
+    out = tmp_path / "out"
+    assert main(["diagnose", str(cfg), "--out", str(out)]) == 0
+    # the frames went through the synthetic CCD, were reduced to EXR files and read back
+    assert sorted(p.name for p in (out / "synthetic" / "reduced").glob("*.exr")) == ["ti20.exr"]
+    doc = json.loads((out / "diagnosis.json").read_text())
+    assert {"gap", "zones", "ranking", "path", "significant"} <= set(doc)
+    assert {"chi2_reduced", "rms_log10"} <= set(doc["gap"])
+    assert doc["zones"] and {"name", "share", "center_deg", "extent_deg", "orientation_deg", "sign"} <= set(doc["zones"][0])
+    assert {"effect", "delta_chi2", "delta_bic", "signature", "chi2_reduced_after"} <= set(doc["ranking"][0])
+    assert {"effect", "chi2_reduced", "rms_log10", "heldout_rms_log10"} <= set(doc["path"][0])
+    assert doc["ranking"][0]["effect"] == "diffraction" and doc["significant"] is True
+    assert [s["effect"] for s in doc["path"]] == ["base", "diffraction"]
+    assert doc["path"][1]["chi2_reduced"] < 0.5 * doc["path"][0]["chi2_reduced"]
+    assert "truth" not in json.dumps(doc["settings"])
+    md = (out / "report.md").read_text()
+    assert "most likely caused by **diffraction**" in md
+    assert (out / "report.html").read_text().startswith("<!DOCTYPE html>")
+
+
+def test_cli_bad_input(tmp_path, capsys):
+    from brdfjax.cli import main
+
+    out = tmp_path / "out"
+    assert main(["diagnose", str(_write_config(tmp_path, '["difraction"]')), "--out", str(out)]) == 2
+    assert "unknown effect(s) ['difraction']; known: offset_normal_peak" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text(CONFIG.replace("EFFECTS", "[]").replace("max_steps = 1", "max_steps = -1"))
+    assert main(["diagnose", str(bad), "--out", str(out)]) == 2
+    assert "diagnose.max_steps" in capsys.readouterr().err
+    assert not (out / "diagnosis.json").exists()

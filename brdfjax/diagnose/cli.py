@@ -9,6 +9,7 @@ The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
     bic_threshold = 10.0                       # BIC gain an effect needs to enter the path
     max_steps = 4                              # the most effects added by the greedy path
     path_pool = 4                              # candidates re-tried at each later step
+    refit_top = 4                              # refit only the 4 best signatures (default: every candidate)
     threshold_sigma = 4.0                      # smoothed |residual| that makes a region significant
     smooth = 3                                 # box size (points) of that smoothing
     figures = true                             # embed figures in report.html
@@ -49,6 +50,7 @@ class DiagnoseSection(BaseModel):
     bic_threshold: float = 10.0
     max_steps: int = Field(4, ge=0, le=12)
     path_pool: int = Field(4, ge=1)
+    refit_top: int | None = Field(None, ge=1)
     threshold_sigma: float = Field(4.0, gt=0)
     smooth: int = Field(3, ge=1, le=31)
     figures: bool = True
@@ -109,6 +111,7 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
         bic_threshold=sec.bic_threshold,
         max_steps=sec.max_steps,
         path_pool=sec.path_pool,
+        refit_top=sec.refit_top,
         threshold=sec.threshold_sigma,
         smooth=sec.smooth,
         progress=progress,

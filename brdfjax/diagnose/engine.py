@@ -452,8 +452,8 @@ def _heldout_gap(state: _State, heldout: Sequence[Any] | None, base_blocks: Sequ
     return {"chi2_reduced": g["chi2_reduced"], "rms_log10": g["rms_log10"], "n_points": g["n_points"]}
 
 
-def _try_effect(name: str, eff: Any, ctx: Any, state: _State, zones: Mapping[str, list[np.ndarray]], base_gap: dict, has_tables: bool) -> Candidate:
-    t0 = time.perf_counter()
+def _check_effect(name: str, eff: Any, ctx: Any, state: _State, has_tables: bool) -> Candidate:
+    """Applicability, identifiability and the refit-independent signature of one candidate."""
     c = Candidate(name, eff.title, "ranked")
     if eff.needs_2d and has_tables:
         c.status, c.note = "skipped", "needs a 2-D detector frame; the data include goniometer tables"
@@ -470,6 +470,13 @@ def _try_effect(name: str, eff: Any, ctx: Any, state: _State, zones: Mapping[str
         c.signature = {"value": _num(sig.value), "score": _num(sig.score), "detail": sig.detail}
     except Exception as e:  # noqa: BLE001
         c.signature = {"value": None, "score": None, "detail": f"signature failed: {type(e).__name__}: {e}"}
+    return c
+
+
+def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mapping[str, list[np.ndarray]], base_gap: dict) -> Candidate:
+    """The refit with the effect added (warm start); fills the candidate's gap, BIC and per-zone measures."""
+    t0 = time.perf_counter()
+    name = c.effect
     try:
         ext = eff.extend(ctx)
         blocks = list(ext.blocks) if ext.blocks is not None else state.blocks
@@ -493,6 +500,11 @@ def _try_effect(name: str, eff: Any, ctx: Any, state: _State, zones: Mapping[str
     return c
 
 
+def _score(c: Candidate) -> float:
+    s = c.signature.get("score")
+    return -math.inf if s is None else float(s)
+
+
 def _rank(cands: list[Candidate]) -> tuple[list[Candidate], list[Candidate]]:
     ranked = sorted((c for c in cands if c.status == "ranked"), key=lambda c: -c.delta_bic)
     return ranked, [c for c in cands if c.status != "ranked"]
@@ -513,6 +525,7 @@ def diagnose(
     bic_threshold: float = 10.0,
     max_steps: int = 4,
     path_pool: int = 4,
+    refit_top: int | None = None,
     threshold: float = 4.0,
     smooth: int = 3,
     library: Mapping[str, Any] | None = None,
@@ -527,7 +540,9 @@ def diagnose(
     passed to every fit; ``bic_threshold``: the BIC gain an effect needs to
     enter the path; ``max_steps``: the most effects added; ``path_pool``: how
     many of the previous step's best candidates are re-tried at each later
-    step; ``threshold``/``smooth``: the region detection (smoothed ``|z|`` and
+    step; ``refit_top``: refit only the candidates with the ``refit_top``
+    highest signature scores (default: all; the others are reported as not
+    refitted); ``threshold``/``smooth``: the region detection (smoothed ``|z|`` and
     box size); ``library``: the effect library (default
     :data:`brdfjax.diagnose.effects.EFFECTS`); ``progress``: a callable taking
     a message string.
@@ -580,8 +595,17 @@ def diagnose(
             eff = library[n]
             if step > 0 and eff.present_in(state.model):
                 continue
-            say(f"step {step + 1}: trying {n}")
-            cands.append(_try_effect(n, eff, current_ctx, state, zones, gap_measures(state.result), has_tables))
+            cands.append(_check_effect(n, eff, current_ctx, state, has_tables))
+        live = sorted((c for c in cands if c.status == "ranked"), key=lambda c: -_score(c))
+        if refit_top is not None:
+            for c in live[refit_top:]:
+                c.status = "not refitted"
+                c.note = f"signature score {_score(c):.3g} below the {refit_top} best (refit_top = {refit_top})"
+            live = live[:refit_top]
+        state_gap = gap_measures(state.result)
+        for c in live:
+            say(f"step {step + 1}: refitting with {c.effect} (signature {_score(c):.3g})")
+            _refit_effect(c, library[c.effect], current_ctx, state, zones, state_gap)
         ranked, rest = _rank(cands)
         rankings.append(ranked)
         if step == 0:
@@ -622,6 +646,7 @@ def diagnose(
             "effects": list(names),
             "max_steps": max_steps,
             "path_pool": path_pool,
+            "refit_top": refit_top,
             "threshold_sigma": threshold,
             "smooth": smooth,
             "n_blocks": len(blocks),

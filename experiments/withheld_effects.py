@@ -1,0 +1,370 @@
+"""Withheld-effect benchmark of the diagnosis (issue 6): is the effect the truth has and the base lacks found?
+
+For each effect of :data:`brdfjax.diagnose.effects.EFFECTS`, ``--trials``
+single-effect trials (random plausible parameters and geometry: theta_i in
+20-60 deg, phi_ref in 0-180 deg, from :func:`~brdfjax.diagnose.effects.base_scenario`
+and :func:`~brdfjax.diagnose.effects.inject`), frames from the synthetic
+instrument's noise (:func:`~brdfjax.diagnose.effects.synthesize`), the
+diagnosis given the base model WITHOUT the effect and the whole library;
+plus null trials (nothing withheld) and two-effect trials.  One frame of each
+scenario is held out (predicted, not fitted).
+
+Recorded per trial: the top-ranked effect, whether the withheld effect(s)
+are in the explanation path, the reduced chi^2 and rms of log10 before
+(base), after (end of the path) and of the true model on the same data (the
+truth's structure refitted from the truth's values, the generator's
+instrument side included where the scenario carries it), the held-out gaps
+of the base and the diagnosed model, and wall times.
+
+Printed: the confusion matrix (withheld effect x top-ranked effect) and the
+issue's figures: top-1 rate (>= 90 %), both-in-path rate of two-effect trials
+(>= 80 %), null trials with nothing significant (>= 90 %), trials whose
+reduced chi^2 after the path is within 20 % of the true model's, and trials
+whose held-out gap shrank (>= 90 %).
+
+Results go to ``--out`` (JSON, written atomically after every trial); a
+rerun skips the trials already there (resumable).  ``--quick``: one trial per
+effect, two null and two two-effect trials.  ``--shard i/n`` runs a slice
+(parallel workers), ``--summarize A.json B.json`` merges them.
+``--runtime``: one diagnosis of a single 4x-decimated frame against the full
+library, timed (target < 10 min on the 2-core CPU).
+
+    python3 experiments/withheld_effects.py --quick --out runs/withheld_quick.json
+    python3 experiments/withheld_effects.py --out runs/withheld_effects.json
+    python3 experiments/withheld_effects.py --runtime --out runs/withheld_runtime.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+import traceback
+import zlib
+from pathlib import Path
+from typing import Any
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from brdfjax.diagnose import diagnose  # noqa: E402
+from brdfjax.diagnose import effects as fx  # noqa: E402
+from brdfjax.fit import Param  # noqa: E402
+
+
+def _atomic_json(path: Path, obj: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(obj, indent=1, allow_nan=False, default=_default))
+    os.replace(tmp, path)
+
+
+def _default(x: Any) -> Any:
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.floating):
+        return None if not np.isfinite(x) else float(x)
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return str(x)
+
+
+def _clean(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+#: effects that need goniometer tables (their trials use effects.table_scenario)
+TABLE_ONLY = ("angular_sampling",)
+
+
+def trial_list(args: argparse.Namespace, names: list[str]) -> list[dict[str, Any]]:
+    n_single = 1 if args.quick else args.trials
+    n_null = 2 if args.quick else args.null
+    n_two = 2 if args.quick else args.two
+    singles = [{"id": f"single:{e}:{k}", "kind": "single", "effects": [e]} for k in range(n_single) for e in names]
+    others = []
+    rng = np.random.default_rng(args.seed)
+    for k in range(max(n_null, n_two)):
+        if k < n_null:
+            others.append({"id": f"null:{k}", "kind": "null", "effects": []})
+        if k < n_two:
+            pool = [e for e in names if e not in TABLE_ONLY]
+            pair = sorted(rng.choice(len(pool), size=2, replace=False))
+            others.append({"id": f"two:{pool[pair[0]]}+{pool[pair[1]]}:{k}", "kind": "two",
+                           "effects": [pool[pair[0]], pool[pair[1]]]})
+    # interleaved (a null or two-effect trial after every three single ones) so that a partial run has every kind
+    out = []
+    while singles or others:
+        out += singles[:3]
+        del singles[:3]
+        if others:
+            out.append(others.pop(0))
+    return out
+
+
+def _true_gap(scenario: Any, seed: int, blocks: list, rows: Any = None) -> dict[str, float]:
+    """The true model on the same data: the generator's noiseless frames (truth model + instrument effects).
+
+    The render path draws the noise as ``exp(N(0, noise_rel))`` on top of
+    the noiseless frame, so ``synthesize`` with ``noise_rel = 0`` and the same
+    seed gives exactly that frame; its reduced chi^2 has no free parameters
+    (dof = N).
+    """
+    clean = fx.synthesize(scenario.replace(noise_rel=0.0), seed, None)
+    if rows is not None:  # tables: the same rows as the fitted scans
+        clean = [clean[0].select(rows)]
+    num, n, log_sq = 0.0, 0, 0.0
+    for b, c in zip(blocks, clean):
+        u = b.usable()
+        d, f = np.asarray(b.brdf, float)[u], np.asarray(c.brdf, float)[u]
+        s = np.broadcast_to(np.asarray(b.sigma_rel, float), u.shape)[u]
+        res = np.log(d) - np.log(np.maximum(f, 1e-300))
+        num += float(np.sum((res / s) ** 2))
+        log_sq += float(np.sum(res**2))
+        n += int(u.sum())
+    return {"chi2_reduced": num / n, "rms_log10": math.sqrt(log_sq / n) / math.log(10.0)}
+
+
+def _perturbed_starts(scenario: Any, rng: np.random.Generator) -> dict[str, Any]:
+    """The base fit's spec with every free start moved off the generator's value (x U(0.7, 1.4)): no truth given."""
+    from brdfjax.fit._params import as_param
+
+    values = {k: float(np.asarray(v)) for k, v in scenario.base_model.params().items()}
+    out = {}
+    for name, spec in scenario.params.items():
+        p = as_param(name, spec)
+        if p.free and p.value is None and name in values:
+            p = Param(value=values[name] * float(rng.uniform(0.7, 1.4)), lower=p.lower, upper=p.upper, free=True,
+                      per_frame=p.per_frame, scale=p.scale)
+        out[name] = p
+    return out
+
+
+def run_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    seed = zlib.crc32(f"{args.seed}:{t['id']}".encode())
+    rng = np.random.default_rng(seed)
+    tables = any(e in TABLE_ONLY for e in t["effects"])
+    if tables:  # goniometer in-plane scans; the scans at the largest theta_i are held out
+        sc = fx.table_scenario(rng)
+    else:
+        sc = fx.base_scenario(rng, n_frames=args.frames + 1, step=args.step)
+    for e in t["effects"]:
+        sc = fx.inject(e, rng, sc)
+    blocks = fx.synthesize(sc, seed, None, path="render" if tables else args.path)
+    if tables:
+        ti = np.asarray(blocks[0].theta_i)
+        last = ti >= ti.max() - 1e-9
+        fitted, held = [blocks[0].select(~last, name="scans")], [blocks[0].select(last, name="heldout")]
+    else:
+        fitted, held = blocks[:-1], blocks[-1:]
+    params = _perturbed_starts(sc, rng)
+    t0 = time.perf_counter()
+    say = (lambda m: print(f"    {time.perf_counter() - t0:7.1f} s  {m}", flush=True)) if args.verbose else None
+    d = diagnose(sc.base_model, fitted, params, heldout_blocks=held, max_steps=args.max_steps, refit_top=args.refit_top,
+                 path_pool=args.path_pool, progress=say)
+    wall = time.perf_counter() - t0
+    try:
+        true = _true_gap(sc, seed, fitted, ~last if tables else None) if tables or args.path == "render" else {"chi2_reduced": math.nan, "rms_log10": math.nan}
+    except Exception as e:  # noqa: BLE001 - reported
+        true = {"chi2_reduced": math.nan, "rms_log10": math.nan, "error": f"{type(e).__name__}: {e}"}
+    j = d.to_dict()
+    path = [s["effect"] for s in j["path"]]
+    base_h = j["path"][0]["heldout_rms_log10"]
+    end_h = j["path"][-1]["heldout_rms_log10"]
+    return _clean(
+        {
+            **t,
+            "seed": seed,
+            "truth": {k: (v if isinstance(v, int | float | str) or v is None else str(v)) for k, v in sc.truth.items()},
+            "notes": list(sc.notes),
+            "frames": [] if tables else [[float(np.degrees(b.theta_i)), float(np.degrees(b.phi_ref))] for b in blocks],
+            "top1": j["ranking"][0]["effect"] if j["ranking"] else None,
+            "ranking": [(c["effect"], c["delta_bic"], c["signature"].get("score")) for c in j["ranking"]],
+            "skipped": [(c["effect"], c["status"], c["note"]) for c in j["skipped"]],
+            "path": path,
+            "significant": j["significant"],
+            "in_path": all(e in path for e in t["effects"]) if t["effects"] else None,
+            "chi2_reduced_before": j["path"][0]["chi2_reduced"],
+            "chi2_reduced_after": j["path"][-1]["chi2_reduced"],
+            "chi2_reduced_true": true["chi2_reduced"],
+            "rms_log10_before": j["path"][0]["rms_log10"],
+            "rms_log10_after": j["path"][-1]["rms_log10"],
+            "rms_log10_true": true["rms_log10"],
+            "heldout_rms_log10_before": base_h,
+            "heldout_rms_log10_after": end_h,
+            "heldout_smaller": None if base_h is None or end_h is None or len(path) == 1 else bool(end_h < base_h),
+            "zones": [(z["name"], z["share"], z["sign"]) for z in j["zones"]],
+            "wall_s": wall,
+        }
+    )
+
+
+def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
+    ok = [r for r in results if "error" not in r]
+    single = [r for r in ok if r["kind"] == "single"]
+    two = [r for r in ok if r["kind"] == "two"]
+    null = [r for r in ok if r["kind"] == "null"]
+    labels = names + ["(none)"]
+    conf = {e: {l: 0 for l in labels} for e in names}
+    for r in single:
+        top = r["top1"] if r["significant"] else "(none)"
+        conf[r["effects"][0]][top if top in labels else "(none)"] += 1
+
+    def rate(xs):
+        xs = [x for x in xs if x is not None]
+        return (sum(bool(x) for x in xs) / len(xs), len(xs)) if xs else (math.nan, 0)
+
+    within = []
+    for r in single + two:
+        a, t = r["chi2_reduced_after"], r["chi2_reduced_true"]
+        within.append(None if a is None or t is None else abs(a / t - 1) <= 0.2)
+    return {
+        "n_trials": len(results),
+        "n_errors": len(results) - len(ok),
+        "top1_rate": rate([r["top1"] == r["effects"][0] and r["significant"] for r in single]),
+        "single_in_path_rate": rate([r["in_path"] for r in single]),
+        "two_both_in_path_rate": rate([r["in_path"] for r in two]),
+        "null_nothing_significant_rate": rate([not r["significant"] for r in null]),
+        "chi2_after_within_20pct_of_true_rate": rate(within),
+        "heldout_smaller_rate": rate([r["heldout_smaller"] for r in single + two]),
+        "confusion": conf,
+        "per_effect_top1": {e: rate([r["top1"] == e and r["significant"] for r in single if r["effects"][0] == e]) for e in names},
+        "median_wall_s": float(np.median([r["wall_s"] for r in ok])) if ok else math.nan,
+    }
+
+
+def print_summary(s: dict[str, Any], names: list[str]) -> None:
+    labels = names + ["(none)"]
+    short = {l: l[:6] for l in labels}
+    print("\nconfusion matrix (rows: withheld effect, columns: top-ranked significant effect)")
+    print(" " * 22 + " ".join(f"{short[l]:>6s}" for l in labels))
+    for e in names:
+        print(f"{e:<22s}" + " ".join(f"{s['confusion'][e][l]:>6d}" for l in labels))
+
+    def show(key, target):
+        r, n = s[key]
+        print(f"{key:<40s} {r:7.1%} of {n:3d}   (target {target})")
+
+    print()
+    show("top1_rate", ">= 90 %")
+    show("single_in_path_rate", "-")
+    show("two_both_in_path_rate", ">= 80 %")
+    show("null_nothing_significant_rate", ">= 90 %")
+    show("chi2_after_within_20pct_of_true_rate", "all")
+    show("heldout_smaller_rate", ">= 90 %")
+    print(f"trials {s['n_trials']}, errors {s['n_errors']}, median diagnosis wall time {s['median_wall_s']:.1f} s")
+
+
+def runtime_check(args: argparse.Namespace) -> dict[str, Any]:
+    """One diagnosis of a single 4x-decimated frame against the full library, timed."""
+    rng = np.random.default_rng(args.seed)
+    sc = fx.base_scenario(rng, n_frames=1, step=4)
+    sc = fx.inject("diffraction", rng, sc)
+    blocks = fx.synthesize(sc, args.seed, None, path=args.path)
+    t0 = time.perf_counter()
+    d = diagnose(sc.base_model, blocks, _perturbed_starts(sc, rng), max_steps=args.max_steps, refit_top=args.refit_top,
+                 progress=lambda m: print(f"  {time.perf_counter() - t0:7.1f} s  {m}", flush=True))
+    wall = time.perf_counter() - t0
+    out = {
+        "frame_shape": list(blocks[0].shape),
+        "usable_pixels": int(blocks[0].usable().sum()),
+        "n_effects": len(fx.EFFECTS),
+        "wall_s": wall,
+        "timings_s": d.timings,
+        "path": [s.effect for s in d.path],
+        "top1": d.ranking[0].effect if d.ranking else None,
+        "candidate_wall_s": {c.effect: c.wall_s for c in d.ranking + d.skipped},
+    }
+    print(f"runtime: single 4x-decimated frame {out['frame_shape']} ({out['usable_pixels']} usable pixels), "
+          f"{out['n_effects']} effects: {wall:.1f} s (target < 600 s); path {out['path']}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", default="runs/withheld_effects.json")
+    p.add_argument("--quick", action="store_true", help="1 trial per effect, 2 null, 2 two-effect")
+    p.add_argument("--trials", type=int, default=3, help="single-effect trials per effect")
+    p.add_argument("--null", type=int, default=10, help="null trials")
+    p.add_argument("--two", type=int, default=10, help="two-effect trials")
+    p.add_argument("--frames", type=int, default=2, help="fitted frames per scenario (one more is held out)")
+    p.add_argument("--step", type=int, default=4, help="grid decimation of the scenarios' region of interest")
+    p.add_argument("--max-steps", type=int, default=3)
+    p.add_argument("--effects", default=None, help="comma-separated subset of the library")
+    p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--runtime", action="store_true", help="only the runtime check")
+    p.add_argument("--verbose", action="store_true", help="print the diagnosis's progress")
+    p.add_argument("--path-pool", type=int, default=4, help="candidates re-tried at each later step of the path")
+    p.add_argument("--shard", default=None, help="i/n: run every n-th trial starting at i (parallel workers, own --out)")
+    p.add_argument("--summarize", nargs="+", default=None, help="print the summary of these result JSONs (shards) and exit")
+    p.add_argument("--path", choices=("render", "instrument"), default="render",
+                   help="synthesis: 'render' (truth rendered, instrument effects applied on the grid, log-normal noise) "
+                        "or 'instrument' (the full synthetic CCD, reduced and read back; slow)")
+    p.add_argument("--refit-top", type=int, default=None,
+                   help="refit only the K candidates with the highest signature scores (default: every candidate)")
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    names = list(fx.EFFECTS) if args.effects is None else [e.strip() for e in args.effects.split(",")]
+    if args.summarize:
+        results = []
+        for f in args.summarize:
+            results += json.loads(Path(f).read_text())["trials"]
+        s = summarise(results, names)
+        _atomic_json(out, {"sources": args.summarize, "trials": results, "summary": _clean(s)})
+        print_summary(s, names)
+        return 0
+    if args.runtime:
+        r = runtime_check(args)
+        _atomic_json(out, {"runtime": _clean(r)})
+        return 0
+    done: dict[str, dict] = {}
+    if out.is_file():
+        try:
+            prev = json.loads(out.read_text())
+            done = {r["id"]: r for r in prev.get("trials", []) if "error" not in r}
+        except (OSError, ValueError):
+            print(f"warning: {out} is unreadable; starting afresh", file=sys.stderr)
+    trials = trial_list(args, names)
+    if args.shard:
+        i, n = (int(x) for x in args.shard.split("/"))
+        trials = trials[i::n]
+    results = []
+    for i, t in enumerate(trials):
+        if t["id"] in done:
+            results.append(done[t["id"]])
+            continue
+        t0 = time.perf_counter()
+        try:
+            r = run_trial(t, args)
+        except Exception as e:  # noqa: BLE001 - a failing trial is recorded, the benchmark goes on
+            r = {**t, "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc(limit=6)}
+        results.append(r)
+        print(f"[{i + 1}/{len(trials)}] {t['id']}: "
+              + (f"error {r['error']}" if "error" in r else
+                 f"top1 {r['top1']}, path {r['path']}, chi2_red {r['chi2_reduced_before']:.3g} -> {r['chi2_reduced_after']:.3g} "
+                 f"(true {r['chi2_reduced_true'] if r['chi2_reduced_true'] is None else round(r['chi2_reduced_true'], 3)})")
+              + f" [{time.perf_counter() - t0:.0f} s]", flush=True)
+        _atomic_json(out, {"settings": vars(args), "trials": results, "summary": _clean(summarise(results, names))})
+    s = summarise(results, names)
+    _atomic_json(out, {"settings": vars(args), "trials": results, "summary": _clean(s)})
+    print_summary(s, names)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
