@@ -217,7 +217,16 @@ def _inj_flux(rng, sc: Scenario) -> Scenario:
 
 def _inj_nonlinearity(rng, sc: Scenario) -> Scenario:
     g = float(1.0 + rng.uniform(0.03, 0.08) * rng.choice([-1.0, 1.0]))
-    return sc.replace(truth={**sc.truth, "gamma": g})
+    out = sc.replace(truth={**sc.truth, "gamma": g})
+    if len(sc.base_model.terms) == 1:
+        # a power law of a lone Gaussian (Beckmann) lobe is the same lobe, narrower: a diffuse floor makes it visible
+        rd = float(np.exp(rng.uniform(np.log(0.05), np.log(0.3))))
+        out = out.replace(truth_model=_add_term(sc.truth_model, "floor", Lambertian(rd)),
+                          base_model=_add_term(sc.base_model, "floor", Lambertian(rd)),
+                          params={**sc.params, "floor.rho_d": Param()}, truth={**out.truth, "floor.rho_d": rd},
+                          notes=sc.notes + ["a diffuse floor added to base and truth: a power law of a lone Beckmann lobe "
+                                            "is not identifiable"])
+    return out
 
 
 def _inj_shape(rng, sc: Scenario) -> Scenario:
@@ -274,8 +283,8 @@ def _inj_spectral(rng, sc: Scenario) -> Scenario:
 
 def _inj_stray(rng, sc: Scenario) -> Scenario:
     h0, h1, v0, v1 = sc.roi if sc.roi is not None else sc.nominal_detector.index_range
-    dh = int(rng.uniform(0.35, 0.6) * (h1 - h0) / 2 * rng.choice([-1, 1]))
-    dv = int(rng.uniform(0.35, 0.6) * (v1 - v0) / 2 * rng.choice([-1, 1]))
+    dh = int(rng.uniform(0.5, 0.85) * (h1 - h0) / 2 * rng.choice([-1, 1]))
+    dv = int(rng.uniform(0.5, 0.85) * (v1 - v0) / 2 * rng.choice([-1, 1]))
     lr = float(rng.uniform(-3.3, -2.5))
     ins = sc.instrument.model_copy(update={"stray_light": StrayLight(enabled=True, peaks=((dh, dv, lr),))})
     return sc.replace(instrument=ins, truth={**sc.truth, "stray_peaks": ((dh, dv, lr),)})

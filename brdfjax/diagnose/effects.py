@@ -309,7 +309,7 @@ def eqx_tree_at(where, tree, value):
 
 
 def _template_z(ctx: Context, transform: Callable[[Model], Model], blocks: Sequence[int] | None = None,
-                data_blocks: Sequence[Any] | None = None) -> float:
+                data_blocks: Sequence[Any] | None = None, full: bool = False) -> Any:
     """Score test of an extension: the residual's projection on the change in ln f it makes, ``t``.
 
     ``z = sum r t_perp / |t_perp|`` with ``t_perp`` the part of ``t`` that the
@@ -337,7 +337,18 @@ def _template_z(ctx: Context, transform: Callable[[Model], Model], blocks: Seque
         coef, *_ = np.linalg.lstsq(J, t, rcond=1e-10)
         t = t - J @ coef
     den = float(np.sum(t**2))
-    return float(np.sum(r * t) / math.sqrt(den)) if den > 0 else 0.0
+    z = float(np.sum(r * t) / math.sqrt(den)) if den > 0 else 0.0
+    if full:
+        # linearised refit with the extension at full strength: chi^2 change ||r - t_perp||^2 - ||r||^2
+        return z, float(np.sum((r - t) ** 2) - np.sum(r**2))
+    return z
+
+
+def _best_by_linear_chi2(ctx: Context, candidates, make) -> tuple[float, Any, float]:
+    """Among ``candidates``, the one whose linearised refit lowers chi^2 most: ``(z, best, dchi2)``; z its score."""
+    rows = [(*_template_z(ctx, *make(c), full=True), c) for c in candidates]
+    z, dchi2, best = min(rows, key=lambda x: x[1])
+    return z, best, dchi2
 
 
 def _scatter_half_vectors(block: FrameData, frame: Frame, phi: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -417,6 +428,30 @@ def _no_frames(blocks: Sequence[Any]) -> bool:
 # --- effects ------------------------------------------------------------------------------------
 
 
+def _golden(fn, lo: float, hi: float, n: int) -> tuple[float, float]:
+    """Golden-section minimum of a 1-D function on [lo, hi] in ``n`` evaluations: ``(x, f(x))``."""
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = lo, hi
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = fn(c), fn(d)
+    for _ in range(max(n - 2, 0)):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = fn(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = fn(d)
+    return (c, fc) if fc < fd else (d, fd)
+
+
+def _gaussianise(r: np.ndarray) -> np.ndarray:
+    """Ranks turned into standard-normal scores: N(0, 1) under noise, and no single point dominates."""
+    order = np.argsort(np.argsort(r))
+    return np.array([_ND.inv_cdf((i + 0.5) / r.size) for i in order])
+
+
 def _detrend(r: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """``r`` minus its least-squares quadratic surface in ``(x, y)`` (the envelope of a band's residual)."""
     sx, sy = (np.std(x) or 1.0), (np.std(y) or 1.0)
@@ -434,12 +469,16 @@ class DiffractionEffect(Effect):
     doc = (
         "Adds a Diffraction term (Eq 114-115) turned about the sample normal by its own angle psi "
         "(Oriented(Diffraction), parameters <bars>.rho, .a, .c, .psi free; .b held at a/80, it is not "
-        "determined by a near-specular frame).  Initialised from a periodogram of the residual along the "
-        "bars' transverse axis: a grid search over the orientation psi (3 deg steps), the bar spacing a "
-        "(the fringe frequency 2 a cos(theta_i) / lambda in the half-vector component h_y) and the band's "
-        "half-width (|h_x| < 1.5e-4, 5e-4 or anything); c from that half-width, rho from the excess in the "
-        "bright fringes.  Signature: the periodogram's maximum |sum r exp(i k h_y)|^2 / n (exponential "
-        "under noise, summed over frames), with the look-elsewhere factor of the search."
+        "determined by a near-specular frame).  Initialised in two stages: the band through the peak (orientation psi in 3 deg steps "
+        "and half-width |h_x| < 1e-4, 2e-4 or 4e-4 with the largest summed Gaussianised residual), then the "
+        "spacing a: the periodogram's three highest peaks, each refined (+-4 %, 0.25 % steps) with psi "
+        "(+-6 deg, 1.5 deg steps) by the chi^2 of base + bars over a grid of rho (c = 0.8 R x "
+        "half-width), the best kept.  Signature: the periodogram of the Gaussianised (rank -> normal score), "
+        "detrended residual in the band along the transverse axis h_y, |sum g exp(i k h_y)|^2 / n "
+        "(exponential under noise, summed over frames), maximised over the bar frequency "
+        "k = 2 pi a 2 cos(theta_i) / lambda, with the look-elsewhere factor of that search; the score is "
+        "the stronger of it and the band's z (look-elsewhere over the orientations and widths), times 2 "
+        "(a frame with few fringes shows the band more than its period)."
     )
 
     def present_in(self, model):
@@ -450,107 +489,125 @@ class DiffractionEffect(Effect):
             return "needs detector frames (the bar pattern is 2-D)"
         return None
 
-    def _search(self, ctx: Context):
-        psis = np.deg2rad(np.arange(0.0, 180.0, 3.0))
-        vmaxes = (1.5e-4, 5e-4, np.inf)
-        cache = []
+    psis = np.deg2rad(np.arange(0.0, 180.0, 3.0))
+    vmaxes = (1e-4, 2e-4, 4e-4)
+
+    def _frames(self, ctx):
+        out = []
         for k in ctx.frames():
             b, fr = ctx.blocks[k], ctx.block_frame(k)
             r = np.asarray(ctx.residuals[k], float)
             ok = np.isfinite(r)
+            if ok.sum() < 20:
+                continue
             hx0, hy0, _ = _scatter_half_vectors(b, fr, 0.0)
-            cache.append((k, r, ok, hx0, hy0, float(fr.phi_ref), float(np.cos(fr.theta_i)), float(fr.wavelength)))
-        if not cache:
-            return None
-        # frequency grid (cycles per unit h_y): from ~1.5 periods across the frame to Nyquist/1.25
-        k0, r0, ok0, hx0, hy0, _, ci0, wl0 = cache[0]
-        span = float(np.nanmax(np.hypot(hx0, hy0)) * 2)
-        dh = float(np.median(np.abs(np.diff(hy0, axis=0)))) + float(np.median(np.abs(np.diff(hx0, axis=1))))
-        dh = max(dh, 1e-9)
-        a_lo = 1.5 * wl0 / (2 * ci0 * span)
-        a_hi = wl0 / (2 * ci0 * 2.5 * dh)
-        if a_hi <= a_lo:
-            return None
-        a_grid = np.geomspace(a_lo, a_hi, 160)
-        stat = np.zeros((len(psis), len(vmaxes), len(a_grid)))
-        for k, r, ok, hx0, hy0, phi_ref, ci, wl in cache:
-            for i, psi in enumerate(psis):
-                phi = phi_ref + psi
-                hx = np.cos(phi) * hx0 + np.sin(phi) * hy0
-                hy = -np.sin(phi) * hx0 + np.cos(phi) * hy0
-                for j, vm in enumerate(vmaxes):
-                    sel = ok & (np.abs(hx) < vm)
-                    n = int(sel.sum())
-                    if n < 8:
-                        continue
-                    rv = _detrend(np.clip(r[sel], -20, 20), hx[sel], hy[sel])
-                    freq = 2 * np.pi * a_grid[:, None] * 2 * ci / wl
-                    s = np.exp(1j * freq * hy[sel][None, :]) @ rv
-                    stat[i, j] += np.abs(s) ** 2 / n
-        return stat, psis, vmaxes, a_grid, cache
+            g = np.full(r.shape, np.nan)
+            g[ok] = _gaussianise(r[ok])
+            out.append(dict(k=k, r=r, g=g, ok=ok, hx0=hx0, hy0=hy0, phi=float(fr.phi_ref), ci=float(np.cos(fr.theta_i)),
+                            wl=float(fr.wavelength), f=np.asarray(ctx.model_values[k], float), s=ctx.sigma(k),
+                            d=np.asarray(ctx.blocks[k].brdf, float)))
+        return out
+
+    @staticmethod
+    def _rot(c, psi):
+        phi = c["phi"] + psi
+        return (np.cos(phi) * c["hx0"] + np.sin(phi) * c["hy0"], -np.sin(phi) * c["hx0"] + np.cos(phi) * c["hy0"])
+
+    def _band(self, cache):
+        """Stage 1: the band through the peak: orientation and half-width with the largest summed residual."""
+        best = (-np.inf, 0.0, self.vmaxes[0])
+        for psi in self.psis:
+            for vm in self.vmaxes:
+                tot, n = 0.0, 0
+                for c in cache:
+                    hx, _ = self._rot(c, psi)
+                    sel = c["ok"] & (np.abs(hx) < vm)
+                    tot += float(np.sum(c["g"][sel])); n += int(sel.sum())
+                z = tot / math.sqrt(n) if n else -np.inf
+                if z > best[0]:
+                    best = (z, float(psi), vm)
+        return best
+
+    def _a_grid(self, cache):
+        c = cache[0]
+        span = float(np.nanmax(np.hypot(c["hx0"], c["hy0"])) * 2)
+        dh = float(np.median(np.abs(np.diff(c["hy0"], axis=0)))) + float(np.median(np.abs(np.diff(c["hx0"], axis=1))))
+        a_lo = 1.0 * c["wl"] / (2 * c["ci"] * span)
+        a_hi = c["wl"] / (2 * c["ci"] * 2.5 * max(dh, 1e-12))
+        return np.geomspace(a_lo, max(a_hi, 1.01 * a_lo), 160)
+
+    def _periodogram(self, cache, psi, vm, a_grid):
+        """Stage 2: |sum g exp(i k h_y)|^2 / n of the Gaussianised, detrended residual in the band (each frame ~Exp(1))."""
+        stat = np.zeros(len(a_grid))
+        for c in cache:
+            hx, hy = self._rot(c, psi)
+            sel = c["ok"] & (np.abs(hx) < vm)
+            n = int(sel.sum())
+            if n < 8:
+                continue
+            gv = _detrend(c["g"][sel], hx[sel], hy[sel])
+            freq = 2 * np.pi * a_grid[:, None] * 2 * c["ci"] / c["wl"]
+            stat += np.abs(np.exp(1j * freq * hy[sel][None, :]) @ gv) ** 2 / n
+        return stat
+
+    def _chi2_a(self, cache, psi, vm, a_values, distance=0.325):
+        """chi^2 of the base plus bars of spacing a (rho on a log grid, c from the band width): [(chi2, a, rho)]."""
+        c0 = 0.8 * distance * vm
+        rhos = np.geomspace(1e-2, 1e4, 25)
+        a_values = np.asarray(a_values, float)
+        tot = np.zeros((len(rhos), len(a_values)))
+        for c in cache:
+            hx, hy = self._rot(c, psi)
+            sel = c["ok"]
+            u = hy[sel] * 2 * c["ci"] / c["wl"]
+            B = np.cos(np.pi * a_values[:, None] * u[None, :]) ** 2 * np.exp(-((distance * hx[sel] / c0) ** 2))[None, :]
+            m = c["f"][sel][None, None, :] + rhos[:, None, None] * B[None, :, :]
+            res = (np.log(np.maximum(m, 1e-300)) - np.log(c["d"][sel])[None, None, :]) / c["s"][sel][None, None, :]
+            tot += np.sum(np.minimum(res**2, 1e4), axis=2)
+        i = np.argmin(tot, axis=0)
+        return [(float(tot[i[j], j]), float(a_values[j]), float(rhos[i[j]])) for j in range(len(a_values))]
 
     def signature(self, ctx):
-        out = self._search(ctx)
-        if out is None:
-            return Signature(0.0, 0.0, "no detector frame or too few pixels for a periodogram")
-        stat, psis, vmaxes, a_grid, cache = out
-        i, j, m = np.unravel_index(int(np.argmax(stat)), stat.shape)
-        x = float(stat[i, j, m])
-        n_eff = stat.size / 4.0
-        logp = math.log(n_eff) + _log_sf_chi2_even(2 * x, 2 * len(cache))
+        cache = self._frames(ctx)
+        if not cache:
+            return Signature(0.0, 0.0, "no detector frame with enough pixels for a periodogram")
+        zb, psi, vm = self._band(cache)
+        a_grid = self._a_grid(cache)
+        stat = self._periodogram(cache, psi, vm, a_grid)
+        m = int(np.argmax(stat))
+        x = float(stat[m])
+        logp_per = math.log(len(a_grid) / 3.0) + _log_sf_chi2_even(2 * x, 2 * len(cache))
+        logp_band = math.log(len(self.psis) * len(self.vmaxes) / 3.0) + _log_sf_normal(zb)
+        logp = math.log(2.0) + min(logp_per, logp_band)
         return Signature(
             x, score_from_logp(logp),
-            f"periodogram maximum {x:.1f} (noise mean {len(cache)}) at psi = {np.degrees(psis[i]):.0f} deg, "
-            f"a = {a_grid[m]:.3g} m, band |h_x| < {vmaxes[j]:.2g}",
+            f"band through the peak at psi = {np.degrees(psi):.0f} deg, |h_x| < {vm:.2g} (z = {zb:.1f}); periodogram "
+            f"maximum {x:.1f} (noise mean {len(cache)}) at a = {a_grid[m]:.3g} m",
         )
 
     def extend(self, ctx):
-        out = self._search(ctx)
-        if out is None:
+        cache = self._frames(ctx)
+        if not cache:
             raise ValueError("diffraction: no detector frame to initialise the bars from")
-        stat, psis, vmaxes, a_grid, cache = out
-        i, j, m = np.unravel_index(int(np.argmax(stat)), stat.shape)
-        psi = float(psis[i])
-        # refine the spacing on a fine grid (the fit needs it to a fraction of a fringe)
-        fine = a_grid[m] * np.linspace(0.97, 1.03, 61)
-        best, a0 = -1.0, float(a_grid[m])
-        for a in fine:
-            tot = 0.0
-            for k, r, ok, hx0, hy0, phi_ref, ci, wl in cache:
-                phi = phi_ref + psi
-                hx = np.cos(phi) * hx0 + np.sin(phi) * hy0
-                hy = -np.sin(phi) * hx0 + np.cos(phi) * hy0
-                sel = ok & (np.abs(hx) < vmaxes[j])
-                if sel.sum() < 8:
-                    continue
-                rv = _detrend(np.clip(r[sel], -20, 20), hx[sel], hy[sel])
-                tot += abs(np.sum(rv * np.exp(1j * 2 * np.pi * a * 2 * ci / wl * hy[sel]))) ** 2 / sel.sum()
-            if tot > best:
-                best, a0 = tot, float(a)
+        _, psi, vm = self._band(cache)
+        a_grid = self._a_grid(cache)
+        stat = self._periodogram(cache, psi, vm, a_grid)
+        peaks = [i for i in range(1, len(stat) - 1) if stat[i] >= stat[i - 1] and stat[i] >= stat[i + 1]]
+        peaks = sorted(peaks, key=lambda i: -stat[i])[:3] or [int(np.argmax(stat))]
+        fine = []
+        for i in peaks:  # the periodogram's top peaks, each refined with the orientation by the chi^2
+            for dpsi in np.deg2rad(np.arange(-6.0, 6.1, 1.5)):
+                fine += [(*row, psi + dpsi) for row in self._chi2_a(cache, psi + dpsi, vm, a_grid[i] * np.linspace(0.96, 1.04, 33))]
+        chi, a0, rho0, psi = min(fine)
         distance = 0.325
-        vm = vmaxes[j] if np.isfinite(vmaxes[j]) else float(np.nanmax(np.abs(cache[0][3]))) / 2
         c0 = 0.8 * distance * vm
-        # amplitude: excess in the bright fringes inside the band
-        ex = []
-        for k, r, ok, hx0, hy0, phi_ref, ci, wl in cache:
-            phi = phi_ref + psi
-            hx = np.cos(phi) * hx0 + np.sin(phi) * hy0
-            hy = -np.sin(phi) * hx0 + np.cos(phi) * hy0
-            fr = np.cos(np.pi * a0 * 2 * ci * hy / wl) ** 2 * np.exp(-((distance * hx / c0) ** 2))
-            sel = ok & (fr > 0.6)
-            f = np.asarray(ctx.model_values[k], float)
-            e = f * (np.exp(r * ctx.sigma(k)) - 1.0) / np.maximum(fr, 1e-3)
-            ex.extend(e[sel].tolist())
-        rho0 = float(np.median(ex)) if ex else 0.0
-        if not rho0 > 0:
-            rho0 = float(np.nanmedian(np.concatenate([np.asarray(v, float).ravel() for v in ctx.model_values]))) * 0.1 + 1e-3
         name = _unique_name(ctx.model, "bars")
         term = Oriented(Diffraction(rho=rho0, a=a0, b=a0 / 80.0, c=c0, distance=distance), psi=psi)
         model = _with_terms(ctx.model, {**ctx.model.terms, name: term})
         params = dict(ctx.params)
         params.update({
             f"{name}.rho": Param(rho0, lower=0.0),
-            f"{name}.a": Param(a0, lower=a0 / 1.15, upper=a0 * 1.15),
+            f"{name}.a": Param(a0, lower=a0 / 1.1, upper=a0 * 1.1),
             f"{name}.c": Param(c0, lower=0.0),
             f"{name}.psi": Param(psi, lower=psi - 0.35, upper=psi + 0.35),
         })
@@ -689,9 +746,9 @@ class InstrumentFunctionEffect(Effect):
     doc = (
         "Data side: every frame gets a footprint (FrameData.footprint), the pixel-integrated Gaussian "
         "exp(-2 r^2 / w^2) of the focused beam (Eq 73), with which the fit convolves the model.  No new "
-        "model parameter; the 1/e^2 radius w is chosen among 0.5-8 grid pixels by the matched filter of the "
-        "residual with the change in ln f the convolution makes (the symmetric shoulder: core down, wings "
-        "up), n_new = 1 (w).  Signature: that matched filter's maximum z (look-elsewhere over the widths)."
+        "model parameter; the 1/e^2 radius w (0.5-11 grid pixels, refined to 10 %) is the one with the lowest "
+        "chi^2 profiled over the main lobe's width (golden-section search) and a global log scale; n_new = 1 (w).  Signature: the score test "
+        "z = r . t_perp / |t_perp| at that width (the symmetric shoulder: core down, wings up)."
     )
     widths = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.5, 6.0, 8.0, 11.0)
 
@@ -712,13 +769,42 @@ class InstrumentFunctionEffect(Effect):
         ker = footprint_kernel(w)
         return [dataclasses.replace(b, footprint=ker) if isinstance(b, FrameData) and b.footprint is None else b for b in ctx.blocks]
 
+    def _profile(self, ctx, w):
+        """chi^2 of the base convolved with a footprint of radius w, profiled over the main lobe's width
+        (golden-section search of its scale in [0.15, 1.3]) and a global log scale (closed form)."""
+        main = _main_specular(ctx.model)
+        blocks = self._blocks(ctx, w)
+
+        def chi2(scale):
+            num = den = 0.0
+            parts = []
+            for k in ctx.frames():
+                b = blocks[k]
+                model = ctx.block_model(k)
+                if main:
+                    name, spec = main
+                    pub = _public(model, f"{name}.{_width_field(spec.distribution)}")
+                    model = model.with_params({pub: float(np.asarray(model.params()[pub])) * scale})
+                f = _block_values(b, model, ctx.block_frame(k))
+                ok = _ok(ctx, k) & (f > 0)
+                sig = ctx.sigma(k)[ok]
+                dl = (np.log(np.asarray(b.brdf, float)[ok]) - np.log(f[ok])) / sig
+                parts.append((dl, 1.0 / sig))
+                num += float(np.sum(dl / sig)); den += float(np.sum(1.0 / sig**2))
+            c = num / den if den else 0.0
+            return sum(float(np.sum((dl - c * inv) ** 2)) for dl, inv in parts)
+
+        if not main:
+            return chi2(1.0)
+        return _golden(lambda x: chi2(math.exp(x)), math.log(0.15), math.log(1.3), 22)[1]
+
     def _scan(self, ctx):
-        zs = [(_template_z(ctx, lambda m: m, ctx.frames(), self._blocks(ctx, w)), w) for w in self.widths]
-        # z^2 approximates the chi^2 decrease: refine about the best width on a finer grid
-        z0, w0 = max(zs)
-        for w in w0 * np.array([0.8, 0.9, 1.1, 1.25]):
-            zs.append((_template_z(ctx, lambda m: m, ctx.frames(), self._blocks(ctx, float(w))), float(w)))
-        return max(zs)
+        rows = [(self._profile(ctx, w), w) for w in self.widths]
+        _, w = min(rows)
+        rows = [(self._profile(ctx, w * f), w * f) for f in (0.8, 0.9, 1.0, 1.12, 1.25)]
+        _, w = min(rows)
+        z = _template_z(ctx, lambda m: m, ctx.frames(), self._blocks(ctx, float(w)))
+        return z, float(w)
 
     def signature(self, ctx):
         z, w = self._scan(ctx)
@@ -798,6 +884,16 @@ class PixelNonlinearityEffect(Effect):
 
     def present_in(self, model):
         return "nonlinearity" in response_features(model)
+
+    def identifiable(self, model, params, blocks):
+        terms = list(model.terms.values())
+        if len(terms) == 1 and isinstance(terms[0], Specular) and isinstance(terms[0].distribution, Beckmann):
+            (tname, wname), = _weight_names(model)
+            width = _public(model, f"{tname}.m")
+            if _is_free(params, wname) and _is_free(params, width):
+                return (f"a power law f^gamma of a lone Beckmann lobe is the same lobe with m / sqrt(gamma) and another "
+                        f"weight: with {width} and {wname} free the data cannot tell them apart")
+        return None
 
     def _regress(self, ctx):
         X, Y, W = [], [], []
@@ -1133,9 +1229,9 @@ class SpectralBandwidthEffect(Effect):
     doc = (
         "Replaces the base's Diffraction term by SpectralDiffraction: the bars averaged over a Gaussian "
         "line of relative rms width <bars>.width = sigma_lambda / lambda (15 Gauss-Hermite nodes), free in "
-        "[0, 0.3]; higher orders smear into stripes.  Needs a diffraction term in the base.  Initialised by "
-        "the matched filter of the residual with the smearing of widths 0.2 %-8 %; signature: that "
-        "filter's maximum z (look-elsewhere over the widths)."
+        "[0, 0.3]; higher orders smear into stripes.  Needs a diffraction term in the base.  Initialised "
+        "at the width (0.2 %-8 %) whose linearised refit lowers chi^2 most; signature: the score test "
+        "z = r . t_perp / |t_perp| of that smearing (t_perp: its change in ln f less what the base absorbs)."
     )
     widths = (0.002, 0.005, 0.01, 0.02, 0.04, 0.08)
 
@@ -1164,7 +1260,8 @@ class SpectralBandwidthEffect(Effect):
         return tr
 
     def _scan(self, ctx):
-        return max((_template_z(ctx, self._transform(w)), w) for w in self.widths)
+        z, w, _ = _best_by_linear_chi2(ctx, self.widths, lambda w: (self._transform(w),))
+        return z, w
 
     def signature(self, ctx):
         z, w = self._scan(ctx)
@@ -1188,7 +1285,7 @@ class StrayLightEffect(Effect):
         "Instrument side: the measured BRDF is f + ghost f(turned) + background (InstrumentResponse "
         "feature 'stray_light': instrument.ghost, .background, and the copy's turn .ghost_x, .ghost_y per "
         "frame).  Initialised from the cross-correlation of the residual with the base model's peak "
-        "footprint (the model above 1 % of its maximum): its maximum away from zero shift gives the copy's "
+        "footprint (the model above 10 % of its maximum): its maximum away from zero shift gives the copy's "
         "offset (turned into ghost_x, ghost_y) and the excess there its relative amplitude.  Signature: "
         "that matched filter's maximum z over the shifts searched."
     )
@@ -1209,7 +1306,7 @@ class StrayLightEffect(Effect):
             ok = np.isfinite(r)
             if not ok.any():
                 continue
-            T = (f > 0.01 * np.nanmax(f)).astype(float)
+            T = (f > 0.1 * np.nanmax(f)).astype(float)
             rows, cols = r.shape
             shape = (2 * rows, 2 * cols)
             R0 = np.where(ok, r, 0.0)
@@ -1225,7 +1322,7 @@ class StrayLightEffect(Effect):
             ext_c = (cc.max() - cc.min()) if cc.size else 1
             dr = np.fft.fftfreq(shape[0], 1.0 / shape[0])[:, None]
             dc = np.fft.fftfreq(shape[1], 1.0 / shape[1])[None, :]
-            z[(np.abs(dr) <= max(ext_r, 2)) & (np.abs(dc) <= max(ext_c, 2))] = -np.inf
+            z[(np.abs(dr) <= max(ext_r // 2 + 1, 2)) & (np.abs(dc) <= max(ext_c // 2 + 1, 2))] = -np.inf
             n_shift += int(np.isfinite(z).sum())
             i = np.unravel_index(int(np.argmax(z)), z.shape)
             if best is None or z[i] > best[0]:
@@ -1276,9 +1373,9 @@ class AngularSamplingEffect(Effect):
     doc = (
         "Model averaged over each sample's square angular footprint of full width instrument.aperture "
         "(InstrumentResponse feature 'aperture': 21 x 5 midpoints, in-plane x out-of-plane turns of the "
-        "scatter direction), for goniometer tables whose step can straddle a narrow peak.  Initialised by "
-        "the matched filter of the residual with the averaging of apertures 0.05-3 deg; signature: that "
-        "filter's maximum z (look-elsewhere over the apertures).  Frames only: pixels are far smaller than "
+        "scatter direction), for goniometer tables whose step can straddle a narrow peak.  Initialised at "
+        "the aperture (0.05-3 deg) whose linearised refit lowers chi^2 most; signature: the score test "
+        "z = r . t_perp / |t_perp| of that averaging.  Frames only: pixels are far smaller than "
         "any feature, so it is not identifiable there."
     )
     apertures_deg = (0.05, 0.1, 0.2, 0.4, 0.8, 1.5, 3.0)
@@ -1296,7 +1393,8 @@ class AngularSamplingEffect(Effect):
 
     def _scan(self, ctx):
         tables = [k for k, b in enumerate(ctx.blocks) if isinstance(b, TableData)]
-        return max((_template_z(ctx, self._tr(np.deg2rad(a)), tables), a) for a in self.apertures_deg)
+        z, a, _ = _best_by_linear_chi2(ctx, self.apertures_deg, lambda a: (self._tr(np.deg2rad(a)), tables))
+        return z, a
 
     def signature(self, ctx):
         z, a = self._scan(ctx)
