@@ -178,6 +178,17 @@ def test_live_view_renders_headless_and_updates(captured, tmp_path):
         shots.append((view.png.stat().st_mtime_ns, view.png.read_bytes()))
     assert shots[0][1] != shots[1][1] and shots[1][0] >= shots[0][0]
     assert shots[1][1][:8] == b"\x89PNG\r\n\x1a\n"
+    # window mode (here on the non-interactive Agg backend): the same PNG, shown in a pyplot figure
+    import warnings
+
+    win = LiveView(tmp_path / "win", mode="window", min_interval_s=0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "FigureCanvasAgg is non-interactive"
+        assert win.update_exposure(m, "3.0", Exposure(t, f.n_frames, f.counts), f.black_level, f.full_scale,
+                                   6.6e13, {}, bench)
+    assert win._fig is not None and win.png.is_file()
+    win.close()
+    assert win._fig is None
 
 
 # --- interlock ------------------------------------------------------------------------------------
