@@ -8,6 +8,11 @@ residuals weighted by each point's uncertainty, an optional robust loss and
 instrument function, and 1-sigma uncertainties from the weighted Jacobian.
 See the module docstrings of ``_params``, ``_residuals``, ``_covariance``,
 ``_solvers`` and ``_auto_init`` for the conventions.
+
+:func:`read_frame_data` / :func:`frame_data_from_reduced` turn reduced frames
+(``brdfjax reduce`` output) into :class:`FrameData`; :mod:`brdfjax.fit.config`
+is the TOML fit config behind ``brdfjax fit CONFIG --out DIR``
+(``load_fit_config``, ``build_fit_job``, ``run_fit``).
 """
 
 from ._auto_init import (
