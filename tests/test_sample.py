@@ -367,3 +367,18 @@ def test_cli_interrupted_by_a_signal_resumes(tmp_path, example_frame, _):
     assert main(["sample", str(cfg), "--out", str(out), "--resume", "--steps", str(k + 10), "--no-progress"]) == 0
     after = read_chain(out / "chain.h5").get_chain()
     assert after.shape[0] == k + 10 and np.array_equal(after[:k], before)
+
+
+@pytest.mark.parametrize("_", [pytest.param(0, marks=slow)])
+def test_shipped_config_runs(tmp_path, _):
+    """configs/sample_synthetic_solar_cell.toml end to end (synthetic instrument, reduction, fit, 60 steps)."""
+    out = tmp_path / "run"
+    cfg = ROOT / "configs" / "sample_synthetic_solar_cell.toml"
+    assert main(["sample", str(cfg), "--out", str(out), "--steps", "60", "--no-progress"]) == 0
+    doc = json.loads((out / "posterior.json").read_text())
+    assert doc["n_steps"] == 60 and doc["n_walkers"] == 16
+    truth = dict(bj.SOLAR_CELL_SEED)
+    for k in ("m1", "rho_s1", "rho_s3"):
+        p = doc["parameters"][k]
+        assert p["median"] == pytest.approx(truth[k], rel=0.05)
+    assert (out / "fit_result.json").is_file() and (out / "predictive_ti20.png").is_file()

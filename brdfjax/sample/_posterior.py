@@ -28,7 +28,7 @@ iterated element by element).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -262,6 +262,3 @@ def default_walkers(ndim: int) -> int:
     n = max(32, 4 * ndim)
     return n + (n % 2)
 
-
-def names_sequence(names: Sequence[str]) -> list[str]:
-    return list(names)
