@@ -221,7 +221,7 @@ def print_recovery(res, rows, checks) -> None:
             t, v, s = r["truth"], r["value"], r["sigma"]
             err = f"{100 * r['rel_err']:+.3f} %"
         print(f"{k:16s} {t:12.6g} {v:12.6g} {s:10.3g} {r['pull']:+6.2f} {err:>10s}")
-    print(f"chi2 {res.chi2:.1f}, dof {res.dof}, reduced chi2 {res.chi2_reduced:.4f}; "
+    print(f"chi2 {res.chi2:.1f}, dof {res.dof}, {res.n_points} points, reduced chi2 {res.chi2_reduced:.4f}; "
           f"{res.n_iterations} steps, {res.wall_s:.1f} s ({res.message})")
     for k, ok in checks.items():
         print(f"  [{'x' if ok else ' '}] {k}")
@@ -265,12 +265,13 @@ def coverage(out: Path, seeds: list[int], bin_: int, step: int) -> dict:
         else:
             t0 = time.perf_counter()
             frames = load_frames(measure(out, s, bin_, step))
-            t1 = time.perf_counter()
+            t1, c1 = time.perf_counter(), time.process_time()
             r = fit(MODEL, frames, spec())
+            cpu = time.process_time() - c1
             rows = recovery_row(r, frames)
             rec = dict(seed=s, converged=bool(r.converged), chi2_reduced=r.chi2_reduced,
                        inside={k: bool(abs(v["value"] - v["truth"]) <= v["sigma"]) for k, v in rows.items()},
-                       pulls={k: v["pull"] for k, v in rows.items()}, data_s=t1 - t0, fit_s=r.wall_s)
+                       pulls={k: v["pull"] for k, v in rows.items()}, data_s=t1 - t0, fit_s=r.wall_s, fit_cpu_s=cpu)
             _atomic_json(cache, rec)
         n_in = sum(rec["inside"].values())
         inside += n_in
@@ -318,7 +319,9 @@ def main(argv=None) -> int:
         t_data = time.perf_counter() - t0
         print(f"data: seed {args.seed}, {', '.join(f'{f.name} {int(f.usable().sum())} px' for f in frames)} "
               f"({t_data:.1f} s)", flush=True)
+        c0 = time.process_time()
         reference = fit(MODEL, frames, spec())
+        cpu_fit = time.process_time() - c0
         rows = recovery_row(reference, frames)
         checks = check_recovery(reference, rows)
         print_recovery(reference, rows, checks)
@@ -326,7 +329,7 @@ def main(argv=None) -> int:
             seed=args.seed, rows=rows, checks=checks, chi2=reference.chi2, dof=reference.dof,
             chi2_reduced=reference.chi2_reduced, n_points=reference.n_points, n_iterations=reference.n_iterations,
             converged=reference.converged, message=reference.message, timings=reference.timings,
-            wall_s=reference.wall_s, data_s=t_data, warnings=list(reference.warnings),
+            wall_s=reference.wall_s, cpu_s=cpu_fit, data_s=t_data, warnings=list(reference.warnings),
         )
         _atomic_json(result_path, report)
     if "robustness" in parts:
