@@ -382,3 +382,25 @@ def test_shipped_config_runs(tmp_path, _):
         p = doc["parameters"][k]
         assert p["median"] == pytest.approx(truth[k], rel=0.05)
     assert (out / "fit_result.json").is_file() and (out / "predictive_ti20.png").is_file()
+
+
+def test_config_priors_convert_units_and_name_unknown_keys():
+    from brdfjax.config import ConfigError
+    from brdfjax.sample.cli import SampleSection, priors_from_config
+
+    sec = SampleSection.model_validate({"priors": {
+        "dtheta_deg": {"kind": "normal", "mu": 0.5, "sigma": 0.1},
+        "a_m": {"kind": "log_uniform", "lower": 1e-4, "upper": 1e-3},
+        "phi_ref_deg[ti20]": {"kind": "truncated_normal", "mu": 0.0, "sigma": 0.05, "lower": -1.0},
+    }})
+    pri = priors_from_config("x.toml", sec, MODEL)
+    assert pri["dtheta"] == Prior.normal(math.radians(0.5), math.radians(0.1))
+    assert pri["a"] == Prior.log_uniform(1e-4, 1e-3)
+    assert pri["phi_ref[ti20]"] == Prior.truncated_normal(0.0, math.radians(0.05), lower=math.radians(-1.0))
+    bad = SampleSection.model_validate({"priors": {"dtheta": {"kind": "uniform", "lower": 0.0, "upper": 1.0},
+                                                   "m1": {"kind": "uniform", "lower": 1.0, "upper": 0.5}}})
+    with pytest.raises(ConfigError) as e:
+        priors_from_config("x.toml", bad, MODEL)
+    msg = str(e.value)
+    assert "x.toml: sample.priors.dtheta: prior on unknown parameter" in msg and "did you mean 'dtheta_deg'" in msg
+    assert "x.toml: sample.priors.m1: prior on 'm1': lower 1.0 must be < upper 0.5" in msg
