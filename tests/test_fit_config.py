@@ -292,3 +292,39 @@ def test_a_raw_manifest_is_reduced_into_the_work_dir(tmp_path):
     np.testing.assert_allclose(f.sigma_rel[u], r.extra["u_scatter_flux"][np.ix_(rows, cols)][u], rtol=1e-6)
     assert np.all(f.sigma_rel[u] < r.extra["sigma_rel"][np.ix_(rows, cols)][u])
     assert job.fit_kwargs["precision"] == "float64" and job.fit_kwargs["solver"] == "levenberg_marquardt"
+
+
+def test_an_astm_file_through_the_config(tmp_path):
+    (tmp_path / "scan.txt").write_text(textwrap.dedent("""
+        # ASTM E1392-style export
+        Sample: test
+        Wavelength: 632.8 nm
+        Angle unit: deg
+        Incident angle: 20
+        theta_s  BRDF  sigma
+        -10  0.10  0.01
+        10   0.50  0.05
+        20   5.00  0.50
+        30   0.40  0.04
+        Incident angle: 40
+        40   6.00  0.60
+        50   0.30  0.03
+    """))
+    p = tmp_path / "astm.toml"
+    p.write_text(textwrap.dedent("""
+        [[data.tables]]
+        path = "scan.txt"
+        format = "astm"
+        name = "scan"
+        min_brdf = 0.2
+        [model.terms.diffuse]
+        kind = "lambertian"
+        params = { rho_d = 0.5 }
+    """))
+    (t,) = build_fit_job(load_fit_config(p)).blocks
+    assert t.name == "scan" and len(t) == 6 and t.usable().sum() == 5  # 0.10 < min_brdf
+    np.testing.assert_allclose(np.degrees(np.asarray(t.theta_i)), [20, 20, 20, 20, 40, 40])
+    np.testing.assert_allclose(np.asarray(t.sigma_rel), 0.1)
+    p.write_text(p.read_text().replace('format = "astm"', 'format = "astm"\nsigma_rel = 0.05'))
+    with pytest.raises(ConfigError, match=r"data.tables\[0\].sigma_rel: .*scan.txt has its own uncertainties"):
+        build_fit_job(load_fit_config(p))
