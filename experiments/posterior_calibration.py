@@ -2,8 +2,8 @@
 
 Data: the seed's solar cell (§6.4 values are the truth) rendered at theta_i =
 20 deg around the centre peak and the diffraction band (every 6th pixel of a
-181 x 181 pixel region of the seed camera, 961 points, all above the 0.1 sr^-1
-floor), times log-normal noise of 3 % (``brdfjax.fit.render_noisy_frames``),
+181 x 181 pixel region of the seed camera: a 31 x 31 grid of which the 621
+pixels above 0.1 sr^-1 are used), times log-normal noise of 3 % (``brdfjax.fit.render_noisy_frames``),
 one noise seed per synthetic frame.
 
 1. Calibration (``--frames``, default 50): per frame, the least-squares fit
@@ -161,7 +161,8 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     summary: dict = {"data": {"model": "solar_cell (seed values)", "theta_i_deg": 20.0, "roi_px": list(ROI),
-                              "step": STEP, "noise_rel": NOISE, "free": list(FREE)}}
+                              "step": STEP, "noise_rel": NOISE, "free": list(FREE),
+                              "n_points": int(frames_for(0)[0].usable().sum())}}
     t0 = time.perf_counter()
     if not args.skip_calibration:
         cal = calibration(out, args.frames, args.steps, args.walkers)
