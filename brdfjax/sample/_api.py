@@ -263,6 +263,8 @@ def sample(
         raise SampleError(f"start must be a FitResult or its JSON dict, got {type(start).__name__}")
     chain_path = None if out_dir is None else Path(out_dir) / "chain.h5"
     resuming = bool(resume and chain_path is not None and chain_path.exists())
+    if chain_path is not None and chain_path.exists() != bool(resume):
+        open_chain(chain_path, (), 0, resume=resume)  # raises the message (before any fitting)
     if fit_res is None and start_json is None and not resuming:
         say("no fit result given: fitting first (the walkers start around the least-squares optimum)")
         fit_res = fit(model, blocks, spec, **fit_kwargs)

@@ -207,6 +207,8 @@ def run(args: argparse.Namespace) -> int:
                 f"{out / 'chain.h5'} already holds a chain; continue it with --resume, or choose another --out "
                 "(an existing chain is never overwritten)"
             )
+        if args.resume and not chain_exists:
+            raise SampleError(f"--resume: there is no chain to resume at {out / 'chain.h5'}; run without --resume to start one")
         out.mkdir(parents=True, exist_ok=True)
         job = build_fit_job(cfg, work_dir=out)
         for note in job.notes:
