@@ -5,8 +5,8 @@ For each effect: data generated with it (``base_scenario`` + ``inject`` +
 around the peak, 3 % log-normal noise), the base model fitted without it, the
 effect's refit-independent signature (score > 3), and the refit with the
 extension (at least 80 % of the excess chi^2 over its degrees of freedom explained, reduced chi^2 < 1.5); on null data
-(nothing withheld) every signature stays below 3.  The refits of the effects
-beyond the six that matter most for the shipped case run with BRDFJAX_SLOW=1.
+(nothing withheld) every signature stays below 3.  The round trips beyond
+the three that matter most for the shipped case run with BRDFJAX_SLOW=1.
 """
 
 from __future__ import annotations
@@ -23,8 +23,10 @@ from brdfjax.fit import Param, fit
 
 SLOW = os.environ.get("BRDFJAX_SLOW") == "1"
 
-#: Effects whose refit runs by default (the shipped case and the benchmark's first concern).
-QUICK_REFIT = ("diffraction", "offset_normal_peak", "lambertian", "instrument_function", "flux_scale", "distribution_shape")
+#: Effects whose round trip runs by default (the shipped case's two withheld terms and a diffuse floor);
+#: every other effect's round trip (signature and refit) runs with BRDFJAX_SLOW=1 (about 80 s each on a
+#: loaded 2-core box: two fits, each compiled for its own model structure).
+QUICK = ("diffraction", "offset_normal_peak", "lambertian")
 FRAME_EFFECTS = [n for n in E.EFFECTS if n != "angular_sampling"]
 SEEDS = {n: 11 + i for i, n in enumerate(E.EFFECTS)}
 
@@ -113,7 +115,9 @@ def test_null_signatures_low(null_ctx):
     assert max(scores.values()) < 3.0, scores
 
 
-@pytest.mark.parametrize("name", list(E.EFFECTS))
+@pytest.mark.parametrize(
+    "name", [n if n in QUICK else pytest.param(n, marks=pytest.mark.skipif(not SLOW, reason="BRDFJAX_SLOW=1")) for n in E.EFFECTS]
+)
 def test_round_trip(name):
     seed = SEEDS[name]
     sc, sc_fx = _scenario(name, seed)
@@ -123,8 +127,6 @@ def test_round_trip(name):
     assert eff.identifiable(sc_fx.base_model, sc_fx.params, blocks) is None
     sig = eff.signature(ctx)
     assert sig.score > 3.0, (name, sig)
-    if not (SLOW or name in QUICK_REFIT):
-        return
     ext = eff.extend(ctx)
     assert ext.n_new >= 0
     r2 = fit(ext.model, ext.blocks if ext.blocks is not None else blocks, ext.params, **ext.fit_kwargs)

@@ -44,6 +44,7 @@ from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -221,12 +222,12 @@ class InstrumentResponse(Model):
             dirs = turn_scatter(dirs, self.rx, self.ry, self.rz)
         if "aperture" in on:
             nx, ny = self.aperture_n
-            f = 0.0
-            for x in _midpoints(nx):
-                for y in _midpoints(ny):
-                    # in-plane (about y) along x-nodes, out-of-plane (about x) along y-nodes
-                    f = f + self._sum(turn_scatter(dirs, self.aperture * y, self.aperture * x), wavelength)
-            f = f / (nx * ny)
+            gx, gy = np.meshgrid(_midpoints(nx), _midpoints(ny), indexing="ij")
+            # in-plane (about y) along x-nodes, out-of-plane (about x) along y-nodes; vmapped (one compiled copy)
+            vals = jax.vmap(lambda x, y: self._sum(turn_scatter(dirs, self.aperture * y, self.aperture * x), wavelength))(
+                jnp.asarray(gx.ravel(), dirs.w_s.dtype), jnp.asarray(gy.ravel(), dirs.w_s.dtype)
+            )
+            f = jnp.mean(vals, axis=0)
         else:
             f = self._sum(dirs, wavelength)
         if "stray_light" in on:
