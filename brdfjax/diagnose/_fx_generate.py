@@ -396,7 +396,8 @@ def synthesize(scenario: Scenario, seed: int = 0, out_dir: str | Path | None = N
 
 
 def _synth_instrument(sc: Scenario, seed: int, out_dir: str | Path | None) -> list[FrameData]:
-    from ..cli import choose_nd_filters
+    from ..cli import ND_3_TOLERANCE, choose_nd_filters
+    from ..instrument.raw import Calibration
     from ..fit import read_frame_data
     from ..instrument import SyntheticInstrument, reduce_measurement_set
 
@@ -407,6 +408,7 @@ def _synth_instrument(sc: Scenario, seed: int, out_dir: str | Path | None) -> li
         frame = Frame(np.float64(ti), np.float64(phi), np.float64(wl))
         brdf = ins.render_brdf(sc.truth_model, frame)
         samples[f"f{i}"] = (brdf, frame, choose_nd_filters(lambda s, b=brdf, f=frame: ins.sample_flux(b, f, s), ins))
-    manifest = ins.write_set(folder / "raw", samples, wavelength=sc.frames[0][2])
+    manifest = ins.write_set(folder / "raw", samples, wavelength=sc.frames[0][2],
+                             calibration=Calibration(nd_tolerances={3.0: ND_3_TOLERANCE}))
     paths = reduce_measurement_set(manifest, folder / "reduced")
     return [read_frame_data(p, step=sc.step, roi=sc.roi) for p in paths]

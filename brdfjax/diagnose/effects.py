@@ -778,7 +778,7 @@ class InstrumentFunctionEffect(Effect):
     doc = (
         "Data side: every frame gets a footprint (FrameData.footprint), the pixel-integrated Gaussian "
         "exp(-2 r^2 / w^2) of the focused beam (Eq 73), with which the fit convolves the model.  No new "
-        "model parameter; the 1/e^2 radius w (0.5-11 grid pixels, refined to 10 %) is the one with the lowest "
+        "model parameter; the 1/e^2 radius w (0.5-11 grid pixels, then a golden-section search) is the one with the lowest "
         "chi^2 profiled over the main lobe's width (golden-section search) and a global log scale; n_new = 1 (w).  Signature: the score test "
         "z = r . t_perp / |t_perp| at that width (the symmetric shoulder: core down, wings up)."
     )
@@ -807,8 +807,8 @@ class InstrumentFunctionEffect(Effect):
     def _scan(self, ctx):
         rows = [(self._profile(ctx, w), w) for w in self.widths]
         _, w = min(rows)
-        rows = [(self._profile(ctx, w * f), w * f) for f in (0.8, 0.9, 1.0, 1.12, 1.25)]
-        _, w = min(rows)
+        lw, _ = _golden(lambda x: self._profile(ctx, math.exp(x)), math.log(w / 1.4), math.log(w * 1.4), 14)
+        w = math.exp(lw)
         z = _template_z(ctx, lambda m: m, ctx.frames(), self._blocks(ctx, float(w)))
         return z, float(w)
 
@@ -820,7 +820,7 @@ class InstrumentFunctionEffect(Effect):
     def extend(self, ctx):
         z, w = self._scan(ctx)
         return Extension(ctx.model, dict(ctx.params), 1, blocks=self._blocks(ctx, w), fit_kwargs={"use_footprint": True},
-                         note=f"footprint 1/e^2 radius {w:g} grid pixels (matched-filter z {z:.1f})")
+                         note=f"footprint 1/e^2 radius {w:.3g} grid pixels (matched-filter z {z:.1f})")
 
 
 class FluxScaleEffect(Effect):
