@@ -144,17 +144,13 @@ def measure(out: Path, seed: int, bin_: int, step: int) -> list[Path]:
 
 
 def grid_footprint(w_px: float, step: int, tail: float = 1e-9) -> np.ndarray:
-    """The beam footprint on a grid of every ``step``-th pixel: the pixel-integrated Gaussian of the raw
-    pixels, *sampled* every ``step`` pixels (not integrated over the grid's ``step``-wide cells, which
-    adds ``step^2 / 12`` pixel^2 of variance: at step 4 on the 2x-binned camera that made the fitted
-    m1, m2 1 % and c 2 % too small)."""
+    """The beam footprint on a grid of every ``step``-th pixel: the raw-pixel kernel *sampled* every
+    ``step`` pixels (``footprint_kernel(..., step=step)``; integrating over the grid's ``step``-wide cells
+    adds ``step^2 / 12`` pixel^2 of variance: at step 4 on the 2x-binned camera that made the fitted m1,
+    m2 1 % and c 2 % too small)."""
     from brdfjax.instrument.synthetic import footprint_kernel
 
-    k = footprint_kernel(w_px, tail=tail)
-    c = k.shape[0] // 2
-    idx = c + step * np.arange(-(c // step), c // step + 1)
-    k = k[np.ix_(idx, idx)]
-    return k / k.sum()
+    return footprint_kernel(w_px, tail=tail, step=step)
 
 
 def truth_masks(paths: list[Path], bin_: int) -> list[np.ndarray]:

@@ -34,8 +34,8 @@ error after a non-linearity correction).
 The instrument function: a frame attribute ``footprint_w_px`` (the 1/e^2
 radius of a Gaussian beam footprint, Eq 73, in raw detector pixels), or the
 ``footprint_w_px`` argument, gives the footprint kernel sampled on the
-frame's grid (:func:`brdfjax.instrument.synthetic.footprint_kernel` with the
-radius divided by the grid's pixel step); ``footprint`` may also be given as
+frame's grid (:func:`brdfjax.instrument.synthetic.footprint_kernel` of the
+raw pixels, sampled every grid step); ``footprint`` may also be given as
 a kernel array directly.  With a footprint, a region of interest is widened
 by the kernel's half-width: the margin is evaluated (light from it reaches
 the region through the convolution) but masked.  Files written before ``detector_n_v`` /
@@ -130,7 +130,7 @@ def _footprint_for(w_px: float | None, pixel_step: int):
         return None
     from ..instrument.synthetic import footprint_kernel
 
-    return footprint_kernel(float(w_px) / pixel_step, tail=1e-6)
+    return footprint_kernel(float(w_px), tail=1e-6, step=int(pixel_step))
 
 
 def frame_data_from_reduced(
