@@ -36,6 +36,7 @@ from .terms import (
     Lambertian as Lambertian,
     Model as Model,
     OffsetNormal as OffsetNormal,
+    Oriented as Oriented,
     Specular as Specular,
     solar_cell as solar_cell,
 )

@@ -15,7 +15,7 @@ builder).
 
 Anisotropic distributions (``BeckmannAniso``, ``GGXAniso``) have their axes
 along the sample's x and y; the orientation of a groove pattern is the
-:class:`Oriented` wrapper's angle ``psi``, which turns any term about the
+:class:`~brdfjax.terms.Oriented` wrapper's angle ``psi``, which turns any term about the
 sample normal (the distribution's x axis lies at azimuth ``psi`` from +x
 toward +y).  Fresnel and Q do not depend on the azimuth, so turning the
 term is exactly turning its microfacet distribution.
@@ -23,31 +23,12 @@ term is exactly turning its microfacet distribution.
 
 from __future__ import annotations
 
-from typing import ClassVar
-
 import numpy as np
-from jaxtyping import Array
 
-from ._params import check_param, param
 from .distributions import Beckmann, BeckmannAniso, GGXAniso
-from .geometry import Rz
-from .terms import AbstractTerm, Lambertian, Model, Specular
+from .terms import Lambertian, Model, Oriented, Specular
 
 __all__ = ["Oriented", "mirror", "polished_aluminium", "kapton", "MIRROR", "POLISHED_ALUMINIUM", "KAPTON"]
-
-
-class Oriented(AbstractTerm):
-    """A term turned by ``psi`` about the sample normal (its x axis at azimuth ``psi`` from +x toward +y)."""
-
-    kind: ClassVar[str] = "oriented"
-    term: AbstractTerm
-    psi: Array = param("rad", "orientation of the term's x axis, from +x toward +y")
-
-    def __check_init__(self):
-        check_param("oriented", "psi", self.psi, np.isfinite, "a finite angle (rad)")
-
-    def __call__(self, dirs, wavelength):
-        return self.term(dirs.rotated(Rz(-self.psi)), wavelength)
 
 
 def _deg(x: float) -> float:

@@ -36,6 +36,7 @@ __all__ = [
     "Specular",
     "Lambertian",
     "OffsetNormal",
+    "Oriented",
     "Diffraction",
     "Model",
     "solar_cell",
@@ -115,6 +116,26 @@ class OffsetNormal(AbstractTerm):
 
     def __call__(self, dirs, wavelength):
         return jnp.where(_both_above(dirs), self.term(dirs.rotated(self.rotation()), wavelength), 0.0)
+
+
+class Oriented(AbstractTerm):
+    """A term turned about the sample normal by ``psi`` (rad): evaluated on directions rotated by ``Rz(-psi)``.
+
+    The wrapped term's x axis lies at azimuth ``psi`` from +x toward +y: the
+    orientation of an anisotropic distribution's axes (a groove pattern) or of
+    a bar grating.  Fresnel and Q do not depend on the azimuth, so turning a
+    specular term is exactly turning its microfacet distribution.
+    """
+
+    kind: ClassVar[str] = "oriented"
+    term: AbstractTerm
+    psi: Array = param("rad", "orientation of the wrapped term's x axis, from +x toward +y")
+
+    def __check_init__(self):
+        check_param("oriented", "psi", self.psi, np.isfinite, "a finite angle (rad)")
+
+    def __call__(self, dirs, wavelength):
+        return self.term(dirs.rotated(Rz(-self.psi)), wavelength)
 
 
 class Diffraction(AbstractTerm):

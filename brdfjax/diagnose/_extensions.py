@@ -51,20 +51,9 @@ from jaxtyping import Array
 
 from .._params import check_param, param
 from ..geometry import Directions, Rx, Ry, Rz, rotate
-from ..terms import AbstractTerm, Diffraction, Model, _param_fields
+from ..terms import AbstractTerm, Diffraction, Model, Oriented, _param_fields
 
 __all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter"]
-
-
-class Oriented(AbstractTerm):
-    """A term turned about the sample normal by ``psi`` (rad): evaluated on directions rotated by ``Rz(-psi)``."""
-
-    kind: ClassVar[str] = "oriented"
-    term: AbstractTerm
-    psi: Array = param("rad", "orientation of the wrapped term about the sample normal")
-
-    def __call__(self, dirs, wavelength):
-        return self.term(dirs.rotated(Rz(-self.psi)), wavelength)
 
 
 def _gauss_hermite(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:

@@ -36,7 +36,7 @@ by name (:data:`INITIALIZERS`) and called as ``init(model, blocks,
    pixel of every frame.
 
 ``specular_peak`` (one Specular term, possibly turned by
-:class:`~brdfjax.presets.Oriented`, with an optional Lambertian term; detector
+:class:`~brdfjax.terms.Oriented`, with an optional Lambertian term; detector
 frames): the mirror, polished-aluminium and Kapton presets; see
 :func:`init_specular_peak`.
 
@@ -446,7 +446,7 @@ def init_specular_lambertian(
 
 def _peak_terms(model: Model) -> tuple[str, Specular, Any, str | None] | None:
     """``(name, specular, oriented wrapper or None, lambertian name or None)`` of a one-peak model, else None."""
-    from ..presets import Oriented
+    from ..terms import Oriented
 
     spec, lamb = [], []
     for name, t in model.terms.items():
@@ -535,7 +535,7 @@ def init_specular_peak(
     model: Model, blocks: Sequence[FrameData | TableData], *, n: float | None = None, k: float | None = None,
     diffuse_quantile: float = 0.05,
 ) -> dict[str, Any]:
-    """Start values of a one-peak model (a Specular term, possibly :class:`~brdfjax.presets.Oriented`, and an
+    """Start values of a one-peak model (a Specular term, possibly :class:`~brdfjax.terms.Oriented`, and an
     optional Lambertian) from detector frames: the mirror, polished-aluminium and Kapton presets.
 
     Per frame, a general log-quadratic in the sample-frame half-vector slopes over the top e^-3 of the
