@@ -110,7 +110,7 @@ def test_step_flag_overrides_config(small_run, tmp_path, capsys):
     [
         (SMALL.replace('theta_i_deg = 60.0', 'theta_i_deg = 95.0'), "frames[1].theta_i_deg", "0 <= theta_i_deg < 90"),
         (SMALL.replace("step = 16", "stride = 16"), "grid.stride", "allowed keys"),
-        (SMALL.replace('"solar_cell"', '"solar"'), "model.preset", "known: solar_cell"),
+        (SMALL.replace('"solar_cell"', '"solar"'), "model.preset", "known: kapton, mirror, polished_aluminium, solar_cell"),
         (SMALL + "[model.params]\nm1 = -1.0\n", "model.params.m1", "m > 0"),
     ],
 )
