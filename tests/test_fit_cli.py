@@ -139,7 +139,7 @@ def _cheap_synthetic(tmp_path: Path, cache: Path) -> Path:
     text = (CONFIGS / "fit_synthetic_solar_cell.toml").read_text()
     text = text.replace("theta_i_deg = [20.0, 40.0, 60.0]", "theta_i_deg = [20.0]")
     text = text.replace("roi_deg = [-0.3, 1.15, -0.6, 0.9]", "roi_deg = [-0.3, 0.3, -0.3, 0.3]")
-    text = text.replace("bin = 8", f"bin = 8\ncache_dir = \"{cache.as_posix()}\"")
+    text = text.replace("bin = 4", f"bin = 8\ncache_dir = \"{cache.as_posix()}\"")  # 8 x 8: seconds
     head, _, _ = text.partition("[params]")
     p = tmp_path / "cheap.toml"
     p.write_text(head + textwrap.dedent("""
