@@ -360,6 +360,10 @@ def main(argv: list[str] | None = None) -> int:
                  f"(true {r['chi2_reduced_true'] if r['chi2_reduced_true'] is None else round(r['chi2_reduced_true'], 3)})")
               + f" [{time.perf_counter() - t0:.0f} s]", flush=True)
         _atomic_json(out, {"settings": vars(args), "trials": results, "summary": _clean(summarise(results, names))})
+        # Every refit compiles its own model structure; over many trials the executables exhaust the
+        # process's memory mappings (vm.max_map_count 65530: LLVM "Unable to allocate section memory"
+        # after 7 trials). Trials share nothing compiled, so drop the caches between them.
+        jax.clear_caches()
     s = summarise(results, names)
     _atomic_json(out, {"settings": vars(args), "trials": results, "summary": _clean(s)})
     print_summary(s, names)
