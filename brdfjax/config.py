@@ -591,7 +591,7 @@ def parse_simulate_config(data: Mapping[str, Any], source: str = "<config>") -> 
     try:
         cfg = SimulateConfig.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(source, [_describe_error(err) for err in e.errors()]) from None
+        raise ConfigError(source, [describe_validation_error(SimulateConfig, err) for err in e.errors()]) from None
     cfg._source = source
     detector = cfg.build_detector()
     cfg.build_grid(detector)
@@ -633,9 +633,9 @@ def _inner_model(annotation: Any) -> tuple[type[BaseModel] | None, bool]:
     return None, False
 
 
-def _walk(loc: tuple[Any, ...]) -> tuple[Any, type[BaseModel] | None]:
-    """The field info at ``loc`` and the config model it leads into."""
-    cls: type[BaseModel] | None = SimulateConfig
+def _walk(root: type[BaseModel], loc: tuple[Any, ...]) -> tuple[Any, type[BaseModel] | None]:
+    """The field info at ``loc`` under the config model ``root``, and the config model it leads into."""
+    cls: type[BaseModel] | None = root
     info = None
     dict_key_next = False
     for part in loc:
@@ -645,17 +645,24 @@ def _walk(loc: tuple[Any, ...]) -> tuple[Any, type[BaseModel] | None]:
             dict_key_next = False
             continue
         if cls is None or part not in cls.model_fields:
-            return None, None
+            # a union member's tag (pydantic puts e.g. 'list[float]' in the path)
+            continue
         info = cls.model_fields[part]
         cls, dict_key_next = _inner_model(info.annotation)
     return info, cls
 
 
-def _describe_error(err: Mapping[str, Any]) -> tuple[str, str]:
-    loc = tuple(err["loc"])
+def describe_validation_error(
+    root: type[BaseModel], err: Mapping[str, Any], prefix: tuple[Any, ...] = ()
+) -> tuple[str, str]:
+    """One pydantic error of a config model as ``(dotted key, message)``: unknown keys get the allowed
+    keys (and a close match), other errors the value given and the field's description.  Used by every
+    config of the package (simulate, fit, sample, diagnose, capture)."""
+    loc = tuple(x for x in err["loc"] if not (isinstance(x, str) and ("[" in x or x in ("str", "int", "float", "bool"))))
     kind = err["type"]
+    full = prefix + loc
     if kind == "extra_forbidden":
-        _, owner = _walk(loc[:-1])
+        _, owner = _walk(root, loc[:-1])
         allowed = list(owner.model_fields) if owner is not None else []
         key = str(loc[-1])
         msg = "unknown key"
@@ -663,9 +670,18 @@ def _describe_error(err: Mapping[str, Any]) -> tuple[str, str]:
         if close:
             msg += f" (did you mean '{close[0]}'?)"
         if allowed:
-            where = _dotted(loc[:-1]) or "the top level"
+            where = _dotted(full[:-1]) or "the top level"
             msg += f"; allowed keys in {where}: {', '.join(allowed)}"
-        return _dotted(loc), msg
+        return _dotted(full), msg
+    msg = err["msg"]
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    if kind not in ("missing", "value_error") and "input" in err and not isinstance(err["input"], Mapping | list):
+        msg += f" (got {err['input']!r})"
+    info, _ = _walk(root, loc)
+    if info is not None and info.description and kind != "value_error":
+        msg += f"; expected {info.description}"
+    return _dotted(full), msg
     msg = err["msg"]
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, ") :]

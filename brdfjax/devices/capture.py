@@ -82,7 +82,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from ..config import ConfigError, ModelConfig
+from ..config import ConfigError, ModelConfig, describe_validation_error
 from ..instrument.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
 from ..io import atomic_output
 from .alignment import AlignmentResult, run_alignment
@@ -257,16 +257,6 @@ class CaptureConfig(_Strict):
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _describe(err: dict) -> tuple[str, str]:
-    loc = ".".join(str(x) if not isinstance(x, int) else f"[{x}]" for x in err["loc"]).replace(".[", "[")
-    msg = err["msg"].removeprefix("Value error, ")
-    if err["type"] == "extra_forbidden":
-        msg = "unknown key"
-    elif "input" in err and not isinstance(err["input"], dict | list):
-        msg += f" (got {err['input']!r})"
-    return loc, msg
-
-
 def load_capture_config(path: str | os.PathLike) -> CaptureConfig:
     """Read and validate a capture config; raises :class:`~brdfjax.config.ConfigError` naming the file and key."""
     source = str(path)
@@ -279,7 +269,7 @@ def load_capture_config(path: str | os.PathLike) -> CaptureConfig:
     try:
         cfg = CaptureConfig.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(source, [_describe(err) for err in e.errors()]) from None
+        raise ConfigError(source, [describe_validation_error(CaptureConfig, err) for err in e.errors()]) from None
     cfg._source = source
     if cfg.model is not None:
         _build_model(cfg)  # a config that loads is a config that runs

@@ -97,9 +97,8 @@ from ..config import (
     ModelConfig,
     _build_preset,
     _build_term,
-    _dotted,
-    _inner_model,
     _unknown_key_message,
+    describe_validation_error,
     parameter_keys,
 )
 from ..terms import Model
@@ -473,51 +472,6 @@ def _resolve_params(source: str, raw: Mapping[str, Any], model: Model) -> dict[s
 # --- loading ----------------------------------------------------------------------------------
 
 
-def _walk(root: type[BaseModel], loc: tuple[Any, ...]) -> tuple[Any, type[BaseModel] | None]:
-    cls: type[BaseModel] | None = root
-    info = None
-    dict_key_next = False
-    for part in loc:
-        if isinstance(part, int):
-            continue
-        if dict_key_next:
-            dict_key_next = False
-            continue
-        if cls is None or part not in cls.model_fields:
-            # a union member's tag (pydantic puts e.g. 'list[float]' in the path)
-            continue
-        info = cls.model_fields[part]
-        cls, dict_key_next = _inner_model(info.annotation)
-    return info, cls
-
-
-def _describe(root: type[BaseModel], err: Mapping[str, Any], prefix: tuple[Any, ...] = ()) -> tuple[str, str]:
-    loc = tuple(x for x in err["loc"] if not (isinstance(x, str) and ("[" in x or x in ("str", "int", "float", "bool"))))
-    kind = err["type"]
-    full = prefix + loc
-    if kind == "extra_forbidden":
-        _, owner = _walk(root, loc[:-1])
-        allowed = list(owner.model_fields) if owner is not None else []
-        key = str(loc[-1])
-        msg = "unknown key"
-        close = difflib.get_close_matches(key, allowed, n=1)
-        if close:
-            msg += f" (did you mean '{close[0]}'?)"
-        if allowed:
-            where = _dotted(full[:-1]) or "the top level"
-            msg += f"; allowed keys in {where}: {', '.join(allowed)}"
-        return _dotted(full), msg
-    msg = err["msg"]
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, "):]
-    if kind not in ("missing", "value_error") and "input" in err and not isinstance(err["input"], Mapping | list):
-        msg += f" (got {err['input']!r})"
-    info, _ = _walk(root, loc)
-    if info is not None and info.description and kind != "value_error":
-        msg += f"; expected {info.description}"
-    return _dotted(full), msg
-
-
 def _read_toml(path: Path) -> dict[str, Any]:
     source = str(path)
     try:
@@ -565,14 +519,14 @@ def parse_fit_config(
     try:
         cfg = FitConfig.model_validate(data)
     except ValidationError as e:
-        problems.extend(_describe(FitConfig, err) for err in e.errors())
+        problems.extend(describe_validation_error(FitConfig, err) for err in e.errors())
         cfg = None
     validated: dict[str, Any] = {}
     for name, model_cls in extra_models.items():
         try:
             validated[name] = model_cls.model_validate(extra_raw.get(name, {}))
         except ValidationError as e:
-            problems.extend(_describe(model_cls, err, (name,)) for err in e.errors())
+            problems.extend(describe_validation_error(model_cls, err, (name,)) for err in e.errors())
     if problems or cfg is None:
         if extra_models and any(m.startswith("unknown key") for _, m in problems):
             problems = [
