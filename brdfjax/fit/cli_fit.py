@@ -33,20 +33,11 @@ def run(args: argparse.Namespace) -> int:
     from ..instrument.reduce import ReductionError
     from ..io.exr import ExrError
     from ._common import FitInputError
+    from .config import enable_config_precision
 
     console = Console(stderr=True, highlight=False, soft_wrap=True)
     prog = "brdfjax fit"
-    # An edge may flip the process-wide switch; the library never does.  Read the precision first.
-    try:
-        import tomllib
-
-        precision = tomllib.loads(Path(args.config).read_text()).get("precision", "float64")
-    except Exception:  # the loader reports the problem properly below
-        precision = "float64"
-    if precision == "float64":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
+    enable_config_precision(args.config)
     from .config import run_fit
 
     try:

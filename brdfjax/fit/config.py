@@ -472,6 +472,22 @@ def _resolve_params(source: str, raw: Mapping[str, Any], model: Model) -> dict[s
 # --- loading ----------------------------------------------------------------------------------
 
 
+def enable_config_precision(path: str | os.PathLike) -> None:
+    """Turn on 64-bit JAX when the config at ``path`` asks for ``precision = "float64"`` (its default).
+
+    For the command-line edges only (``brdfjax fit``, ``sample``): the switch is process-wide, so the
+    library never flips it; it is read before the config is validated, which reports any problem.
+    """
+    try:
+        precision = tomllib.loads(Path(path).read_text(encoding="utf-8")).get("precision", "float64")
+    except Exception:  # noqa: BLE001 - the loader reports the problem properly
+        precision = "float64"
+    if precision == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+
+
 def _read_toml(path: Path) -> dict[str, Any]:
     source = str(path)
     try:

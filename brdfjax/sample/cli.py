@@ -168,17 +168,9 @@ def run(args: argparse.Namespace) -> int:
 
     console = Console(stderr=True, highlight=False, soft_wrap=True)
     prog = "brdfjax sample"
-    try:
-        import tomllib
+    from ..fit.config import enable_config_precision
 
-        precision = tomllib.loads(Path(args.config).read_text()).get("precision", "float64")
-    except Exception:  # the loader reports the problem properly below
-        precision = "float64"
-    if precision == "float64":
-        import jax
-
-        # An edge may flip the process-wide switch; the library never does.
-        jax.config.update("jax_enable_x64", True)
+    enable_config_precision(args.config)
 
     from ..fit.config import build_fit_job, load_fit_config
     from ._api import sample
