@@ -185,3 +185,37 @@ def test_synthesize_through_the_instrument(tmp_path):
     (b,) = E.synthesize(sc, seed=1, out_dir=tmp_path, path="instrument")
     assert (tmp_path / "raw" / "manifest.toml").exists() and b.shape == (40, 48)
     assert b.usable().sum() > 300
+
+
+def test_camera_turn_reproduces_a_misaligned_camera_in_every_frame():
+    """One camera-frame turn (instrument.rx, .ry, .rz with the frame's arm angle and phi_ref) maps the nominal
+    pixel directions onto those of a camera offset by m_h, m_v pixels and rolled, for frames at any theta_i and
+    phi_ref: the misalignment effect and the held-out prediction rest on it."""
+    import equinox as eqx
+
+    from brdfjax.detector import Detector
+    from brdfjax.diagnose._extensions import turn_scatter
+    from brdfjax.geometry import Ry, Rz
+    from brdfjax.render import Frame, sample_directions
+
+    det = Detector.seed()
+    bad = eqx.tree_at(lambda d: (d.m_h, d.m_v, d.roll), det, (np.float64(-3.9), np.float64(1.9), np.float64(1.85e-3)))
+    nh, nv = np.meshgrid(np.arange(-400, 401, 40.0), np.arange(-300, 301, 40.0))
+    # the camera-frame turn of this misalignment, fitted once on the first frame
+    f0 = Frame(np.radians(35.5), np.radians(98.0), 632.8e-9)
+    d0, d1 = sample_directions(det, f0, nh, nv), sample_directions(bad, f0, nh, nv)
+    C = np.asarray(Rz(-f0.phi_ref) @ Ry(f0.theta_i), float)
+    c0 = np.asarray(d0.w_s, float).reshape(-1, 3) @ C
+    c1 = np.asarray(d1.w_s, float).reshape(-1, 3) @ C
+    A = np.stack([np.cross(e, c0) for e in np.eye(3)], axis=2).reshape(-1, 3)
+    w, *_ = np.linalg.lstsq(A, (c1 - c0).ravel(), rcond=None)
+    shift = np.abs(c1 - c0).max()
+    assert shift > 3e-5  # the misalignment moves the pixel directions by several peak widths / 10
+    for ti, phi in ((20.0, 0.0), (35.5, 98.0), (59.4, 171.0)):
+        f = Frame(np.radians(ti), np.radians(phi), 632.8e-9)
+        d0, d1 = sample_directions(det, f, nh, nv), sample_directions(bad, f, nh, nv)
+        turned = turn_scatter(d0, *w, camera=(f.theta_i, f.phi_ref))
+        assert np.abs(np.asarray(turned.w_s) - np.asarray(d1.w_s)).max() < 0.01 * shift
+        # the same turn in the sample frame (no camera axes) misses as soon as the geometry changes
+        if ti != 35.5:
+            assert np.abs(np.asarray(turn_scatter(d0, *w).w_s) - np.asarray(d1.w_s)).max() > 0.3 * shift

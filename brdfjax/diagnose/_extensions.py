@@ -19,16 +19,20 @@
   ========================  ===============================================  ==========================
   feature                   measured BRDF                                     parameters
   ========================  ===============================================  ==========================
-  ``misalignment``          ``f`` at the scatter direction turned by          ``rx, ry, rz`` (rad)
-                            ``Rz(rz) Ry(ry) Rx(rx)`` (sample frame): a
-                            detector offset ``m_h, m_v`` (pixels * pitch / R)
-                            and roll to first order
+  ``misalignment``          ``f`` at the scatter direction turned by          ``rx, ry, rz`` (rad);
+                            ``Rz(rz) Ry(ry) Rx(rx)`` about the axes of the     ``arm``, ``arm_phi`` (rad,
+                            camera on its arm (``Rz(-arm_phi) Ry(arm)`` of     per frame, fixed: the
+                            the sample's x, y, z): a detector offset           frame's arm angle and
+                            ``m_h, m_v``                                       phi_ref)
+                            (pixels * pitch / R) and roll to first order,
+                            one turn for every frame
   ``aperture``              ``f`` averaged over a square angular footprint     ``aperture`` (rad, full
                             of each sample (midpoint rule on a grid of          width)
                             turned scatter directions)
-  ``stray_light``           ``f + ghost f(turned by ghost_x, ghost_y) +       ``ghost`` (1), ``ghost_x``,
-                            background``: a faint displaced copy (a sub-peak)   ``ghost_y`` (rad),
-                            and a uniform background                            ``background`` (sr^-1)
+  ``stray_light``           ``f + ghost f(turned by ghost_x, ghost_y about     ``ghost`` (1), ``ghost_x``,
+                            the camera's axes) + background``: a faint          ``ghost_y`` (rad),
+                            displaced copy (a sub-peak at a fixed offset on     ``background`` (sr^-1);
+                            the array) and a uniform background                 ``arm`` as above
   ``flux_scale``            ``flux_scale f`` (an OD or incident-flux error)    ``flux_scale`` (1)
   ``nonlinearity``          ``f_ref (f / f_ref)^gamma`` (a power-law response   ``gamma`` (1); ``f_ref``
                             of the measured signal about ``f_ref``)            static (sr^-1)
@@ -53,7 +57,7 @@ from .._params import check_param, param
 from ..geometry import Directions, Rx, Ry, Rz, rotate
 from ..terms import AbstractTerm, Diffraction, Model, Oriented, _param_fields
 
-__all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter"]
+__all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter", "block_camera", "camera_params"]
 
 
 def _gauss_hermite(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -129,18 +133,51 @@ class SpectralDiffraction(AbstractTerm):
         return jnp.where((dirs.cos_theta_i > 0) & (dirs.cos_theta_s > 0), f, 0.0)
 
 
-def turn_scatter(dirs: Directions, ax: Any, ay: Any, az: Any = 0.0) -> Directions:
-    """Directions with only ``w_s`` turned by ``Rz(az) Ry(ay) Rx(ax)``; ``w_sum`` updated without cancellation."""
+def turn_scatter(dirs: Directions, ax: Any, ay: Any, az: Any = 0.0, camera: Any = None) -> Directions:
+    """Directions with only ``w_s`` turned by ``Rz(az) Ry(ay) Rx(ax)``; ``w_sum`` updated without cancellation.
+
+    ``camera = (alpha, phi_ref)``: the frame's arm angle and sample rotation;
+    the turn is then about the axes of the camera on that arm, as seen in the
+    sample frame (``render.sample_directions``: ``Rz(-phi_ref)`` of the
+    scatter frame): ``C Rz(az) Ry(ay) Rx(ax) C^T`` with ``C = Rz(-phi_ref)
+    Ry(alpha)``, so that one misaligned camera (pixel offsets m_h, m_v and a
+    roll) is the same turn in every frame whatever its geometry.
+    """
     R = Rz(az) @ Ry(ay) @ Rx(ax)
+    if camera is not None:
+        C = Rz(-camera[1]) @ Ry(camera[0])
+        R = C @ R @ C.T
     dws = rotate(R - jnp.eye(3, dtype=R.dtype), dirs.w_s)
     return Directions(dirs.w_i, dirs.w_s + dws, dirs.w_sum + dws)
 
 
+def block_camera(block: Any) -> tuple[float, float]:
+    """``(arm angle, phi_ref)`` (rad) of a data block's camera: its ``theta_c``
+    (or the nominal ``theta_i`` when the camera sits on the peak) and the
+    frame's nominal ``phi_ref``; ``(0, 0)`` for a goniometer table (no
+    camera: camera turns are then in the sample frame)."""
+    det = getattr(block, "detector", None)
+    if det is None:
+        return 0.0, 0.0
+    return float(block.theta_i if det.theta_c is None else det.theta_c), float(block.phi_ref)
+
+
+def camera_params(blocks: Sequence[Any]) -> dict[str, Any]:
+    """The fixed per-frame ``instrument.arm`` / ``instrument.arm_phi`` parameter specs of ``blocks``."""
+    from ..fit import Param
+
+    cams = [block_camera(b) for b in blocks]
+    return {
+        "instrument.arm": Param.fixed([c[0] for c in cams], per_frame=True),
+        "instrument.arm_phi": Param.fixed([c[1] for c in cams], per_frame=True),
+    }
+
+
 #: Feature -> its parameter fields on :class:`InstrumentResponse`.
 FEATURES: dict[str, tuple[str, ...]] = {
-    "misalignment": ("rx", "ry", "rz"),
+    "misalignment": ("rx", "ry", "rz", "arm", "arm_phi"),
     "aperture": ("aperture",),
-    "stray_light": ("ghost", "ghost_x", "ghost_y", "background"),
+    "stray_light": ("ghost", "ghost_x", "ghost_y", "background", "arm", "arm_phi"),
     "flux_scale": ("flux_scale",),
     "nonlinearity": ("gamma",),
 }
@@ -163,12 +200,14 @@ class InstrumentResponse(Model):
     flux_scale: Array = param("1", "global scale of the measured BRDF (flux/OD error)", default=1.0)
     gamma: Array = param("1", "power-law exponent of the signal response", default=1.0)
     f_ref: float = eqx.field(static=True, default=1.0)
-    rx: Array = param("rad", "scatter-direction turn about x (sample frame)", default=0.0)
-    ry: Array = param("rad", "scatter-direction turn about y (sample frame)", default=0.0)
-    rz: Array = param("rad", "scatter-direction turn about z (sample frame)", default=0.0)
+    rx: Array = param("rad", "scatter-direction turn about the camera's x axis (sample frame when arm = 0)", default=0.0)
+    ry: Array = param("rad", "scatter-direction turn about y (the arm's rotation axis)", default=0.0)
+    rz: Array = param("rad", "scatter-direction turn about the camera's optical axis (sample z when arm = 0)", default=0.0)
+    arm: Array = param("rad", "the frame's arm angle (the camera's axes; fixed per frame)", default=0.0)
+    arm_phi: Array = param("rad", "the frame's phi_ref (the sample turned under the camera; fixed per frame)", default=0.0)
     ghost: Array = param("1", "relative amplitude of the stray-light copy", default=0.0)
-    ghost_x: Array = param("rad", "turn of the copy about x", default=0.0)
-    ghost_y: Array = param("rad", "turn of the copy about y", default=0.0)
+    ghost_x: Array = param("rad", "turn of the copy about the camera's x axis", default=0.0)
+    ghost_y: Array = param("rad", "turn of the copy about y (the arm's rotation axis)", default=0.0)
     background: Array = param("sr^-1", "uniform stray background", default=0.0)
     aperture: Array = param("rad", "full width of each sample's square angular footprint", default=0.0)
     aperture_n: tuple[int, int] = eqx.field(static=True, default=(21, 5))
@@ -208,7 +247,7 @@ class InstrumentResponse(Model):
     def __call__(self, dirs, wavelength):
         on = self.features
         if "misalignment" in on:
-            dirs = turn_scatter(dirs, self.rx, self.ry, self.rz)
+            dirs = turn_scatter(dirs, self.rx, self.ry, self.rz, camera=(self.arm, self.arm_phi))
         if "aperture" in on:
             nx, ny = self.aperture_n
             gx, gy = np.meshgrid(_midpoints(nx), _midpoints(ny), indexing="ij")
@@ -220,7 +259,8 @@ class InstrumentResponse(Model):
         else:
             f = self._sum(dirs, wavelength)
         if "stray_light" in on:
-            f = f + self.ghost * self._sum(turn_scatter(dirs, self.ghost_x, self.ghost_y), wavelength) + self.background
+            ghost = turn_scatter(dirs, self.ghost_x, self.ghost_y, camera=(self.arm, self.arm_phi))
+            f = f + self.ghost * self._sum(ghost, wavelength) + self.background
         if "flux_scale" in on:
             f = self.flux_scale * f
         if "nonlinearity" in on:

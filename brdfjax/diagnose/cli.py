@@ -8,7 +8,7 @@ The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
     heldout = ["ti60"]                         # frames (block names) predicted, not fitted; default none
     bic_threshold = 10.0                       # BIC gain an effect needs to enter the path
     max_steps = 4                              # the most effects added by the greedy path
-    path_pool = 4                              # candidates re-tried at each later step
+    path_pool = 4                              # later steps re-try this many runners-up + best signatures
     refit_top = 4                              # refit only the 4 best signatures (default: every candidate)
     threshold_sigma = 4.0                      # smoothed |residual| that makes a region significant
     smooth = 3                                 # box size (points) of that smoothing

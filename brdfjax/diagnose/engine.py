@@ -21,8 +21,9 @@
    are *decreases*: positive means the effect explains part of the gap.  The
    ranking is by ``delta_bic``;
 5. HOW FAR: greedy forward selection: the best effect is added when its BIC
-   gain exceeds ``bic_threshold``; the remaining best candidates
-   (``path_pool``) are re-tried on the extended model, and so on up to
+   gain exceeds ``bic_threshold``; the previous step's runners-up and the
+   candidates with the strongest signatures in the new residual (``path_pool``
+   of each) are re-tried on the extended model, and so on up to
    ``max_steps``.  Every step records the global gap (``chi2_reduced``,
    ``rms_log10``), the per-zone reduced chi^2 on the base's zones, and, when
    ``heldout_blocks`` are given, the prediction gap on them (the fitted model
@@ -52,6 +53,7 @@ from ..geometry import Directions
 from ..render import render, render_geometry
 from ..terms import Model
 from .zones import Region, find_regions, specular_coordinates, zone_label, zone_masks
+from ._extensions import camera_params, response_features
 
 __all__ = [
     "DiagnoseInputError",
@@ -179,7 +181,8 @@ def _block_model(b: FrameData | TableData, model: Model, frame: Any) -> np.ndarr
     return np.asarray(model(dirs, wl), float)
 
 
-def build_context(model_spec: Model, params: Mapping[str, Any], result: FitResult, blocks: Sequence[Any]):
+def build_context(model_spec: Model, params: Mapping[str, Any], result: FitResult, blocks: Sequence[Any],
+                  fit_kwargs: Mapping[str, Any] | None = None):
     """The :class:`~brdfjax.diagnose.effects.Context` of a fit (the fitted model, residual maps, model values, geometry)."""
     from .effects import Context
 
@@ -194,6 +197,7 @@ def build_context(model_spec: Model, params: Mapping[str, Any], result: FitResul
         residuals=residual_maps(result, blocks),
         model_values=values,
         geometry=geometry,
+        fit_kwargs=dict(fit_kwargs or {}),
     )
 
 
@@ -444,8 +448,12 @@ def _heldout_gap(state: _State, heldout: Sequence[Any] | None, base_blocks: Sequ
     kw = {k: v for k, v in state.fit_kwargs.items() if k in ("precision", "floor", "use_footprint", "allow_different_detectors")}
     kw["allow_different_detectors"] = True
     model = state.result.models[0] if state.result.models else state.model
+    params = {}
+    if {"misalignment", "stray_light"} & set(response_features(model)):
+        # the camera turns are shared; their axes follow each frame's arm angle
+        params.update(camera_params(blocks))
     try:
-        r = fit(model, blocks, {}, **kw)
+        r = fit(model, blocks, params, **kw)
     except Exception as e:  # noqa: BLE001 - reported, the diagnosis goes on
         return {"chi2_reduced": math.nan, "rms_log10": math.nan, "error": str(e)}
     g = gap_measures(r)
@@ -538,9 +546,10 @@ def diagnose(
     or a name whose effect the base already contains, is an error);
     ``heldout_blocks``: frames/tables predicted, never fitted; ``fit_kwargs``:
     passed to every fit; ``bic_threshold``: the BIC gain an effect needs to
-    enter the path; ``max_steps``: the most effects added; ``path_pool``: how
-    many of the previous step's best candidates are re-tried at each later
-    step; ``refit_top``: refit only the candidates with the ``refit_top``
+    enter the path; ``max_steps``: the most effects added; ``path_pool``: at
+    each later step, the previous step's ``path_pool`` best candidates and the
+    ``path_pool`` best signatures of the new residual are refitted;
+    ``refit_top``: refit only the candidates with the ``refit_top``
     highest signature scores (default: all; the others are reported as not
     refitted; a speed-up with a measured risk: the signature scores of
     different effects are not on one scale, and in the withheld-effect
@@ -570,7 +579,7 @@ def diagnose(
     if not base.result.converged:
         notes.append(f"the base fit did not converge: {base.result.message}")
     t_base = time.perf_counter()
-    ctx = build_context(base_model, params, base.result, blocks)
+    ctx = build_context(base_model, params, base.result, blocks, fit_kwargs)
     base.model, base.params = ctx.model, dict(ctx.params)
     groups = [None if isinstance(b, FrameData) else np.round(np.asarray(b.theta_i, float), 6) for b in blocks]
     groups = [None if g is None else np.unique(g, return_inverse=True)[1] for g in groups]
@@ -590,7 +599,7 @@ def diagnose(
     path = [Step("base", base_gap, _zone_stats(ctx.residuals, zones), base_heldout, math.nan, _params_report(base.result))]
     state, current_ctx = base, ctx
     rankings: list[list[Candidate]] = []
-    pool = list(names)
+    pool, retry = list(names), []
     first_ranked: list[Candidate] = []
     for step in range(max(max_steps, 1)):
         cands = []
@@ -600,6 +609,15 @@ def diagnose(
                 continue
             cands.append(_check_effect(n, eff, current_ctx, state, has_tables))
         live = sorted((c for c in cands if c.status == "ranked"), key=lambda c: -_score(c))
+        if step > 0:
+            # re-tried: the previous step's runners-up and the best signatures of the new residual (an
+            # effect masked by a larger one at step 1 shows in the residual only once that one is added)
+            keep = set(retry) | {c.effect for c in live[:path_pool]}
+            for c in live:
+                if c.effect not in keep:
+                    c.status = "not retried"
+                    c.note = f"neither among the previous step's {path_pool} best nor the {path_pool} best signatures"
+            live = [c for c in live if c.effect in keep]
         if refit_top is not None:
             for c in live[refit_top:]:
                 c.status = "not refitted"
@@ -619,7 +637,7 @@ def diagnose(
         best = ranked[0]
         state = best.state
         say(f"step {step + 1}: added {best.effect} (delta BIC {best.delta_bic:.1f})")
-        current_ctx = build_context(state.model, state.params, state.result, state.blocks)
+        current_ctx = build_context(state.model, state.params, state.result, state.blocks, state.fit_kwargs)
         state.model, state.params = current_ctx.model, dict(current_ctx.params)
         path.append(
             Step(
@@ -627,9 +645,8 @@ def diagnose(
                 best.delta_bic, _params_report(state.result),
             )
         )
-        pool = [c.effect for c in ranked[1:] if c.delta_bic > 0][:path_pool]
-        if not pool:
-            break
+        retry = [c.effect for c in ranked[1:] if c.delta_bic > 0][:path_pool]
+        pool = [n for n in names if n != best.effect]
     for r in rankings:
         for c in r:
             c.state = None  # drop the refits' data (memory); the path keeps what it needs
