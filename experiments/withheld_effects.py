@@ -175,7 +175,9 @@ def run_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     params = _perturbed_starts(sc, rng)
     t0 = time.perf_counter()
     say = (lambda m: print(f"    {time.perf_counter() - t0:7.1f} s  {m}", flush=True)) if args.verbose else None
-    d = diagnose(sc.base_model, fitted, params, heldout_blocks=held, max_steps=args.max_steps, refit_top=args.refit_top,
+    # a path long enough to hold every withheld effect and one spurious step (two-effect trials: 3)
+    steps = max(args.max_steps, len(t["effects"]) + 1)
+    d = diagnose(sc.base_model, fitted, params, heldout_blocks=held, max_steps=steps, refit_top=args.refit_top,
                  path_pool=args.path_pool, progress=say)
     wall = time.perf_counter() - t0
     try:
@@ -304,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--two", type=int, default=10, help="two-effect trials")
     p.add_argument("--frames", type=int, default=2, help="fitted frames per scenario (one more is held out)")
     p.add_argument("--step", type=int, default=4, help="grid decimation of the scenarios' region of interest")
-    p.add_argument("--max-steps", type=int, default=3)
+    p.add_argument("--max-steps", type=int, default=3, help="most effects added (raised to the number of withheld effects + 1)")
     p.add_argument("--effects", default=None, help="comma-separated subset of the library")
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--runtime", action="store_true", help="only the runtime check")
