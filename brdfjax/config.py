@@ -682,12 +682,3 @@ def describe_validation_error(
     if info is not None and info.description and kind != "value_error":
         msg += f"; expected {info.description}"
     return _dotted(full), msg
-    msg = err["msg"]
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, ") :]
-    if kind not in ("missing", "value_error") and "input" in err and not isinstance(err["input"], Mapping | list):
-        msg += f" (got {err['input']!r})"
-    info, _ = _walk(loc)
-    if info is not None and info.description and kind != "value_error":
-        msg += f"; expected {info.description}"
-    return _dotted(loc), msg
