@@ -194,8 +194,7 @@ def test_camera_turn_reproduces_a_misaligned_camera_in_every_frame():
     import equinox as eqx
 
     from brdfjax.detector import Detector
-    from brdfjax.diagnose._extensions import turn_scatter
-    from brdfjax.geometry import Ry, Rz
+    from brdfjax.diagnose._extensions import camera_axes, turn_scatter
     from brdfjax.render import Frame, sample_directions
 
     det = Detector.seed()
@@ -204,7 +203,7 @@ def test_camera_turn_reproduces_a_misaligned_camera_in_every_frame():
     # the camera-frame turn of this misalignment, fitted once on the first frame
     f0 = Frame(np.radians(35.5), np.radians(98.0), 632.8e-9)
     d0, d1 = sample_directions(det, f0, nh, nv), sample_directions(bad, f0, nh, nv)
-    C = np.asarray(Rz(-f0.phi_ref) @ Ry(f0.theta_i), float)
+    C = np.asarray(camera_axes(f0.theta_i, f0.phi_ref), float)
     c0 = np.asarray(d0.w_s, float).reshape(-1, 3) @ C
     c1 = np.asarray(d1.w_s, float).reshape(-1, 3) @ C
     A = np.stack([np.cross(e, c0) for e in np.eye(3)], axis=2).reshape(-1, 3)

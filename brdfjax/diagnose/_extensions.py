@@ -57,7 +57,7 @@ from .._params import check_param, param
 from ..geometry import Directions, Rx, Ry, Rz, rotate
 from ..terms import AbstractTerm, Diffraction, Model, Oriented, _param_fields
 
-__all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter", "block_camera", "camera_params"]
+__all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter", "camera_axes", "block_camera", "camera_params"]
 
 
 def _gauss_hermite(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -145,10 +145,16 @@ def turn_scatter(dirs: Directions, ax: Any, ay: Any, az: Any = 0.0, camera: Any 
     """
     R = Rz(az) @ Ry(ay) @ Rx(ax)
     if camera is not None:
-        C = Rz(-camera[1]) @ Ry(camera[0])
+        C = camera_axes(*camera)
         R = C @ R @ C.T
     dws = rotate(R - jnp.eye(3, dtype=R.dtype), dirs.w_s)
     return Directions(dirs.w_i, dirs.w_s + dws, dirs.w_sum + dws)
+
+
+def camera_axes(arm: Any, phi_ref: Any) -> Array:
+    """The camera's x, y, z axes (columns) in the sample frame of ``render.sample_directions``:
+    ``Rz(-phi_ref) Ry(arm)``; ``C.T @ w`` takes a sample-frame direction into the camera's frame."""
+    return Rz(-phi_ref) @ Ry(arm)
 
 
 def block_camera(block: Any) -> tuple[float, float]:
@@ -156,10 +162,9 @@ def block_camera(block: Any) -> tuple[float, float]:
     (or the nominal ``theta_i`` when the camera sits on the peak) and the
     frame's nominal ``phi_ref``; ``(0, 0)`` for a goniometer table (no
     camera: camera turns are then in the sample frame)."""
-    det = getattr(block, "detector", None)
-    if det is None:
+    if not hasattr(block, "arm_detector"):
         return 0.0, 0.0
-    return float(block.theta_i if det.theta_c is None else det.theta_c), float(block.phi_ref)
+    return float(block.arm_detector().theta_c), float(block.phi_ref)
 
 
 def camera_params(blocks: Sequence[Any]) -> dict[str, Any]:

@@ -55,10 +55,10 @@ from ..distributions import (
 )
 from ..fit import FitResult, FrameData, Param, TableData
 from ..fit._params import as_param
-from ..geometry import Directions, Ry, Rz
+from ..geometry import Directions
 from ..render import Frame, render, sample_directions
 from ..terms import AbstractTerm, Diffraction, Lambertian, Model, OffsetNormal, Specular, _param_fields
-from ._extensions import InstrumentResponse, Oriented, SpectralDiffraction, block_camera, camera_params, response_features
+from ._extensions import InstrumentResponse, Oriented, SpectralDiffraction, block_camera, camera_axes, camera_params, response_features
 
 __all__ = [
     "Extension",
@@ -1383,8 +1383,7 @@ class StrayLightEffect(Effect):
             pr, pc = np.unravel_index(int(np.nanargmax(f)), f.shape)
             qr, qc = int(np.clip(pr + dr, 0, f.shape[0] - 1)), int(np.clip(pc + dc, 0, f.shape[1] - 1))
             # the turn about the camera's axes (one offset on the array is one turn in every frame)
-            arm, phi = block_camera(b)
-            to_cam = (np.asarray(Rz(-phi), float) @ np.asarray(Ry(arm), float)).T
+            to_cam = np.asarray(camera_axes(*block_camera(b)), float).T
             ax, ay = _ws_turn(to_cam @ ws[qr, qc], to_cam @ ws[pr, pc])
             gx.append(ax); gy.append(ay)
             r = np.asarray(ctx.residuals[k], float)

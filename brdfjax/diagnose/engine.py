@@ -646,7 +646,7 @@ def diagnose(
             )
         )
         retry = [c.effect for c in ranked[1:] if c.delta_bic > 0][:path_pool]
-        pool = [n for n in names if n != best.effect]
+        pool = [n for n in names if n not in state.effects]  # every effect already on the path is out
     for r in rankings:
         for c in r:
             c.state = None  # drop the refits' data (memory); the path keeps what it needs
