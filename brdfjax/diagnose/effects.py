@@ -952,7 +952,9 @@ class PixelNonlinearityEffect(Effect):
         "identifiable (some term's weight fixed by calibration) and not already in the model; with f_ref "
         "at the geometric mean, s and gamma are nearly uncorrelated.  (Measured: with gamma alone, a "
         "response exact at 1 sr^-1 was ranked behind flux_scale in 2 of 3 withheld-effect trials and "
-        "needed both on the path.)  Initialised by regressing the log residual on ln f (slope: gamma - 1, "
+        "needed both on the path.)  On a single frame a power law of a lone Beckmann lobe is nearly a "
+        "narrower lobe times a scale, so flux_scale can rank first there; frames at different incident "
+        "angles separate them (the geometric factor 1 / (cos theta_i cos theta_s) raised to gamma).  Initialised by regressing the log residual on ln f (slope: gamma - 1, "
         "intercept at f_ref: ln s).  Signature: the t-statistic of that slope over the points where the "
         "model is above 1e-3 of its maximum (a residual correlated with the log signal)."
     )
