@@ -105,6 +105,8 @@ def trial_list(args: argparse.Namespace, names: list[str]) -> list[dict[str, Any
         if k < n_two:
             pool = [e for e in names if e not in TABLE_ONLY]
             pair = sorted(rng.choice(len(pool), size=2, replace=False))
+            while frozenset({pool[pair[0]], pool[pair[1]]}) in fx.EXCLUSIVE:  # a pair one scenario cannot hold
+                pair = sorted(rng.choice(len(pool), size=2, replace=False))
             others.append({"id": f"two:{pool[pair[0]]}+{pool[pair[1]]}:{k}", "kind": "two",
                            "effects": [pool[pair[0]], pool[pair[1]]]})
     # interleaved (a null or two-effect trial after every three single ones) so that a partial run has every kind

@@ -50,7 +50,7 @@ from ..render import Frame, render
 from ..terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
 from ._extensions import InstrumentResponse, Oriented, SpectralDiffraction
 
-__all__ = ["Scenario", "base_scenario", "table_scenario", "inject", "synthesize", "GENERATORS"]
+__all__ = ["Scenario", "base_scenario", "table_scenario", "inject", "synthesize", "GENERATORS", "EXCLUSIVE"]
 
 
 @dataclass
@@ -217,9 +217,17 @@ def _inj_flux(rng, sc: Scenario) -> Scenario:
 
 def _inj_nonlinearity(rng, sc: Scenario) -> Scenario:
     g = float(1.0 + rng.uniform(0.03, 0.08) * rng.choice([-1.0, 1.0]))
-    return sc.replace(truth={**sc.truth, "gamma": g}, params=_weights_fixed(sc),
-                      notes=sc.notes + ["every term's weight is fixed (calibration): a power law of free-weight lobes is "
-                                        "absorbed by their widths and weights"])
+    # a power law of a lone Beckmann lobe is a narrower lobe times a scale (pixel_nonlinearity reports it not
+    # identifiable there): the surface gets a diffuse floor, in the base too, whose weight calibration fixes
+    rd = float(np.exp(rng.uniform(np.log(0.05), np.log(0.3))))
+    truth, base = sc.truth_model, sc.base_model
+    if not any(isinstance(t, Lambertian) for t in base.terms.values()):
+        truth, base = _add_term(truth, "floor", Lambertian(rd)), _add_term(base, "floor", Lambertian(rd))
+    sc = sc.replace(truth_model=truth, base_model=base, truth={**sc.truth, "gamma": g, "floor.rho_d": rd})
+    return sc.replace(params=_weights_fixed(sc),
+                      notes=sc.notes + ["every term's weight is fixed (calibration) and the surface has a diffuse floor "
+                                        "(in the base too): a power law of a lone free-width lobe is absorbed by its "
+                                        "width and a scale"])
 
 
 def _inj_shape(rng, sc: Scenario) -> Scenario:
@@ -307,12 +315,23 @@ GENERATORS = {
 }
 
 
+#: pairs of effects one scenario cannot withhold together, with the reason
+EXCLUSIVE = {
+    frozenset({"lambertian", "pixel_nonlinearity"}):
+        "pixel_nonlinearity gives the base a calibrated diffuse floor, so a withheld floor is not withheld",
+}
+
+
 def inject(name: str, rng: np.random.Generator, scenario: Scenario) -> Scenario:
     """``scenario`` with the effect ``name`` added to its truth (random plausible parameters; see each generator)."""
     if name not in GENERATORS:
         raise KeyError(f"unknown effect '{name}'; known: {', '.join(GENERATORS)}")
     if name in scenario.effects:
         raise ValueError(f"inject: the scenario already has the effect '{name}'")
+    for other in scenario.effects:
+        why = EXCLUSIVE.get(frozenset({name, other}))
+        if why:
+            raise ValueError(f"inject: '{name}' cannot be withheld together with '{other}': {why}")
     out = GENERATORS[name](rng, scenario)
     return out.replace(effects=list(scenario.effects) + [name])
 

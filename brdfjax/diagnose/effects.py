@@ -953,8 +953,9 @@ class PixelNonlinearityEffect(Effect):
         "at the geometric mean, s and gamma are nearly uncorrelated.  (Measured: with gamma alone, a "
         "response exact at 1 sr^-1 was ranked behind flux_scale in 2 of 3 withheld-effect trials and "
         "needed both on the path.)  On a single frame a power law of a lone Beckmann lobe is nearly a "
-        "narrower lobe times a scale, so flux_scale can rank first there; frames at different incident "
-        "angles separate them (the geometric factor 1 / (cos theta_i cos theta_s) raised to gamma).  Initialised by regressing the log residual on ln f (slope: gamma - 1, "
+        "narrower lobe times a scale, so flux_scale ranks first there; frames at different incident "
+        "angles separate them (the geometric factor 1 / (cos theta_i cos theta_s) raised to gamma) only to second order, so a lone "
+        "Beckmann lobe of free width is reported as not identifiable.  Initialised by regressing the log residual on ln f (slope: gamma - 1, "
         "intercept at f_ref: ln s).  Signature: the t-statistic of that slope over the points where the "
         "model is above 1e-3 of its maximum (a residual correlated with the log signal)."
     )
@@ -967,9 +968,12 @@ class PixelNonlinearityEffect(Effect):
         if len(terms) == 1 and isinstance(terms[0], Specular) and isinstance(terms[0].distribution, Beckmann):
             (tname, wname), = _weight_names(model)
             width = _public(model, f"{tname}.m")
-            if _is_free(params, wname) and _is_free(params, width):
+            # the scale comes with gamma where a weight is fixed (extend), so a free weight is not needed for this
+            if _is_free(params, width):
                 return (f"a power law f^gamma of a lone Beckmann lobe is the same lobe with m / sqrt(gamma) and another "
-                        f"weight: with {width} and {wname} free the data cannot tell them apart")
+                        f"scale: with {width} free the data cannot tell it from a flux scale or a weight (measured: "
+                        f"flux_scale alone reached the true model's chi^2); fix the width or add a term of another "
+                        f"shape with a calibrated weight (a diffuse floor)")
         return None
 
     def _regress(self, ctx):
@@ -1554,6 +1558,7 @@ EFFECTS: dict[str, Effect] = {
 # --- generator side (synthetic truth with any effect) ---------------------------------------------
 
 from ._fx_generate import (  # noqa: E402
+    EXCLUSIVE as EXCLUSIVE,
     GENERATORS as GENERATORS,
     Scenario as Scenario,
     base_scenario as base_scenario,
