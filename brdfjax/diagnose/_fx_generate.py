@@ -220,10 +220,12 @@ def _inj_nonlinearity(rng, sc: Scenario) -> Scenario:
     # a power law of a lone Beckmann lobe is a narrower lobe times a scale (pixel_nonlinearity reports it not
     # identifiable there): the surface gets a diffuse floor, in the base too, whose weight calibration fixes
     rd = float(np.exp(rng.uniform(np.log(0.05), np.log(0.3))))
-    truth, base = sc.truth_model, sc.base_model
-    if not any(isinstance(t, Lambertian) for t in base.terms.values()):
-        truth, base = _add_term(truth, "floor", Lambertian(rd)), _add_term(base, "floor", Lambertian(rd))
-    sc = sc.replace(truth_model=truth, base_model=base, truth={**sc.truth, "gamma": g, "floor.rho_d": rd})
+    truth = {**sc.truth, "gamma": g}
+    if not any(isinstance(t, Lambertian) for t in sc.base_model.terms.values()):  # tables already have one
+        sc = sc.replace(truth_model=_add_term(sc.truth_model, "floor", Lambertian(rd)),
+                        base_model=_add_term(sc.base_model, "floor", Lambertian(rd)))
+        truth["floor.rho_d"] = rd
+    sc = sc.replace(truth=truth)
     return sc.replace(params=_weights_fixed(sc),
                       notes=sc.notes + ["every term's weight is fixed (calibration) and the surface has a diffuse floor "
                                         "(in the base too): a power law of a lone free-width lobe is absorbed by its "
@@ -318,7 +320,7 @@ GENERATORS = {
 #: pairs of effects one scenario cannot withhold together, with the reason
 EXCLUSIVE = {
     frozenset({"lambertian", "pixel_nonlinearity"}):
-        "pixel_nonlinearity gives the base a calibrated diffuse floor, so a withheld floor is not withheld",
+        "pixel_nonlinearity puts a calibrated diffuse floor in the base, so a floor cannot also be withheld",
 }
 
 

@@ -657,8 +657,9 @@ class OffsetNormalPeakEffect(Effect):
         "maxima of the excess d - f and of the data itself): the half vector of a pixel gives the tilt "
         "(dtheta, dphi0); for each start and two widths (the base lobe's, 0.6 of it) the weight is "
         "profiled (golden-section search of the chi^2 of ln(f + rho p)), and the start of lowest chi^2 is "
-        "refitted without the fit's soft first stage.  (Measured: the residual maximum alone sits in the far wing of a wide base lobe when "
-        "the second peak lies inside the base's core; that start refitted to chi^2 above the base's.)  "
+        "refitted without the fit's soft first stage (and so are the later steps of a path that holds "
+        "it).  (Measured: the residual maximum alone sits in the far wing of a wide base lobe when the "
+        "second peak lies inside the base's core; that start refitted to chi^2 above the base's.)  "
         "Signature: the largest Gaussian-smoothed residual "
         "(sum k r / |k|) outside the base model's peak core, with the number of pixels searched as the "
         "look-elsewhere factor."
@@ -724,9 +725,8 @@ class OffsetNormalPeakEffect(Effect):
         for k in ctx.frames():
             r = np.asarray(ctx.residuals[k], float)
             f = np.asarray(ctx.model_values[k], float)
-            ok = np.isfinite(r)
-            d = np.where(ok, np.asarray(ctx.blocks[k].brdf, float), np.nan)
-            excess = np.where(ok, f * (np.exp(np.where(ok, r, 0.0) * ctx.sigma(k)) - 1.0), np.nan)
+            d = np.where(np.isfinite(r), np.asarray(ctx.blocks[k].brdf, float), np.nan)
+            excess = f * np.expm1(r * ctx.sigma(k))  # d - f against the fitted model as the fit compared it; NaN where unused
             for rc in self._local_maxima(excess, 3) + self._local_maxima(d, 2):
                 if (k, *rc) not in out:
                     out.append((k, *rc))
@@ -738,17 +738,22 @@ class OffsetNormalPeakEffect(Effect):
         h = np.array([hx[row, col], hy[row, col], hz[row, col]])
         return float(np.arctan2(np.hypot(h[0], h[1]), h[2])), float(np.arctan2(h[1], h[0]))
 
-    def _profile(self, ctx, dist, dtheta, dphi0) -> tuple[float, float]:
-        """``(chi2, rho)``: the chi^2 of ln(f + rho p) over the frames, minimised over ln rho (golden section)."""
-        probe = Model(terms={"p": OffsetNormal(Specular(dist, rho_s=1.0, n=1.5), dtheta=dtheta, dphi0=dphi0)})
-        parts = []
+    @staticmethod
+    def _frame_data(ctx) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Per frame on its used points: ``(k, used, ln d, f, sigma)`` (shared by every start's profile)."""
+        out = []
         for k in ctx.frames():
             ok = _ok(ctx, k)
-            p = _block_values(ctx.blocks[k], probe, ctx.block_frame(k))[ok]
-            f = np.asarray(ctx.model_values[k], float)[ok]
-            parts.append((np.log(np.asarray(ctx.blocks[k].brdf, float)[ok]), f, p, ctx.sigma(k)[ok]))
-        if not parts:
+            out.append((k, ok, np.log(np.asarray(ctx.blocks[k].brdf, float)[ok]), np.asarray(ctx.model_values[k], float)[ok],
+                        ctx.sigma(k)[ok]))
+        return out
+
+    def _profile(self, ctx, frames, dist, dtheta, dphi0) -> tuple[float, float]:
+        """``(chi2, rho)``: the chi^2 of ln(f + rho p) over ``frames``, minimised over ln rho (golden section)."""
+        if not frames:
             return math.inf, 0.1
+        probe = Model(terms={"p": OffsetNormal(Specular(dist, rho_s=1.0, n=1.5), dtheta=dtheta, dphi0=dphi0)})
+        parts = [(ld, f, _block_values(ctx.blocks[k], probe, ctx.block_frame(k))[ok], sg) for k, ok, ld, f, sg in frames]
 
         def chi2(lnrho):
             rho = math.exp(lnrho)
@@ -765,13 +770,13 @@ class OffsetNormalPeakEffect(Effect):
         main = _main_specular(ctx.model)
         dist0 = main[1].distribution if main else Beckmann(2e-4)
         wfield = _width_field(dist0)
-        w0 = float(np.asarray(getattr(dist0, wfield)))
+        frames = self._frame_data(ctx)
         trials = []
         for k, row, col in starts:
             dtheta, dphi0 = self._tilt(ctx, k, row, col)
             for wf in (1.0, 0.6):
-                dist = eqx_tree_at(lambda d: getattr(d, wfield), dist0, jnp.asarray(w0 * wf, jnp.asarray(getattr(dist0, wfield)).dtype))
-                c, rho = self._profile(ctx, dist, dtheta, dphi0)
+                dist = eqx_tree_at(lambda d: getattr(d, wfield), dist0, getattr(dist0, wfield) * wf)
+                c, rho = self._profile(ctx, frames, dist, dtheta, dphi0)
                 trials.append((c, dtheta, dphi0, dist, rho, (k, row, col)))
         c, dtheta, dphi0, dist, rho, (k, row, col) = min(trials, key=lambda t: t[0])
         name = _unique_name(ctx.model, "offset")
@@ -787,7 +792,8 @@ class OffsetNormalPeakEffect(Effect):
             f"{name}.dphi0": Param(dphi0, scale=0.5),
         })
         # the start is profiled; the fit's default soft first stage (wings below the median softened) walked
-        # away from it (measured on an offset + anisotropic truth: reduced chi^2 16804 with it, 1026 without)
+        # away from it (measured on an offset + anisotropic truth: reduced chi^2 16804 with it, 1026 without).
+        # Like every extension's fit_kwargs it stays with the path: later steps refit without it too.
         return Extension(model, params, 4, fit_kwargs={"first_stage": None}, note=(
             f"offset peak '{name}': dtheta {np.degrees(dtheta):.4f} deg, dphi0 {np.degrees(dphi0):.1f} deg, rho_s {rho:.3g}, "
             f"width {width:.3g} (best of {len(trials)} starts: block {k}, grid row {row}, col {col}; profiled chi^2 {c:.4g})"))
@@ -952,10 +958,10 @@ class PixelNonlinearityEffect(Effect):
         "identifiable (some term's weight fixed by calibration) and not already in the model; with f_ref "
         "at the geometric mean, s and gamma are nearly uncorrelated.  (Measured: with gamma alone, a "
         "response exact at 1 sr^-1 was ranked behind flux_scale in 2 of 3 withheld-effect trials and "
-        "needed both on the path.)  On a single frame a power law of a lone Beckmann lobe is nearly a "
-        "narrower lobe times a scale, so flux_scale ranks first there; frames at different incident "
-        "angles separate them (the geometric factor 1 / (cos theta_i cos theta_s) raised to gamma) only to second order, so a lone "
-        "Beckmann lobe of free width is reported as not identifiable.  Initialised by regressing the log residual on ln f (slope: gamma - 1, "
+        "needed both on the path.)  A power law of a lone Beckmann lobe is a narrower lobe times a "
+        "scale; frames at different incident angles separate them only to second order (the geometric "
+        "factor 1 / (cos theta_i cos theta_s) raised to gamma), so a lone Beckmann lobe of free width is "
+        "reported as not identifiable.  Initialised by regressing the log residual on ln f (slope: gamma - 1, "
         "intercept at f_ref: ln s).  Signature: the t-statistic of that slope over the points where the "
         "model is above 1e-3 of its maximum (a residual correlated with the log signal)."
     )
@@ -966,7 +972,7 @@ class PixelNonlinearityEffect(Effect):
     def identifiable(self, model, params, blocks):
         terms = list(model.terms.values())
         if len(terms) == 1 and isinstance(terms[0], Specular) and isinstance(terms[0].distribution, Beckmann):
-            (tname, wname), = _weight_names(model)
+            (tname, _), = _weight_names(model)
             width = _public(model, f"{tname}.m")
             # the scale comes with gamma where a weight is fixed (extend), so a free weight is not needed for this
             if _is_free(params, width):

@@ -551,7 +551,8 @@ def diagnose(
     ``path_pool`` best signatures of the new residual are refitted;
     ``refit_top``: refit only the candidates with the ``refit_top``
     highest signature scores, and at later steps also the previous step's
-    runners-up (default: all; the others are reported as not refitted; a speed-up with a measured risk: the signature scores of
+    runners-up (default: all; the others are reported as not refitted; a
+    speed-up with a measured risk: the signature scores of
     different effects are not on one scale, and in the withheld-effect
     benchmark ``refit_top=3`` left the withheld effect unrefitted in 2 of 3
     trials); ``threshold``/``smooth``: the region detection (smoothed ``|z|`` and
