@@ -67,9 +67,11 @@ import equinox as eqx
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
+from .errors import InputError
 from . import registry
 from .detector import Detector, PixelGrid
 from .render import Frame
+from .instrument.synthetic import InstrumentConfig
 from .terms import AbstractTerm, Diffraction, Model, OffsetNormal, Specular
 
 __all__ = [
@@ -82,6 +84,7 @@ __all__ = [
     "SimulateConfig",
     "DETECTOR_PRESETS",
     "load_simulate_config",
+    "load_instrument_config",
     "parse_simulate_config",
     "default_config_path",
     "parameter_keys",
@@ -102,7 +105,7 @@ _UNIT_KEYS: dict[str, tuple[str, float]] = {
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
-class ConfigError(ValueError):
+class ConfigError(InputError):
     """A config that cannot be used; the message names the file and the key.
 
     ``source`` is the file (or ``"<string>"``), ``problems`` a list of
@@ -682,3 +685,28 @@ def describe_validation_error(
     if info is not None and info.description and kind != "value_error":
         msg += f"; expected {info.description}"
     return _dotted(full), msg
+
+
+def load_instrument_config(path: str | Path | None, camera_seed: int | None = None) -> InstrumentConfig:
+    """Read an instrument TOML into :class:`~brdfjax.instrument.synthetic.InstrumentConfig`.
+
+    Raises :class:`ConfigError` naming the file and the dotted key on a bad value or an
+    unknown key.
+    """
+    source = str(path) if path is not None else "<default instrument>"
+    data: dict[str, Any] = {}
+    if path is not None:
+        try:
+            data = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise ConfigError(source, [("", "no such instrument config")]) from None
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(source, [("", f"not valid TOML ({e})")]) from None
+    if camera_seed is not None:
+        data["camera_seed"] = camera_seed
+    try:
+        return InstrumentConfig(**data)
+    except ValidationError as e:
+        raise ConfigError(
+            source, [(".".join(str(x) for x in err["loc"]), err["msg"]) for err in e.errors()]
+        ) from None

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ._params import check_param, param
+from .fields import check_param, param
 from .geometry import Directions, Rx, Ry, Rz, direction, rotate, safe_sqrt, zenith_azimuth
 
 __all__ = ["Detector", "PixelGrid", "incident_direction"]

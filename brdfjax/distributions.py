@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._params import check_param, param
+from .fields import check_param, param
 
 __all__ = [
     "AbstractDistribution",

@@ -65,7 +65,7 @@ def _levels(lo: float, hi: float, n: int = 7) -> np.ndarray:
     return ticks[(ticks > lo) & (ticks < hi)]
 
 
-def _visible_contours(detector: Detector, theta_c: np.ndarray | None, box: tuple[float, float, float, float]) -> list[dict]:
+def visible_contours(detector: Detector, theta_c: np.ndarray | None, box: tuple[float, float, float, float]) -> list[dict]:
     """Contours with round levels spanning the visible box ``(h0, h1, v0, v1)``."""
     h0, h1, v0, v1 = box
     hh, vv = np.meshgrid(np.linspace(h0, h1, 17), np.linspace(v0, v1, 17))
@@ -91,7 +91,7 @@ def _label_point(nh: np.ndarray, nv: np.ndarray, box, at: float) -> tuple[float,
     return float(nh[k]), float(nv[k])
 
 
-def _save_atomic(fig: Any, path: Path, dpi: int) -> Path:
+def save_figure_atomic(fig: Any, path: Path, dpi: int) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     from .io import atomic_output
@@ -153,7 +153,7 @@ def plot_frame(
     cb.set_label(r"log$_{10}$ BRDF (sr$^{-1}$)")
 
     n_theta = 0
-    for line in _visible_contours(detector, theta_c, box):
+    for line in visible_contours(detector, theta_c, box):
         theta_line = line["kind"] == "theta_s"
         # theta_s lines run top to bottom: stagger their labels near the top; phi_s labels sit right.
         at = (0.02 + 0.07 * (n_theta % 2)) if theta_line else 0.9
@@ -209,4 +209,4 @@ def plot_frame(
         )
     step_note = f"every {int(dh)}-th pixel, " if dh > 1 else ""
     fig.suptitle(f"{title}   ({step_note}{grid.shape[0]} x {grid.shape[1]} grid)", fontsize=11)
-    return _save_atomic(fig, Path(path), dpi)
+    return save_figure_atomic(fig, Path(path), dpi)

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ._params import check_param, param
+from .fields import check_param, param
 from .detector import Detector, PixelGrid
 from .geometry import Directions, Rz
 from .terms import AbstractTerm
@@ -73,7 +73,7 @@ def cast(tree: Any, dtype: Any) -> Any:
     return jax.tree_util.tree_map(f, tree)
 
 
-def _resolve_dtype(precision: Precision | Any) -> Any:
+def resolve_dtype(precision: Precision | Any) -> Any:
     name = np.dtype(precision).name if not isinstance(precision, str) else precision
     if name not in ("float32", "float64"):
         raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
@@ -93,7 +93,7 @@ def _default_rows(n_rows: int, n_cols: int, chunk_pixels: int) -> int:
 
 
 @eqx.filter_jit
-def _map_rows(fn, args, n_h: Array, n_v: Array, rows_per_chunk: int):
+def map_rows(fn, args, n_h: Array, n_v: Array, rows_per_chunk: int):
     """Apply ``fn(args, n_h_row_vector, n_v_scalar) -> pytree of (n_cols,)`` to every row, in chunks."""
     n_rows = n_v.shape[0]
     n_chunks = -(-n_rows // rows_per_chunk)
@@ -120,7 +120,7 @@ def _pixel_values(args, n_h_row, n_v):
 def _prepare(detector: Detector | None, grid: PixelGrid | None, step: int, roi, precision):
     detector = Detector.seed() if detector is None else detector
     grid = detector.grid(step, roi) if grid is None else grid
-    dtype = _resolve_dtype(precision)
+    dtype = resolve_dtype(precision)
     return detector, grid, dtype
 
 
@@ -148,7 +148,7 @@ def render(
         raise TypeError("render(per_term=True) needs a brdfjax Model (a named sum of terms)")
     args = cast((model, frame, detector), dtype)
     rows = _default_rows(grid.n_v.size, grid.n_h.size, chunk_pixels)
-    return _map_rows(
+    return map_rows(
         _pixel_values,
         (*args, per_term),
         jnp.asarray(grid.n_h, dtype),
@@ -181,4 +181,4 @@ def render_geometry(
     detector, grid, dtype = _prepare(detector, grid, step, roi, precision)
     args = cast((frame, detector), dtype)
     rows = _default_rows(grid.n_v.size, grid.n_h.size, chunk_pixels)
-    return _map_rows(_geometry_values, args, jnp.asarray(grid.n_h, dtype), jnp.asarray(grid.n_v, dtype), rows)
+    return map_rows(_geometry_values, args, jnp.asarray(grid.n_h, dtype), jnp.asarray(grid.n_v, dtype), rows)

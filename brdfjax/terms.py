@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ._params import check_param, param
+from .fields import check_param, param
 from .distributions import AbstractDistribution, Beckmann
 from .fresnel import q_factor
 from .geometry import Directions, Ry, Rz
@@ -184,7 +184,7 @@ class Diffraction(AbstractTerm):
 # --- models and parameter naming ---------------------------------------------------------
 
 
-def _param_fields(module: eqx.Module) -> list[dataclasses.Field]:
+def param_fields(module: eqx.Module) -> list[dataclasses.Field]:
     return [f for f in dataclasses.fields(module) if "unit" in f.metadata]
 
 
@@ -202,7 +202,7 @@ def _term_paths(module: eqx.Module, prefix: tuple[str, ...] = ()) -> dict[str, t
     for child in _child_fields(module):
         for name, entry in _term_paths(getattr(module, child.name), prefix + (child.name,)).items():
             out[name] = entry
-    for f in _param_fields(module):
+    for f in param_fields(module):
         out[f.name] = (prefix + (f.name,), f.metadata["unit"])
     return out
 

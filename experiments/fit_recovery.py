@@ -99,7 +99,7 @@ def _atomic_json(path: Path, obj) -> None:
 
 
 def instrument(bin_: int, seed: int):
-    from brdfjax.cli import load_instrument_config
+    from brdfjax.config import load_instrument_config
     from brdfjax.instrument.synthetic import SyntheticInstrument
 
     det = bj.Detector.seed(shape=(2472 // bin_, 3296 // bin_), pixel_pitch=5.5e-6 * bin_, pixel_pitch_v=5.5e-6 * bin_)
@@ -111,9 +111,8 @@ def instrument(bin_: int, seed: int):
 
 def measure(out: Path, seed: int, bin_: int, step: int) -> list[Path]:
     """Synthesize and reduce the three measurements of one noise seed (cached reduced-frame EXRs)."""
-    from brdfjax.cli import ND_3_TOLERANCE, choose_nd_filters
+    from brdfjax.instrument.nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters
     from brdfjax.instrument.reduce import beam_signature, reduce_measurement, write_reduced_frame
-    from brdfjax.instrument.uncertainty import SEED_ND_TOLERANCES
 
     folder = out / "frames" / f"bin{bin_}_step{step}_seed{seed}"
     paths = [folder / f"ti{ti:g}.exr" for ti in THETA_I]

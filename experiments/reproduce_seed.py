@@ -32,7 +32,7 @@ import equinox as eqx
 import numpy as np
 
 import brdfjax as bj
-from brdfjax.cli import FrameResult, run_simulate
+from brdfjax.simulate import FrameResult, run_simulate
 from brdfjax.config import load_simulate_config
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -138,7 +138,8 @@ def section_45(det, grid, precision):
 
 
 def section_nd():
-    from brdfjax.instrument.uncertainty import SEED_ND_TOLERANCES, optical_density_uncertainty
+    from brdfjax.instrument.nd import SEED_ND_TOLERANCES
+    from brdfjax.instrument.uncertainty import optical_density_uncertainty
 
     print("Eq 97  ND-filter term, %  (tolerances: 0.1/0.2/0.3 +-0.01, 4.0 +-0.2 printed; 1.0 +-0.06 inferred)")
     cases = [

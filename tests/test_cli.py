@@ -254,7 +254,7 @@ def test_synthesize_then_reduce_round_trip(tmp_path, capsys):
     assert [e.exposure_s for e in stack.exposures] == [1e-3, 1e-2, 1e-1, 1.0]
     # ND filters chosen by the seed's rule: nothing saturates at the shortest exposure, but it would
     # with the next-smaller stack (so the OD is the smallest that works).
-    from brdfjax.cli import ND_STACKS
+    from brdfjax.instrument.nd import ND_STACKS
 
     full = stack.attrs.full_scale
     peak = float(stack.exposures[0].counts.max())
@@ -302,7 +302,8 @@ def test_reduce_correct_nonlinearity_flag(tmp_path, capsys):
 
 def test_synthesize_instrument_config(tmp_path, capsys):
     """Every effect's switch and parameters come from an instrument TOML; bad keys are named."""
-    from brdfjax.cli import load_instrument_config, main
+    from brdfjax.cli import main
+    from brdfjax.config import load_instrument_config
     from brdfjax.config import ConfigError
     from brdfjax.instrument.raw import read_raw_exr
 

@@ -95,7 +95,7 @@ def test_simulated_bench_satisfies_every_interface():
 
 
 def test_od_rule_matches_synthesize_rule():
-    from brdfjax.cli import ND_STACKS, choose_nd_filters
+    from brdfjax.instrument.nd import ND_STACKS, choose_nd_filters
 
     sim = _sim()
     ins = sim.instrument

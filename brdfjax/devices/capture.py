@@ -94,8 +94,8 @@ from .plans import (
     Measurement,
     peak_above_black,
     probe_stack,
-    stack_od,
 )
+from ..instrument.nd import stack_od
 
 __all__ = [
     "CaptureConfig",
@@ -303,7 +303,7 @@ def build_bench(cfg: CaptureConfig, *, config_dir: Path | None = None):
         from .lab import open_lab_bench
 
         return open_lab_bench(ins.lab, wavelength=cfg.wavelength_nm * 1e-9), None
-    from ..cli import load_instrument_config
+    from ..config import load_instrument_config
     from ..detector import Detector
     from ..instrument.synthetic import EFFECTS
     from .simulated import SimulatedBench

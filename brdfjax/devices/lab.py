@@ -41,6 +41,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from ..instrument.nd import ND_STACKS
+
 from .interfaces import Bench, CameraFrame, DeviceError
 
 __all__ = [
@@ -231,8 +233,6 @@ class _Manual:
 
 class ManualFilters(_Manual):
     def __init__(self, stacks: Sequence[str] | None = None, prompt: Callable[[str], str] = input):
-        from .simulated import ND_STACKS
-
         super().__init__(prompt)
         self._stacks = tuple(stacks or ND_STACKS)
         self._current: str | None = None

@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..instrument.nd import stack_od
+
 from ..io import atomic_output
 
 __all__ = ["LiveView", "display_available"]
@@ -68,8 +70,6 @@ class LiveView:
     def update_exposure(self, m, nd: str, exposure, black: float, full_scale: float, beam_flux: float | None,
                         alignment: dict, bench) -> bool:
         """Merge one exposure of measurement ``m`` and redraw if due; returns whether it redrew."""
-        from .plans import stack_od
-
         counts = np.asarray(exposure.counts, np.float64)
         key = (m.name, nd)
         if key != self._key:

@@ -6,11 +6,10 @@ optional §3.4 alignment), each with its exposure bracket (1, 10, 100, 1000 ms
 by default), frame averaging, ND stack (``"auto"``: chosen at the bench) and
 a background (the same exposures with the beam blocked).
 
-**OD selection** (:func:`select_stack`, :func:`probe_stack`): the seed's
-rule, the smallest OD that keeps the brightest pixel unsaturated at the
-shortest exposure -- the same test as ``brdfjax synthesize``
-(:func:`brdfjax.cli.choose_nd_filters`: ``peak rate x 10^-OD x t_min + 2 x
-black level < 0.9 x full scale``).  At the bench the peak rate is measured,
+**OD selection** (:func:`probe_stack`): the seed's rule,
+:func:`brdfjax.instrument.nd.select_stack` (the smallest OD that keeps the
+brightest pixel unsaturated at the shortest exposure, ``peak rate x 10^-OD x
+t_min + 2 x black level < 0.9 x full scale``), as ``brdfjax synthesize`` uses it.  At the bench the peak rate is measured,
 not known: :func:`probe_stack` starts at the densest stack, takes a
 shortest-exposure frame, and steps to thinner stacks only as far as the
 measured peak (or, while it is buried in the noise, an upper bound of it)
@@ -33,15 +32,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..instrument.uncertainty import parse_nd_filters
+from ..instrument.nd import select_stack, stack_od
 
 __all__ = [
     "DEFAULT_EXPOSURES_S",
     "Measurement",
     "InterlockError",
     "Interlock",
-    "stack_od",
-    "select_stack",
     "probe_stack",
     "ProbeResult",
 ]
@@ -50,11 +47,6 @@ __all__ = [
 DEFAULT_EXPOSURES_S: tuple[float, ...] = (1e-3, 1e-2, 1e-1, 1.0)
 #: A probe peak is trusted once it is this many counts above the black level.
 PROBE_MIN_SIGNAL = 200.0
-
-
-def stack_od(stack: str) -> float:
-    """Total nominal OD of a stack like ``"4.0+1.0+0.2"``."""
-    return float(sum(parse_nd_filters(stack)))
 
 
 @dataclass(frozen=True)
@@ -123,20 +115,6 @@ class Interlock:
         note = f"OVERRIDDEN {msg}"
         self.overridden.append(note)
         self._log(note)
-
-
-def select_stack(
-    peak_rate_unattenuated: float, *, t_min: float, black_level: float, full_scale: float, stacks: Sequence[str]
-) -> str:
-    """The seed's rule (as :func:`brdfjax.cli.choose_nd_filters`): the thinnest stack whose brightest pixel
-    stays below 0.9 full scale at the shortest exposure.  ``peak_rate_unattenuated``: counts/s with no filter."""
-    for stack in sorted(stacks, key=stack_od):
-        if peak_rate_unattenuated * 10 ** -stack_od(stack) * t_min + 2 * black_level < 0.9 * full_scale:
-            return stack
-    raise ValueError(
-        f"no ND stack up to OD {max(map(stack_od, stacks)):g} keeps the brightest pixel unsaturated "
-        f"(peak {peak_rate_unattenuated:.4g} counts/s unattenuated)"
-    )
 
 
 @dataclass(frozen=True)

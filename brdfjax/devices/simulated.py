@@ -39,17 +39,11 @@ import numpy as np
 from ..detector import Detector
 from ..render import Frame
 from ..instrument.synthetic import InstrumentConfig, SyntheticInstrument, beam_flux_image
-from ..instrument.uncertainty import parse_nd_filters
+from ..instrument.nd import ND_STACKS, parse_nd_filters
 from .alignment import spot_pixel
 from .interfaces import Bench, CameraFrame, DeviceError
 
-__all__ = ["SimulatedBench", "ND_STACKS"]
-
-#: ND stacks of the simulated filter changer (the seed's filters, as ``brdfjax synthesize`` uses).
-ND_STACKS: tuple[str, ...] = (
-    "", "0.3", "1.0", "1.0+0.3", "3.0", "3.0+0.3", "4.0", "4.0+0.3", "4.0+1.0", "4.0+1.0+0.2",
-    "4.0+1.0+0.3", "4.0+3.0", "4.0+3.0+0.3", "4.0+3.0+1.0",
-)
+__all__ = ["SimulatedBench"]
 
 
 class SimulatedBench:

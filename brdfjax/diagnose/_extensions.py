@@ -53,9 +53,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._params import check_param, param
+from ..fields import check_param, param
 from ..geometry import Directions, Rx, Ry, Rz, rotate
-from ..terms import AbstractTerm, Diffraction, Model, Oriented, _param_fields
+from ..terms import AbstractTerm, Diffraction, Model, Oriented, param_fields
 
 __all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter", "camera_axes", "block_camera", "camera_params"]
 
@@ -227,7 +227,7 @@ class InstrumentResponse(Model):
         """``model`` with ``features`` switched on and response fields set from ``values``."""
         fields = {}
         if isinstance(model, InstrumentResponse):
-            fields = {f.name: getattr(model, f.name) for f in _param_fields(model)}
+            fields = {f.name: getattr(model, f.name) for f in param_fields(model)}
             fields.update(features=model.features, f_ref=model.f_ref, aperture_n=model.aperture_n)
         fields.update(values)
         feats = tuple(fields.pop("features", ())) + tuple(f for f in features if f not in fields.get("features", ()))
@@ -240,7 +240,7 @@ class InstrumentResponse(Model):
 
     def _paths(self):
         out = super()._paths()
-        units = {f.name: f.metadata["unit"] for f in _param_fields(self)}
+        units = {f.name: f.metadata["unit"] for f in param_fields(self)}
         for feat in self.features:
             for name in FEATURES[feat]:
                 out[f"instrument.{name}"] = ((name,), units[name])

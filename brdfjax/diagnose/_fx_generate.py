@@ -45,7 +45,7 @@ import numpy as np
 from ..detector import Detector
 from ..distributions import Beckmann, BeckmannAniso
 from ..fit import FrameData, Param, TableData
-from ..instrument.synthetic import InstrumentConfig, StrayLight, _shift_add, convolve_footprint, footprint_kernel
+from ..instrument.synthetic import InstrumentConfig, StrayLight, shift_add, convolve_footprint, footprint_kernel
 from ..render import Frame, render
 from ..terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
 from ._extensions import InstrumentResponse, Oriented, SpectralDiffraction
@@ -349,7 +349,7 @@ def _apply_instrument(img: np.ndarray, sc: Scenario) -> np.ndarray:
         main = img.astype(np.float32)
         out = main.copy()
         for dh, dv, lr in ins.stray_light.peaks:
-            _shift_add(out, main, int(round(dv / sc.step)), int(round(dh / sc.step)), 10.0**lr)
+            shift_add(out, main, int(round(dv / sc.step)), int(round(dh / sc.step)), 10.0**lr)
         img = out.astype(np.float64)
     if "flux_scale" in sc.truth:
         img = img * sc.truth["flux_scale"]
@@ -417,19 +417,14 @@ def synthesize(scenario: Scenario, seed: int = 0, out_dir: str | Path | None = N
 
 
 def _synth_instrument(sc: Scenario, seed: int, out_dir: str | Path | None) -> list[FrameData]:
-    from ..cli import ND_3_TOLERANCE, choose_nd_filters
-    from ..instrument.raw import Calibration
     from ..fit import read_frame_data
     from ..instrument import SyntheticInstrument, reduce_measurement_set
+    from ..instrument.synthetic import SEED_BEAM_FILTERS
 
     folder = Path(tempfile.mkdtemp(prefix="brdfjax_fx_")) if out_dir is None else Path(out_dir)
     ins = SyntheticInstrument(sc.detector, sc.instrument, seed=seed, nominal_detector=sc.nominal_detector)
-    samples = {}
-    for i, (ti, phi, wl) in enumerate(sc.frames):
-        frame = Frame(np.float64(ti), np.float64(phi), np.float64(wl))
-        brdf = ins.render_brdf(sc.truth_model, frame)
-        samples[f"f{i}"] = (brdf, frame, choose_nd_filters(lambda s, b=brdf, f=frame: ins.sample_flux(b, f, s), ins))
-    manifest = ins.write_set(folder / "raw", samples, wavelength=sc.frames[0][2],
-                             calibration=Calibration(nd_tolerances={3.0: ND_3_TOLERANCE}))
+    frames = {f"f{i}": Frame(np.float64(ti), np.float64(phi), np.float64(wl)) for i, (ti, phi, wl) in enumerate(sc.frames)}
+    manifest = ins.measure_set(folder / "raw", sc.truth_model, frames, beam_filters=SEED_BEAM_FILTERS,
+                               wavelength=sc.frames[0][2])
     paths = reduce_measurement_set(manifest, folder / "reduced")
     return [read_frame_data(p, step=sc.step, roi=sc.roi) for p in paths]

@@ -57,7 +57,7 @@ from ..fit import FitResult, FrameData, Param, TableData
 from ..fit._params import as_param
 from ..geometry import Directions
 from ..render import Frame, render, sample_directions
-from ..terms import AbstractTerm, Diffraction, Lambertian, Model, OffsetNormal, Specular, _param_fields
+from ..terms import AbstractTerm, Diffraction, Lambertian, Model, OffsetNormal, Specular, param_fields
 from ._extensions import InstrumentResponse, Oriented, SpectralDiffraction, block_camera, camera_axes, camera_params, response_features
 
 __all__ = [
@@ -405,7 +405,7 @@ def _main_specular(model: Model) -> tuple[str, Specular] | None:
 
 
 def _width_field(dist: AbstractDistribution) -> str:
-    return _param_fields(dist)[0].name
+    return param_fields(dist)[0].name
 
 
 def _public(model: Model, flat: str) -> str:
@@ -1148,11 +1148,11 @@ class DistributionShapeEffect(Effect):
         for n in swaps:
             inner = _inner_specular(model.terms[n]).distribution
             old = _inner_specular(ctx.model.terms[n]).distribution
-            for f in _param_fields(inner):
+            for f in param_fields(inner):
                 v = float(np.asarray(getattr(inner, f.name)))
                 pub = _public(model, f"{n}.{f.name}")
                 params[pub] = Param(v, lower=1.05, upper=50.0) if f.name == "gamma" else Param(v, lower=0.0)
-            n_new += len(_param_fields(inner)) - len(_param_fields(old))
+            n_new += len(param_fields(inner)) - len(param_fields(old))
         return params, max(n_new, 0)
 
     def extend(self, ctx):

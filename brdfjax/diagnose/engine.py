@@ -47,6 +47,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from ..errors import InputError
 from ..fit import FitInputError, FitResult, FrameData, Param, TableData, fit
 from ..fit._params import as_param
 from ..geometry import Directions
@@ -70,7 +71,7 @@ __all__ = [
 LN10 = math.log(10.0)
 
 
-class DiagnoseInputError(ValueError):
+class DiagnoseInputError(InputError):
     """Bad diagnosis input (no usable pixels, unknown effect, effect already in the base); says what to change."""
 
 

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..plotting import _save_atomic, _visible_contours, log10_floor
+from ..plotting import save_figure_atomic, visible_contours, log10_floor
 from ._data import FrameData, TableData
 
 __all__ = ["write_figures", "frame_model_image", "plot_frame_fit", "plot_table_fit"]
@@ -74,7 +74,7 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
     det = block.arm_detector()
     theta_c = None if det.theta_c is not None else np.asarray(block.theta_i, np.float64)
     try:
-        lines = _visible_contours(det, theta_c, box)
+        lines = visible_contours(det, theta_c, box)
     except Exception:  # contours are decoration; never fail a figure on them
         lines = []
 
@@ -152,7 +152,7 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
     ph = math.degrees(float(np.asarray(frame.phi_ref)))
     fig.suptitle(f"{title}frame '{block.name}': θi = {th:.4g}°, φref = {ph:.4g}°  ({d.shape[0]} x {d.shape[1]} grid)",
                  fontsize=11)
-    return _save_atomic(fig, Path(path), dpi)
+    return save_figure_atomic(fig, Path(path), dpi)
 
 
 def _with_bad(name: str):
@@ -217,7 +217,7 @@ def plot_table_fit(block: TableData, model_vals: np.ndarray, path: Path, *, titl
     for ax in axes[n:]:
         ax.set_visible(False)
     fig.suptitle(f"{title}table '{block.name}': data and fitted model per incident angle", fontsize=11)
-    return _save_atomic(fig, Path(path), dpi)
+    return save_figure_atomic(fig, Path(path), dpi)
 
 
 def write_figures(job: Any, result: Any, out: Path, *, dpi: int = 100) -> list[Path]:

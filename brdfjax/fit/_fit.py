@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..geometry import Directions
-from ..render import Frame, _resolve_dtype, cast
+from ..render import Frame, resolve_dtype, cast
 from ..terms import Model
 from ._common import FRAME_PARAMETERS, FitInputError
 from ._covariance import covariance
@@ -109,7 +109,7 @@ def _resolve_precision(precision: str | None) -> tuple[str, Any]:
     if precision is None:
         precision = "float64" if jax.config.jax_enable_x64 else "float32"
     try:
-        dtype = _resolve_dtype(precision)
+        dtype = resolve_dtype(precision)
     except ValueError as e:
         raise FitInputError(str(e)) from None
     return np.dtype(dtype).name, dtype

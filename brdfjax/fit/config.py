@@ -605,9 +605,8 @@ def _fingerprint(obj: Any) -> str:
 
 def _synthesize(cfg: FitConfig, model: Model, folder: Path, notes: list[str]) -> tuple[list[Path], float | None]:
     """Generate (or reuse) the synthetic measurement set and its reduction; returns the frames and the footprint."""
-    from ..cli import ND_3_TOLERANCE, choose_nd_filters, load_instrument_config
+    from ..config import load_instrument_config
     from ..detector import Detector
-    from ..instrument.raw import Calibration
     from ..instrument.reduce import reduce_measurement_set
     from ..instrument.synthetic import SyntheticInstrument
     from ..render import Frame
@@ -641,16 +640,8 @@ def _synthesize(cfg: FitConfig, model: Model, folder: Path, notes: list[str]) ->
             return paths, w_px
     folder.mkdir(parents=True, exist_ok=True)
     instrument = SyntheticInstrument(det, inst_cfg, seed=s.seed)
-    samples = {}
-    for n, t, p in zip(names, s.theta_i_deg, phis):
-        frame = Frame.from_degrees(t, p, s.wavelength_nm)
-        brdf = instrument.render_brdf(model, frame)
-        nd = choose_nd_filters(lambda stack, b=brdf, f=frame: instrument.sample_flux(b, f, stack), instrument)
-        samples[n] = (brdf, frame, nd)
-    manifest = instrument.write_set(
-        folder / "raw", samples, beam_filters=choose_nd_filters(instrument.beam_flux, instrument),
-        calibration=Calibration(nd_tolerances={3.0: ND_3_TOLERANCE}),
-    )
+    frames = {n: Frame.from_degrees(t, p, s.wavelength_nm) for n, t, p in zip(names, s.theta_i_deg, phis)}
+    manifest = instrument.measure_set(folder / "raw", model, frames)
     r = cfg.data.reduce
     reduce_measurement_set(manifest, reduced_dir, merge=r.merge, step=r.step, **_reduce_options(r))
     tmp = stamp.with_name(stamp.name + ".tmp")

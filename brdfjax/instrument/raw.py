@@ -135,8 +135,9 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
 from ..io import atomic_output
-from .uncertainty import parse_nd_filters
+from .nd import parse_nd_filters
 
 __all__ = [
     "KINDS",
@@ -207,11 +208,11 @@ _RESERVED = _STANDARD | set(PART_ATTRS) | {"checksum"}
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
-class RawFormatError(ValueError):
+class RawFormatError(InputError):
     """A raw measurement file that cannot be written or read; the message names the file and the problem."""
 
 
-class ManifestError(ValueError):
+class ManifestError(InputError):
     """A ``manifest.toml`` that cannot be used; the message names the file and the key."""
 
 

@@ -91,14 +91,15 @@ from typing import Any, Literal
 
 import numpy as np
 
+from ..errors import InputError
 from ..detector import Detector, PixelGrid
 from ..io import atomic_output
 from ..render import render_geometry
 from .raw import Manifest, RawAttrs, RawFormatError, RawStack, read_manifest, read_raw_exr
+from .nd import SEED_ND_TOLERANCES
 from .uncertainty import (
     SEED_ARM_ANGLE_UNCERTAINTY,
     SEED_DISTANCE_UNCERTAINTY,
-    SEED_ND_TOLERANCES,
     SEED_PITCH_UNCERTAINTY,
     SEED_SCATTER_NONLINEARITY,
     brdf_eq45,
@@ -155,7 +156,7 @@ SEED_CENTRE_SOLID_ANGLE = 2.864e-10
 SEED_GAIN = 20000.0 / 16383.0
 
 
-class ReductionError(ValueError):
+class ReductionError(InputError):
     """Inputs that cannot be reduced together; the message names the files and the problem."""
 
 

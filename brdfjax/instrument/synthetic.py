@@ -96,7 +96,7 @@ noise of each measurement comes from the instrument's ``numpy`` Generator
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -109,7 +109,7 @@ from ..detector import Detector
 from ..render import Frame, render, render_geometry
 from ..terms import AbstractTerm
 from .raw import Calibration, Exposure, RawAttrs, RawStack, write_manifest, write_raw_exr
-from .uncertainty import SEED_ND_TOLERANCES, parse_nd_filters
+from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
 
 __all__ = [
     "EFFECTS",
@@ -503,7 +503,7 @@ def beam_flux_image(shape: tuple[int, int], centre: tuple[float, float], w_px: f
     return (float(flux) * np.outer(gv, gh)).astype(np.float32)
 
 
-def _shift_add(out: np.ndarray, image: np.ndarray, dv: int, dh: int, scale: float) -> None:
+def shift_add(out: np.ndarray, image: np.ndarray, dv: int, dh: int, scale: float) -> None:
     """``out += scale * image`` shifted by ``(dv, dh)`` pixels (zero fill), in place."""
     rows, cols = image.shape
     if abs(dv) >= rows or abs(dh) >= cols:
@@ -745,7 +745,7 @@ class SyntheticInstrument:
         if self.config.stray_light.enabled:
             main = phi.copy()
             for dh, dv, log_ratio in self.config.stray_light.peaks:
-                _shift_add(phi, main, dv, dh, 10.0**log_ratio)
+                shift_add(phi, main, dv, dh, 10.0**log_ratio)
             del main
         if self.config.ambient.enabled:
             phi += self.camera.ambient
@@ -852,6 +852,44 @@ class SyntheticInstrument:
         """A lens-cap (dark) stack: no light at all."""
         attrs = _replace(like, kind="dark", sample="lens cap")
         return self._stack(None, attrs)
+
+    def measure_set(
+        self,
+        folder: str | Path,
+        model: AbstractTerm,
+        frames: Mapping[str, Frame],
+        *,
+        nd_filters: str | None = None,
+        beam_filters: str | None = None,
+        wavelength: float = 632.8e-9,
+        calibration: Calibration | None = None,
+        log: Callable[[str], None] | None = None,
+    ) -> Path:
+        """Measure ``model`` at every ``frames[name]`` and write the measurement set: the one synthetic pipeline.
+
+        Each sample's BRDF is rendered (:meth:`render_brdf`) and its ND stack
+        chosen by the seed's rule (:func:`~brdfjax.instrument.nd.choose_nd_filters`)
+        unless ``nd_filters`` fixes it; the beam's stack likewise unless
+        ``beam_filters`` is given.  ``calibration`` defaults to the seed's ND
+        tolerances plus the inferred 3.0 OD one; ``log`` receives one line per
+        choice.  Returns the manifest path (:meth:`write_set`).
+        """
+        samples = {}
+        for name, frame in frames.items():
+            brdf = self.render_brdf(model, frame)
+            nd = nd_filters if nd_filters is not None else choose_nd_filters(
+                lambda stack, b=brdf, f=frame: self.sample_flux(b, f, stack), self
+            )
+            samples[name] = (brdf, frame, nd)
+            if log is not None:
+                log(f"{name}: sample ND filters '{nd or 'none'}'")
+        if beam_filters is None:
+            beam_filters = choose_nd_filters(self.beam_flux, self)
+            if log is not None:
+                log(f"beam signature: ND filters '{beam_filters}'")
+        if calibration is None:
+            calibration = Calibration(nd_tolerances={3.0: ND_3_TOLERANCE})
+        return self.write_set(folder, samples, beam_filters=beam_filters, wavelength=wavelength, calibration=calibration)
 
     def write_set(
         self,

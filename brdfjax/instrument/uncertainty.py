@@ -61,7 +61,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any, Literal
 
@@ -72,7 +72,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ..detector import Detector, PixelGrid
-from ..render import _map_rows, _resolve_dtype, cast
+from ..render import map_rows, resolve_dtype, cast
+from .nd import SEED_ND_TOLERANCES, NDSpec, parse_nd_filters
 
 __all__ = [
     "SEED_DISTANCE_UNCERTAINTY",
@@ -80,11 +81,9 @@ __all__ = [
     "SEED_ARM_ANGLE_UNCERTAINTY",
     "SEED_INCIDENT_NONLINEARITY",
     "SEED_TEMPORAL",
-    "SEED_ND_TOLERANCES",
     "SEED_SCATTER_NONLINEARITY",
     "brdf_eq45",
     "eq45_log_sensitivities",
-    "parse_nd_filters",
     "uncancelled_filters",
     "optical_density_uncertainty",
     "incident_flux_uncertainty",
@@ -103,15 +102,12 @@ SEED_ARM_ANGLE_UNCERTAINTY = float(np.deg2rad(0.5))
 SEED_INCIDENT_NONLINEARITY = 1.8e-4
 #: Temporal fluctuation of the incident flux, relative (Eq 96: 1.01 %).
 SEED_TEMPORAL = 0.0101
-#: ND-filter OD tolerances (nominal OD -> +- OD), seed §4.3.  1.0 is inferred (see module docstring).
-SEED_ND_TOLERANCES: Mapping[float, float] = MappingProxyType({0.1: 0.01, 0.2: 0.01, 0.3: 0.01, 1.0: 0.06, 4.0: 0.2})
 #: Summary of the seed's per-pixel scatter non-linearity map (§4.2, Table 5), relative.  The map is unpublished.
 SEED_SCATTER_NONLINEARITY: Mapping[str, float] = MappingProxyType(
     {"mean": 0.0218, "std": 0.0050, "max": 0.1632, "min": 0.0105}
 )
 
 Precision = Literal["float32", "float64"]
-NDSpec = str | Sequence[float] | None
 
 
 # -- Eq 45 and its sensitivities ----------------------------------------------------------
@@ -147,46 +143,6 @@ def eq45_log_sensitivities(theta_s: ArrayLike, solid_angle: ArrayLike) -> tuple[
 
 
 # -- incident flux: ND filters (Eq 97) and Eq 98 -------------------------------------------
-
-
-def parse_nd_filters(spec: NDSpec) -> tuple[float, ...]:
-    """The nominal ODs of a stack of ND filters.
-
-    ``"4.0+1.0+0.2"`` -> ``(4.0, 1.0, 0.2)``; ``""``, ``"0"``, ``"none"`` or
-    ``None`` -> ``()`` (no filter); a sequence of numbers is taken as the ODs.
-    Each OD must be a finite positive number.
-    """
-    if spec is None:
-        return ()
-    if isinstance(spec, str):
-        text = spec.strip()
-        if text.lower() in ("", "0", "0.0", "none"):
-            return ()
-        tokens = [t.strip() for t in text.split("+")]
-        values = []
-        for t in tokens:
-            try:
-                values.append(float(t))
-            except ValueError:
-                raise ValueError(
-                    f"ND filter stack {spec!r}: {t!r} is not an optical density; "
-                    "expected ODs joined by '+', e.g. '4.0+1.0+0.2'"
-                ) from None
-    elif isinstance(spec, Sequence) and not isinstance(spec, bytes):
-        values = []
-        for v in spec:
-            try:
-                values.append(float(v))
-            except (TypeError, ValueError):
-                raise ValueError(f"ND filter stack {spec!r}: {v!r} is not an optical density (a number)") from None
-    else:
-        raise ValueError(
-            f"ND filter stack {spec!r}: expected a string like '4.0+1.0+0.2', a sequence of ODs, or None"
-        )
-    for v in values:
-        if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"ND filter stack {spec!r}: OD {v!r} must be a finite positive number")
-    return tuple(values)
 
 
 def _od_key(od: float) -> float:
@@ -426,7 +382,7 @@ def geometry_uncertainty(
     grid = detector.grid() if grid is None else grid
     if not isinstance(grid, PixelGrid):
         raise ValueError(f"grid must be a PixelGrid (see Detector.grid), got {type(grid).__name__}")
-    dtype = _resolve_dtype(precision)
+    dtype = resolve_dtype(precision)
     if misaligned_solid_angle is None:
         misaligned_solid_angle = misaligned
 
@@ -440,7 +396,7 @@ def geometry_uncertainty(
         dtype,
     )
     rows = _rows_per_chunk(grid.n_v.size, grid.n_h.size, chunk_pixels)
-    out = _map_rows(_geometry_row, args, jnp.asarray(grid.n_h, dtype), jnp.asarray(grid.n_v, dtype), rows)
+    out = map_rows(_geometry_row, args, jnp.asarray(grid.n_h, dtype), jnp.asarray(grid.n_v, dtype), rows)
     res = {k: np.asarray(v, dtype=np.float64) for k, v in out.items()}
     res["scatter_angle"] = np.sqrt(sum(np.square(res[f"theta_{k}"]) for k in ("R", "d", "c", "misalignment")))
     res["dphi_s"] = np.sqrt(sum(np.square(res[f"dphi_s_{k}"]) for k in ("R", "d", "c", "misalignment")))

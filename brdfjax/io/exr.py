@@ -38,7 +38,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from . import atomic_output
+from ..errors import InputError
+from .atomic import atomic_output
 
 __all__ = [
     "CHANNELS",
@@ -100,7 +101,7 @@ _STANDARD = {
 }
 
 
-class ExrError(ValueError):
+class ExrError(InputError):
     """A frame file that cannot be written or read as expected; the message names the file."""
 
 

@@ -30,13 +30,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ..errors import InputError
+
 __all__ = ["Prior", "PRIOR_KINDS", "PriorArrays", "build_prior_arrays", "log_prior", "prior_from_natural", "SampleError"]
 
 #: Prior kinds; ``flat`` is the default for a parameter without a prior.
 PRIOR_KINDS = ("flat", "uniform", "log_uniform", "normal", "truncated_normal")
 
 
-class SampleError(ValueError):
+class SampleError(InputError):
     """Bad input to a posterior study (priors, walkers, chain file, config); the message says what to change."""
 
 

@@ -1,0 +1,202 @@
+"""The simulate pipeline: render every frame of a simulate config to OpenEXR + PNG + ``summary.json``.
+
+:func:`run_simulate` is what ``brdfjax simulate`` runs; :func:`simulate_frame`
+renders one frame into a :class:`FrameResult` (NumPy arrays of the BRDF, each
+term and the pixel geometry), as ``experiments/reproduce_seed.py`` uses it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .io import write_json_atomic
+from .io.exr import write_frame_exr
+from .render import render, render_geometry
+
+__all__ = ["FrameResult", "run_simulate", "simulate_frame"]
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One rendered frame in memory: ``(rows, cols)`` NumPy arrays of the grid and timings."""
+
+    stem: str
+    frame: Any  # brdfjax.Frame
+    grid: Any  # brdfjax.PixelGrid
+    brdf: np.ndarray  # sr^-1
+    terms: dict[str, np.ndarray]  # sr^-1, each term of the model
+    geometry: dict[str, np.ndarray]  # theta_s, phi_s (rad), omega (sr)
+    render_s: float
+    files: dict[str, str] = field(default_factory=dict)
+    write_s: float = 0.0
+
+    def argmax(self, image: np.ndarray | None = None) -> tuple[int, int]:
+        """``(n_h, n_v)`` pixel indices of the maximum of ``image`` (default: the BRDF)."""
+        a = self.brdf if image is None else image
+        r, c = np.unravel_index(int(np.nanargmax(a)), a.shape)
+        return int(self.grid.n_h[c]), int(self.grid.n_v[r])
+
+    def at(self, image: np.ndarray, n_h: int, n_v: int) -> float:
+        """Value of ``image`` at pixel ``(n_h, n_v)`` (which must be on the grid)."""
+        c = int(np.flatnonzero(self.grid.n_h == n_h)[0])
+        r = int(np.flatnonzero(self.grid.n_v == n_v)[0])
+        return float(image[r, c])
+
+
+def simulate_frame(model, frame, detector, grid, precision: str = "float32", stem: str = "frame") -> FrameResult:
+    """Render ``model`` and the pixel geometry on ``grid``; returns NumPy arrays (blocks until done).
+
+    The BRDF is the sum of the per-term images (the same sum, in the same
+    order, as evaluating the model), so one pass gives both.
+    """
+    t0 = time.perf_counter()
+    per_term = render(model, frame, detector, grid=grid, precision=precision, per_term=True)
+    terms = {k: np.asarray(v) for k, v in per_term.items()}
+    values = list(terms.values())
+    brdf = sum(values[1:], values[0]).copy()
+    geometry = {k: np.asarray(v) for k, v in render_geometry(frame, detector, grid=grid, precision=precision).items()}
+    return FrameResult(stem, frame, grid, brdf, terms, geometry, time.perf_counter() - t0)
+
+
+def _frame_attrs(cfg, detector, frame, stem: str) -> dict[str, Any]:
+    h0, h1, v0, v1 = cfg.roi if cfg.roi is not None else detector.index_range
+    theta_c = frame.theta_i if detector.theta_c is None else detector.theta_c
+    return {
+        "theta_i": float(frame.theta_i),
+        "theta_c": float(theta_c),
+        "phi_ref": float(frame.phi_ref),
+        "wavelength": float(frame.wavelength),
+        "R": float(detector.distance),
+        "pixel_pitch": float(detector.pixel_pitch),
+        "pixel_pitch_v": float(detector.pixel_pitch_v),
+        "roll": float(detector.roll),
+        "yaw": float(detector.yaw),
+        "pitch": float(detector.pitch),
+        "m_h": float(detector.m_h),
+        "m_v": float(detector.m_v),
+        "step": int(cfg.grid.step),
+        "roi": (int(h0), int(h1), int(v0), int(v1)),
+        "model": cfg.describe_model(),
+        "precision": cfg.precision,
+        "frame": stem,
+        "brdfjax_version": __version__,
+    }
+
+
+def _frame_summary(cfg, res: FrameResult, fcfg) -> dict[str, Any]:
+    def peak(image: np.ndarray) -> dict[str, Any]:
+        n_h, n_v = res.argmax(image)
+        return {"value": float(np.nanmax(image)), "pixel": [n_h, n_v]}
+
+    n_h, n_v = res.argmax()
+    th = res.at(res.geometry["theta_s"], n_h, n_v)
+    ph = res.at(res.geometry["phi_s"], n_h, n_v)
+    return {
+        "name": res.stem,
+        "theta_i_deg": fcfg.theta_i_deg,
+        "phi_ref_deg": fcfg.phi_ref_deg,
+        "wavelength_nm": fcfg.wavelength_nm,
+        "max_brdf": float(np.nanmax(res.brdf)),
+        "max_pixel": [n_h, n_v],
+        "max_theta_s_deg": float(np.rad2deg(th)),
+        "max_phi_s_deg": float(np.rad2deg(ph)),
+        "term_max": {k: peak(v) for k, v in res.terms.items()},
+        "grid_shape": list(res.brdf.shape),
+        "step": cfg.grid.step,
+        "roi": cfg.roi,
+        "precision": cfg.precision,
+        "config": cfg.source,
+        "render_s": round(res.render_s, 4),
+        "write_s": round(res.write_s, 4),
+        "wall_s": round(res.render_s + res.write_s, 4),
+        "files": res.files,
+    }
+
+
+def run_simulate(
+    cfg,
+    out: str | os.PathLike,
+    *,
+    plot: bool = True,
+    console: Any = None,
+    on_frame: Callable[[FrameResult], None] | None = None,
+) -> dict[str, Any]:
+    """Render every frame of a :class:`~brdfjax.config.SimulateConfig` into ``out``.
+
+    Writes ``<stem>.exr``, ``<stem>.png`` (unless ``plot=False``) and
+    ``summary.json``; returns the summary.  ``on_frame`` receives each
+    :class:`FrameResult` (full arrays) before it is dropped.  ``console`` is a
+    ``rich`` console for one status line per frame (``None``: silent).
+    A config with ``precision = "float64"`` needs ``jax_enable_x64`` on; the
+    CLI turns it on, library callers decide for themselves.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    detector = cfg.build_detector()
+    grid = cfg.build_grid(detector)
+    model = cfg.build_model()
+    frames = cfg.build_frames()
+    if plot:
+        from .plotting import plot_frame  # matplotlib is only imported when a figure is drawn
+
+    t_start = time.perf_counter()
+    entries = []
+    for (stem, frame), fcfg in zip(frames, cfg.frames, strict=True):
+        status = console.status(f"rendering {stem} ({grid.shape[0]} x {grid.shape[1]} pixels)") if console else None
+        if status:
+            status.start()
+        try:
+            res = simulate_frame(model, frame, detector, grid, cfg.precision, stem)
+            t0 = time.perf_counter()
+            exr = write_frame_exr(
+                out / f"{stem}.exr",
+                res.brdf,
+                res.geometry["theta_s"],
+                res.geometry["phi_s"],
+                res.geometry["omega"],
+                _frame_attrs(cfg, detector, frame, stem),
+            )
+            files = {"exr": exr.name}
+            if plot:
+                files["png"] = plot_frame(res.brdf, grid, detector, frame, out / f"{stem}.png").name
+            res = dataclasses.replace(res, files=files, write_s=time.perf_counter() - t0)
+        finally:
+            if status:
+                status.stop()
+        entry = _frame_summary(cfg, res, fcfg)
+        entries.append(entry)
+        if console is not None:
+            n_h, n_v = entry["max_pixel"]
+            console.print(
+                f"[green]done[/] {stem}: {res.brdf.shape[0]} x {res.brdf.shape[1]} px, "
+                f"max {entry['max_brdf']:.4g} sr^-1 at (n_h, n_v) = ({n_h}, {n_v}), "
+                f"render {res.render_s:.2f} s, write {res.write_s:.2f} s -> {', '.join(files.values())}",
+                highlight=False,
+            )
+        if on_frame is not None:
+            on_frame(res)
+        del res
+
+    summary = {
+        "brdfjax_version": __version__,
+        "config": cfg.source,
+        "precision": cfg.precision,
+        "step": cfg.grid.step,
+        "roi": cfg.roi,
+        "grid_shape": list(grid.shape),
+        "detector": {**cfg.detector.resolved(), "theta_c_deg": cfg.detector.theta_c_deg},
+        "model": cfg.describe_model(),
+        "wall_s": round(time.perf_counter() - t_start, 4),
+        "frames": entries,
+    }
+    write_json_atomic(out / "summary.json", summary)
+    return summary
