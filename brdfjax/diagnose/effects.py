@@ -54,7 +54,7 @@ from ..distributions import (
     StudentTAniso,
 )
 from ..fit import FitResult, FrameData, Param, TableData
-from ..fit._params import as_param
+from ..fit.internal import as_param
 from ..geometry import Directions
 from ..render import Frame, render, sample_directions
 from ..terms import AbstractTerm, Diffraction, Lambertian, Model, OffsetNormal, Specular, param_fields

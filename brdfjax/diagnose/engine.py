@@ -49,7 +49,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..fit import FitInputError, FitResult, FrameData, Param, TableData, fit
-from ..fit._params import as_param
+from ..fit.internal import as_param
 from ..geometry import Directions
 from ..render import render, render_geometry
 from ..terms import Model

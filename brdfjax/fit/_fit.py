@@ -74,7 +74,7 @@ def _as_blocks(data: Data | Sequence[Data]) -> list[Data]:
     return blocks
 
 
-def _block_names(blocks: Sequence[Data]) -> tuple[str, ...]:
+def block_names(blocks: Sequence[Data]) -> tuple[str, ...]:
     names = [b.name for b in blocks]
     if len(set(names)) == len(names):
         return tuple(names)
@@ -225,7 +225,7 @@ def prepare(
     if not (k > 0 and math.isfinite(k)):
         raise FitInputError(f"loss_scale must be a positive number (in sigma), got {loss_scale!r}")
     blocks = _as_blocks(data)
-    names = _block_names(blocks)
+    names = block_names(blocks)
     _check_detectors(blocks, names, allow_different_detectors)
     usable = [b.check_usable() for b in blocks]
     precision, dtype = _resolve_precision(precision)

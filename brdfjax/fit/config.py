@@ -811,10 +811,10 @@ def build_fit_job(cfg: FitConfig, *, work_dir: str | os.PathLike | None = None) 
         dup = sorted({n for n in names if names.count(n) > 1})
         notes.append(f"blocks share names {dup}; the result numbers them")
     if len(frames) > 1 and not cfg.data.allow_different_detectors:
-        from ._fit import _block_names, _check_detectors
+        from ._fit import _check_detectors, block_names
 
         try:
-            _check_detectors(frames, _block_names(frames), False)
+            _check_detectors(frames, block_names(frames), False)
         except FitInputError as e:
             raise ConfigError(str(cfg.source), [("data", f"{e} (set data.allow_different_detectors = true)")]) from None
     f = cfg.fit

@@ -12,9 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..fit import FitResult, FrameData, TableData, fit, prepare
-from ..fit._common import to_natural
-from ..fit._params import as_param
-from ..fit._solvers import get_solver
+from ..fit.internal import as_param, block_names, get_solver, to_natural
 from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
 from ._outputs import (
     plot_corner,
@@ -192,12 +190,6 @@ class PosteriorResult:
         return np.corrcoef(self.flat().T) if len(self.names) > 1 else np.ones((1, 1))
 
 
-def _block_names(blocks):
-    from ..fit._fit import _block_names as bn
-
-    return bn(blocks)
-
-
 def sample(
     model: Any,
     data: FrameData | TableData | Sequence[FrameData | TableData],
@@ -246,7 +238,7 @@ def sample(
     blocks = [data] if isinstance(data, FrameData | TableData) else list(data)
     if step is not None or roi is not None:
         blocks = [decimate_frame(b, step or 1, roi) if isinstance(b, FrameData) else b for b in blocks]
-    names_b = _block_names(blocks)
+    names_b = block_names(blocks)
     if thin < 1:
         raise SampleError(f"thin must be a positive integer, got {thin!r}")
     if n_steps < 1:

@@ -38,8 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..fit._common import natural_unit, to_natural
-from ..fit._problem import Problem
+from ..fit.internal import LOSSES, Problem, natural_unit, to_natural
 from ._priors import PriorArrays, SampleError, build_prior_arrays, log_prior, log_prior_numpy, resolve_priors
 
 __all__ = ["LogPosterior", "build_log_posterior", "batch_log_posterior", "identity_problem"]
@@ -178,7 +177,6 @@ def build_log_posterior(prepared: Any, priors: Mapping[str, Any] | None = None, 
     problem = identity_problem(prepared.problem)
     dtype = problem.u0.dtype
     pa = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype) if a.dtype.kind == "f" else jnp.asarray(a), pa)
-    from ..fit._residuals import LOSSES
 
     return LogPosterior(
         problem=problem,

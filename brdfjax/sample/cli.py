@@ -104,7 +104,7 @@ _ENTRY = re.compile(r"^(?P<key>[^\[\]]+)\[(?P<block>[^\[\]]+)\]$")
 def priors_from_config(source: str, sec: SampleSection, model: Any) -> dict[str, Any]:
     """``[sample.priors]`` -> {parameter name: Prior (stored units)}; unknown keys raise ConfigError."""
     from ..config import ConfigError, _unknown_key_message, parameter_keys
-    from ..fit._common import FRAME_PARAMETERS
+    from ..fit.internal import FRAME_PARAMETERS
     from ._priors import Prior, SampleError
 
     keys = parameter_keys({**model.parameter_units(), **FRAME_PARAMETERS})
@@ -164,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from ..config import ConfigError
-    from ..fit._common import FitInputError
+    from ..fit import FitInputError
 
     console = Console(stderr=True, highlight=False, soft_wrap=True)
     prog = "brdfjax sample"

@@ -1,0 +1,25 @@
+"""The fit engine's inner API for brdfjax's other packages (sample, diagnose).
+
+As ``optimistix.internal`` does, this module names the pieces of the fit
+engine that other packages of brdfjax build on but a user fitting a model does
+not need: the traced problem, the parameter layout and its entries, the
+solver and loss registries, unit helpers and block naming.  Everything here
+is documented and stable within brdfjax; the modules it comes from
+(``brdfjax.fit._*``) stay private.
+
+- :class:`Problem`: the fit problem as one pytree (residuals, Jacobian, losses);
+- :func:`as_param`: a parameter specification (dict, tuple or :class:`~brdfjax.fit.Param`) as a ``Param``;
+- :func:`block_names`: the unique names of a list of data blocks, as the fit reports them;
+- :func:`get_solver`, :data:`LOSSES`: the solver and robust-loss registries;
+- :func:`natural_unit`, :func:`to_natural`: the reported unit of a stored one (rad -> deg) and its factor;
+- :data:`FRAME_PARAMETERS`: the frame parameters a fit may free (``theta_i``, ``phi_ref``), with units.
+"""
+
+from ._common import FRAME_PARAMETERS as FRAME_PARAMETERS, natural_unit as natural_unit, to_natural as to_natural
+from ._fit import block_names as block_names
+from ._params import as_param as as_param
+from ._problem import Problem as Problem
+from ._residuals import LOSSES as LOSSES
+from ._solvers import get_solver as get_solver
+
+__all__ = ["FRAME_PARAMETERS", "LOSSES", "Problem", "as_param", "block_names", "get_solver", "natural_unit", "to_natural"]
