@@ -45,6 +45,7 @@ from ._solvers import (
     AbstractSolver as AbstractSolver,
     LevenbergMarquardt as LevenbergMarquardt,
     SolveOutcome as SolveOutcome,
+    SolveStatus as SolveStatus,
     get_solver as get_solver,
 )
 from ._tables import (

@@ -60,7 +60,8 @@ import numpy as np
 from ..distributions import GGX, Beckmann, BeckmannAniso, GGXAniso
 from ..geometry import Directions
 from ..render import Frame, sample_directions
-from ..terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
+from ..instrument.synthetic import convolve_footprint
+from ..terms import Diffraction, Lambertian, Model, OffsetNormal, Oriented, Specular
 from ._common import FitInputError
 from ._data import FrameData, TableData
 
@@ -446,8 +447,6 @@ def init_specular_lambertian(
 
 def _peak_terms(model: Model) -> tuple[str, Specular, Any, str | None] | None:
     """``(name, specular, oriented wrapper or None, lambertian name or None)`` of a one-peak model, else None."""
-    from ..terms import Oriented
-
     spec, lamb = [], []
     for name, t in model.terms.items():
         if isinstance(t, Specular):
@@ -617,8 +616,6 @@ def init_specular_peak(
         for name in units:
             img = tv[name]
             if fr.footprint is not None:
-                from ..instrument.synthetic import convolve_footprint
-
                 kern = np.asarray(fr.footprint, np.float64)
                 img = np.asarray(convolve_footprint(img.astype(np.float32), (kern / kern.sum()).astype(np.float32)), np.float64)
             units[name].append(img[ok])

@@ -18,6 +18,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from ..geometry import Directions
 from ..render import Frame, resolve_dtype, cast
@@ -25,6 +26,7 @@ from ..terms import Model
 from ._common import FRAME_PARAMETERS, FitInputError
 from ._covariance import covariance
 from ._data import FrameData, TableData
+from ._auto_init import get_initializer
 from ._params import Layout, as_param, build_layout
 from ._problem import (
     FrameBlock,
@@ -42,7 +44,7 @@ from ._problem import (
 )
 from ._residuals import DEFAULT_LOSS_SCALE, LOSSES, irls_weights, loss_id
 from ._result import BlockSummary, FitResult, ParameterEstimate
-from ._solvers import AbstractSolver, SolveOutcome, get_solver
+from ._solvers import AbstractSolver, SolveOutcome, SolveStatus, get_solver
 
 __all__ = ["fit", "prepare", "versions", "FIRST_STAGES"]
 
@@ -133,8 +135,6 @@ SUPPORT_FRACTION = 0.7
 
 def _dilate(mask: np.ndarray, r: int, c: int) -> np.ndarray:
     """``mask`` dilated by a ``(2r+1) x (2c+1)`` rectangle (the kernel's reach)."""
-    from numpy.lib.stride_tricks import sliding_window_view
-
     m = np.pad(np.asarray(mask, bool), ((r, r), (0, 0)))
     m = sliding_window_view(m, 2 * r + 1, axis=0).any(-1)
     m = np.pad(m, ((0, 0), (c, c)))
@@ -214,8 +214,6 @@ def prepare(
     use_footprint: bool = True,
 ) -> "Prepared":
     """Validate the inputs and build the :class:`Problem` (unscaled) and its :class:`Layout`."""
-    from ._auto_init import get_initializer
-
     if not isinstance(model, Model):
         raise FitInputError(f"model must be a brdfjax Model (a named sum of terms), got {type(model).__name__}")
     spec = dict(params or {})
@@ -436,7 +434,7 @@ def fit(
     r = np.asarray(r_blocks_all, np.float64)
     rt = np.asarray(r_tilde, np.float64)
     if not np.all(np.isfinite(r)) and converged:
-        converged, status = False, "failed"
+        converged, status = False, SolveStatus.failed
         message = "not converged: residuals at the solution are not finite"
     n_points = int(r.size)
     dof = n_points - n_free

@@ -48,7 +48,7 @@ from ..terms import AbstractTerm, Model
 from ._params import Layout, forward_by_id
 from ._residuals import convolve_same, log_model, robust_residuals_by_id
 
-__all__ = ["FrameBlock", "FrameStack", "TableBlock", "Problem", "residuals", "raw_residuals", "PAD_MULTIPLE"]
+__all__ = ["FrameBlock", "FrameStack", "TableBlock", "Problem", "residuals", "PAD_MULTIPLE"]
 
 #: Stacked frames are padded to a multiple of this many points.
 PAD_MULTIPLE = 256
@@ -317,10 +317,6 @@ def _residuals_jvp(primals, tangents):
     r = jnp.where(jnp.isfinite(r), r, _BIG)
     J = jnp.where(jnp.isfinite(J), J, 0.0)
     return r, J @ t_v
-
-
-def raw_residuals(v: Array, problem: Problem) -> Array:
-    return problem.weighted_residuals(v)
 
 
 def half_sum_squares(v: Array, problem: Problem) -> Array:

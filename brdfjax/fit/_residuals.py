@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import jax.scipy.signal as jsignal
 from jaxtyping import Array, ArrayLike
 
-__all__ = ["LOSSES", "DEFAULT_LOSS_SCALE", "robust_residuals", "robust_residuals_by_id", "loss_id", "robust_cost", "irls_weights", "log_model", "convolve_same"]
+__all__ = ["LOSSES", "DEFAULT_LOSS_SCALE", "robust_residuals", "robust_residuals_by_id", "loss_id", "irls_weights", "log_model", "convolve_same"]
 
 LOSSES = ("linear", "huber", "cauchy")
 
@@ -92,11 +92,6 @@ def robust_residuals_by_id(loss_index: Array, r: Array, k: ArrayLike) -> Array:
         [_sqrt_weight(name, r, k) for name in LOSSES],
     )
     return r * w
-
-
-def robust_cost(loss: str, r: Array, k: ArrayLike) -> Array:
-    """``2 sum rho(r)`` (equal to chi^2 for the linear loss)."""
-    return jnp.sum(jnp.square(robust_residuals(loss, r, k)))
 
 
 def irls_weights(loss: str, r: Array, k: ArrayLike) -> Array:

@@ -89,7 +89,7 @@ class FitResult:
     dof: int
     n_points: int
     converged: bool
-    status: str
+    status: str  # a SolveStatus value
     message: str
     n_iterations: int
     wall_s: float

@@ -18,6 +18,8 @@ every call would recompile, ``dependencies.md``).
 from __future__ import annotations
 
 import abc
+import dataclasses
+import enum
 import warnings
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -33,13 +35,22 @@ from ._problem import Problem, half_sum_squares, residuals
 __all__ = ["SolveOutcome", "AbstractSolver", "LevenbergMarquardt", "LBFGSB", "SOLVERS", "get_solver"]
 
 
+class SolveStatus(enum.StrEnum):
+    """How a solve ended (a ``str``, so ``result.json`` and comparisons with the plain names keep working)."""
+
+    successful = "successful"
+    max_steps_reached = "max_steps_reached"
+    diverged = "diverged"
+    failed = "failed"
+
+
 @dataclass(frozen=True)
 class SolveOutcome:
     """What a solver returns: the solution in solver coordinates and how it ended."""
 
     v: np.ndarray
     converged: bool
-    status: str  # "successful", "max_steps_reached", "diverged", "failed"
+    status: SolveStatus
     message: str
     n_steps: int
 
@@ -82,25 +93,25 @@ class LevenbergMarquardt(AbstractSolver):
         n = int(steps)
         if result == optx.RESULTS.successful:
             if not np.all(np.isfinite(v)):
-                return SolveOutcome(v, False, "failed", "the solution is not finite", n)
-            return SolveOutcome(v, True, "successful", f"converged in {n} steps (rtol={self.rtol:g}, atol={self.atol:g})", n)
+                return SolveOutcome(v, False, SolveStatus.failed, "the solution is not finite", n)
+            return SolveOutcome(v, True, SolveStatus.successful, f"converged in {n} steps (rtol={self.rtol:g}, atol={self.atol:g})", n)
         message = str(optx.RESULTS[result])
         if result == optx.RESULTS.nonlinear_max_steps_reached:
             return SolveOutcome(
-                v, False, "max_steps_reached",
+                v, False, SolveStatus.max_steps_reached,
                 f"not converged: max_steps={self.max_steps} reached; increase max_steps, or check the start "
                 f"(optimistix: {message})", n,
             )
         if result == optx.RESULTS.nonlinear_divergence:
-            return SolveOutcome(v, False, "diverged", f"not converged: the solve diverged (optimistix: {message})", n)
-        return SolveOutcome(v, False, "failed", f"not converged (optimistix: {message})", n)
+            return SolveOutcome(v, False, SolveStatus.diverged, f"not converged: the solve diverged (optimistix: {message})", n)
+        return SolveOutcome(v, False, SolveStatus.failed, f"not converged (optimistix: {message})", n)
 
 
 def _jaxopt():
     with warnings.catch_warnings():
         # jaxopt is unmaintained and says so on import (dependencies.md); it is still correct for L-BFGS-B.
         warnings.filterwarnings("ignore", category=DeprecationWarning)
-        import jaxopt
+        import jaxopt  # imported on first use: it warns on import, and only L-BFGS-B needs it
     return jaxopt
 
 
@@ -131,19 +142,19 @@ class LBFGSB(AbstractSolver):
         v = np.asarray(params)
         n, err = int(iters), float(error)
         if not (np.all(np.isfinite(v)) and np.isfinite(err)):
-            return SolveOutcome(v, False, "failed", "not converged: the solution or its gradient is not finite", n)
+            return SolveOutcome(v, False, SolveStatus.failed, "not converged: the solution or its gradient is not finite", n)
         if err <= self.tol:
             return SolveOutcome(
-                v, True, "successful", f"converged in {n} iterations (projected gradient {err:.3g} <= tol={self.tol:g})", n
+                v, True, SolveStatus.successful, f"converged in {n} iterations (projected gradient {err:.3g} <= tol={self.tol:g})", n
             )
         if n >= self.max_steps:
             return SolveOutcome(
-                v, False, "max_steps_reached",
+                v, False, SolveStatus.max_steps_reached,
                 f"not converged: max_steps={self.max_steps} reached with projected gradient {err:.3g} > "
                 f"tol={self.tol:g}; increase max_steps", n,
             )
         return SolveOutcome(
-            v, False, "failed",
+            v, False, SolveStatus.failed,
             f"not converged: the line search stopped after {n} iterations with projected gradient {err:.3g} > tol={self.tol:g}",
             n,
         )
@@ -170,8 +181,6 @@ def get_solver(solver: str | AbstractSolver = "levenberg_marquardt", **options: 
     try:
         return cls(**options)
     except TypeError:
-        import dataclasses
-
         names = [f.name for f in dataclasses.fields(cls)]
         raise FitInputError(
             f"solver '{key}': unknown option(s) {sorted(set(options) - set(names))}; known: {', '.join(names)}"

@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..fit import FitResult, FrameData, TableData, fit, prepare
+from ..detector import PixelGrid
+from ..fit import FitResult, FrameData, TableData, fit, prepare, versions
 from ..fit.internal import as_param, block_names, get_solver, to_natural
 from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
 from ._outputs import (
@@ -64,8 +66,6 @@ def decimate_frame(data: FrameData, step: int = 1, roi: tuple[int, int, int, int
     cols, rows = cols[::step], rows[::step]
     if step == 1 and roi is None:
         return data
-    from ..detector import PixelGrid
-
     grid = PixelGrid(n_h[cols], n_v[rows])
     ix = np.ix_(rows, cols)
     brdf = np.asarray(data.brdf)[ix]
@@ -140,8 +140,6 @@ def start_from_fit_json(data: Mapping[str, Any], names: Sequence[str], units: Se
 
 def _spec_from_result(spec: Mapping[str, Any], values: Mapping[str, float], block_names: Sequence[str]) -> dict[str, Any]:
     """The parameter spec with each free 'auto' start replaced by the fit's value (no second auto-init)."""
-    from dataclasses import replace
-
     out = dict(spec)
     for k, v in spec.items():
         p = as_param(k, v)
@@ -337,8 +335,6 @@ def sample(
     )
     ll_fit = float(post.log_likelihood(x0[None, :])[0])
     corr = np.corrcoef(flat.T) if ndim > 1 else np.ones((1, 1))
-    from ..fit import versions
-
     summary: dict[str, Any] = {
         "parameters": params_summary,
         "n_steps": int(diag.n_steps),
@@ -396,8 +392,6 @@ def sample(
 
 
 def _versions() -> dict[str, str]:
-    import importlib.metadata
-
     out = {}
     for pkg in ("emcee", "h5py", "corner"):
         try:
