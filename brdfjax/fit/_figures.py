@@ -71,10 +71,9 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
     dh = float(n_h[1] - n_h[0]) if n_h.size > 1 else 1.0
     dv = float(n_v[1] - n_v[0]) if n_v.size > 1 else 1.0
     box = (n_h[0] - dh / 2, n_h[-1] + dh / 2, n_v[0] - dv / 2, n_v[-1] + dv / 2)
-    det = block.arm_detector()
-    theta_c = None if det.theta_c is not None else np.asarray(block.theta_i, np.float64)
+    det = block.arm_detector()  # the arm is fixed: its contours need no theta_c
     try:
-        lines = visible_contours(det, theta_c, box)
+        lines = visible_contours(det, None, box)
     except Exception:  # contours are decoration; never fail a figure on them
         lines = []
 
