@@ -1,13 +1,12 @@
 """Outputs of a posterior study: the summary (posterior.json), corner, trace and posterior-predictive figures.
 
 Every number is reported in natural units (angles in degrees, the rest as
-stored), like the fit's result.  Files are written atomically (temporary
-name, then ``os.replace``).
+stored), like the fit's result.  Files are written atomically
+(:func:`brdfjax.io.atomic_output`).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Sequence
@@ -15,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from ..io import atomic_output, write_json_atomic as _write_json
 
 __all__ = ["summarise", "write_json_atomic", "plot_corner", "plot_trace", "plot_predictive", "model_at_points", "QUANTILES"]
 
@@ -30,17 +31,14 @@ def _num(x: Any) -> Any:
 
 
 def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
-    os.replace(tmp, path)
-    return path
+    """Strict JSON (no NaN) through :func:`brdfjax.io.write_json_atomic`; returns the path."""
+    return _write_json(path, data, allow_nan=False)
 
 
 def _savefig_atomic(fig: Any, path: Path, **kw: Any) -> Path:
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    fig.savefig(tmp, **kw)
-    os.replace(tmp, path)
+    kw.setdefault("format", path.suffix.lstrip(".") or None)  # the temporary name has no image suffix
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, **kw)
     return path
 
 
