@@ -28,7 +28,16 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from .fields import check_param, param
-from .geometry import Directions, Rx, Ry, Rz, direction, rotate, safe_sqrt, zenith_azimuth
+from .geometry import (
+    Directions,
+    Rx,
+    Ry,
+    Rz,
+    direction,
+    rotate,
+    safe_sqrt,
+    zenith_azimuth,
+)
 
 __all__ = ["Detector", "PixelGrid", "incident_direction"]
 

@@ -93,7 +93,9 @@ def _label_point(nh: np.ndarray, nv: np.ndarray, box, at: float) -> tuple[float,
 
 
 def save_figure_atomic(fig: Any, path: Path, dpi: int) -> Path:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib only when a figure is drawn
+    from matplotlib.backends.backend_agg import (
+        FigureCanvasAgg,  # matplotlib only when a figure is drawn
+    )
 
     FigureCanvasAgg(fig)
     with atomic_output(path) as tmp:

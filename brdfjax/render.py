@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from .fields import check_param, param
 from .detector import Detector, PixelGrid
+from .fields import check_param, param
 from .geometry import Directions, Rz
 from .terms import AbstractTerm
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from . import __version__
 from .io import frame_attrs, write_frame_exr, write_json_atomic
+from .plotting import plot_frame
 from .render import render, render_geometry
 
 __all__ = ["FrameResult", "run_simulate", "simulate_frame"]
@@ -130,8 +131,6 @@ def run_simulate(
     grid = cfg.build_grid(detector)
     model = cfg.build_model()
     frames = cfg.build_frames()
-    if plot:
-        from .plotting import plot_frame  # matplotlib is only imported when a figure is drawn
 
     t_start = time.perf_counter()
     entries = []

@@ -83,6 +83,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from ..config import ConfigError, ModelConfig, describe_validation_error
+from ..instrument.nd import stack_od
 from ..instrument.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
 from ..io import atomic_output, geometry_attrs
 from ..render import Frame
@@ -96,7 +97,6 @@ from .plans import (
     peak_above_black,
     probe_stack,
 )
-from ..instrument.nd import stack_od
 
 __all__ = [
     "CaptureConfig",
@@ -517,7 +517,7 @@ class _Runner:
         self.call("detector arm: move", b.arm.move_to, m.theta_c)
 
     def choose_nd(self, idx: int, m: Measurement) -> str:
-        cam, b = self.bench.camera, self.bench
+        b = self.bench
         stacks = self.call("filter changer", b.filters.available_stacks)
         t0 = m.exposures_s[0]
         if m.nd != "auto":
@@ -800,8 +800,15 @@ class _Progress:
     def __init__(self, total: int, done: int, *, enabled: bool):
         self._p = None
         if enabled:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
             from rich.console import Console
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
 
             self._p = Progress(
                 TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),

@@ -28,11 +28,10 @@ does not satisfy its interface.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
-
-import math
 
 import numpy as np
 

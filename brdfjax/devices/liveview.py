@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from ..instrument.nd import stack_od
-
 from ..io import atomic_output
+from ..plotting import plot_frame
 from ..render import Frame, render_geometry
 from .interfaces import bench_detector
 
@@ -124,8 +124,6 @@ class LiveView:
         return det, grid, frame
 
     def _draw(self, img, grid, det, frame, title: str) -> None:
-        from ..plotting import plot_frame
-
         self.folder.mkdir(parents=True, exist_ok=True)
         if np.all(np.isnan(img)):
             img = np.full(img.shape, 1e-12)

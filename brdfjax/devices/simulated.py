@@ -38,9 +38,13 @@ import equinox as eqx
 import numpy as np
 
 from ..detector import Detector
-from ..render import Frame
-from ..instrument.synthetic import InstrumentConfig, SyntheticInstrument, beam_flux_image
 from ..instrument.nd import ND_STACKS, parse_nd_filters
+from ..instrument.synthetic import (
+    InstrumentConfig,
+    SyntheticInstrument,
+    beam_flux_image,
+)
+from ..render import Frame
 from .alignment import spot_pixel
 from .interfaces import Bench, CameraFrame, DeviceError
 

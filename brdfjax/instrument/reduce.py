@@ -96,8 +96,15 @@ from ..detector import Detector, PixelGrid
 from ..errors import InputError
 from ..io import ExrFrame, atomic_output, frame_attrs, read_frame_exr, write_frame_exr
 from ..render import render_geometry
-from .raw import Manifest, RawAttrs, RawFormatError, RawStack, read_manifest, read_raw_exr
 from .nd import SEED_ND_TOLERANCES
+from .raw import (
+    Manifest,
+    RawAttrs,
+    RawFormatError,
+    RawStack,
+    read_manifest,
+    read_raw_exr,
+)
 from .uncertainty import (
     SEED_ARM_ANGLE_UNCERTAINTY,
     SEED_DISTANCE_UNCERTAINTY,

@@ -100,7 +100,6 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import equinox as eqx
 import numpy as np
@@ -110,8 +109,15 @@ from ..detector import Detector
 from ..io.header import geometry_attrs
 from ..render import Frame, render, render_geometry
 from ..terms import AbstractTerm
-from .raw import Calibration, Exposure, RawAttrs, RawStack, write_manifest, write_raw_exr
 from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
+from .raw import (
+    Calibration,
+    Exposure,
+    RawAttrs,
+    RawStack,
+    write_manifest,
+    write_raw_exr,
+)
 
 __all__ = [
     "EFFECTS",
@@ -409,10 +415,8 @@ def lens_cap_std(dark: Dark, exposure_s: float | np.ndarray) -> np.ndarray:
 
 
 def _integrated_gaussian_1d(n: np.ndarray, centre: float, w: float) -> np.ndarray:
-    from math import erf, sqrt
-
-    s = sqrt(2.0) / w  # exp(-2 x^2 / w^2) = exp(-(x s)^2)
-    erf_v = np.vectorize(erf)
+    s = math.sqrt(2.0) / w  # exp(-2 x^2 / w^2) = exp(-(x s)^2)
+    erf_v = np.vectorize(math.erf)
     return 0.5 * (erf_v((n + 0.5 - centre) * s) - erf_v((n - 0.5 - centre) * s))
 
 
