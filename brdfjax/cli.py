@@ -33,16 +33,15 @@ from rich.console import Console
 
 from . import __version__
 from .config import ConfigError, load_instrument_config, load_simulate_config
-from .detector import Detector, PixelGrid
+from .detector import PixelGrid
 from .devices import capture as capture_cli
 from .diagnose import cli as diagnose_cli
 from .fit import cli_fit
 from .instrument.raw import ManifestError, RawFormatError
 from .instrument.reduce import ReductionError, read_reduced_frame, reduce_measurement_set
 from .instrument.synthetic import EFFECTS, SyntheticInstrument
-from .io import ExrError, write_json_atomic
+from .io import ExrError, detector_from_attrs, frame_from_attrs, write_json_atomic
 from .plotting import plot_frame
-from .render import Frame
 from .sample import cli as sample_cli
 from .simulate import run_simulate
 
@@ -185,15 +184,11 @@ def _run_reduce(args: argparse.Namespace) -> int:
         if not args.no_plot:
             a = frame.attrs
             h0, h1, v0, v1 = a["roi"]
-            det = Detector(
-                shape=(v1 - v0 + 1, h1 - h0 + 1), pixel_pitch=a["pixel_pitch"],
-                pixel_pitch_v=a.get("pixel_pitch_v", a["pixel_pitch"]), distance=a["R"],
-                theta_c=a["theta_c"], **{k: a.get(k, 0.0) for k in ("roll", "yaw", "pitch", "m_h", "m_v")},
-            )
+            det = detector_from_attrs(a, (v1 - v0 + 1, h1 - h0 + 1), follow_peak=False)
             grid = PixelGrid(np.arange(h0, h1 + 1, a["step"]), np.arange(v0, v1 + 1, a["step"]))
             shown = np.where(np.asarray(frame.extra["mask"]) > 0, frame.brdf, np.nan)
             png = plot_frame(
-                shown, grid, det, Frame(a["theta_i"], a["phi_ref"], a["wavelength"]), path.with_suffix(".png"),
+                shown, grid, det, frame_from_attrs(a), path.with_suffix(".png"),
                 title=f"{path.stem} (reduced, masked pixels blank)",
             )
             entry["png"] = png.name

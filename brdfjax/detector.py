@@ -28,7 +28,16 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from .fields import check_param, param
-from .geometry import Directions, Rx, Ry, Rz, direction, rotate, safe_sqrt, zenith_azimuth
+from .geometry import (
+    Directions,
+    Rx,
+    Ry,
+    Rz,
+    direction,
+    rotate,
+    safe_sqrt,
+    zenith_azimuth,
+)
 
 __all__ = ["Detector", "PixelGrid", "incident_direction"]
 
@@ -104,6 +113,20 @@ class Detector(eqx.Module):
         """The same detector with the arm at ``theta_c`` (rad)."""
         return eqx.tree_at(lambda d: d.theta_c, self, theta_c, is_leaf=lambda x: x is None)
 
+    def arm_angle(self, theta_i: ArrayLike) -> ArrayLike:
+        """The arm angle of a frame at incidence ``theta_i``: ``theta_c``, or ``theta_i`` when ``theta_c`` is None.
+
+        The one place that decides what ``theta_c = None`` ("centred on the
+        specular peak") means.  Traceable: ``None`` is part of the pytree
+        structure, so the choice is made at trace time and the value returned
+        as given (no conversion).
+        """
+        return theta_i if self.theta_c is None else self.theta_c
+
+    def with_arm(self, theta_i: ArrayLike) -> "Detector":
+        """This detector with its arm fixed (:meth:`arm_angle`): itself when ``theta_c`` is set, else at ``theta_i``."""
+        return self if self.theta_c is not None else self.at(theta_i)
+
     # -- pixel selection ------------------------------------------------------------------
     @property
     def index_range(self) -> tuple[int, int, int, int]:
@@ -160,12 +183,11 @@ class Detector(eqx.Module):
         return jnp.stack([px / norm_u, py / norm_u, pz / norm_u + shrink], -1)
 
     def _arm(self, theta_c: ArrayLike | None, theta_i: ArrayLike | None) -> Array:
-        tc = self.theta_c if theta_c is None else theta_c
-        if tc is None:
-            if theta_i is None:
-                raise ValueError("Detector: theta_c is None (centred on the peak) so theta_i must be given")
-            tc = theta_i
-        return jnp.asarray(tc)
+        if theta_c is not None:
+            return jnp.asarray(theta_c)
+        if self.theta_c is None and theta_i is None:
+            raise ValueError("Detector: theta_c is None (centred on the peak) so theta_i must be given")
+        return jnp.asarray(self.arm_angle(theta_i))
 
     @eqx.filter_jit
     def scatter_directions(self, n_h: ArrayLike, n_v: ArrayLike, theta_c: ArrayLike | None = None) -> Array:

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from .detector import Detector, PixelGrid
+from .io import atomic_output
 from .render import Frame
 
 __all__ = ["plot_frame", "log10_floor"]
@@ -92,9 +93,9 @@ def _label_point(nh: np.ndarray, nv: np.ndarray, box, at: float) -> tuple[float,
 
 
 def save_figure_atomic(fig: Any, path: Path, dpi: int) -> Path:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    from .io import atomic_output
+    from matplotlib.backends.backend_agg import (
+        FigureCanvasAgg,  # matplotlib only when a figure is drawn
+    )
 
     FigureCanvasAgg(fig)
     with atomic_output(path) as tmp:
@@ -131,7 +132,7 @@ def plot_frame(
     dv = float(n_v[1] - n_v[0]) if n_v.size > 1 else 1.0
     box = (n_h[0] - dh / 2, n_h[-1] + dh / 2, n_v[0] - dv / 2, n_v[-1] + dv / 2)
     # An array, not a Python float: the detector's jitted methods would recompile for every new value.
-    theta_c = None if detector.theta_c is not None else np.asarray(frame.theta_i, dtype=np.float64)
+    theta_c = np.asarray(detector.arm_angle(frame.theta_i), dtype=np.float64)
 
     img, vmin, vmax = log10_floor(b, decades)
     shown, _, _ = _max_pool(img)

@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from .fields import check_param, param
 from .detector import Detector, PixelGrid
+from .fields import check_param, param
 from .geometry import Directions, Rz
 from .terms import AbstractTerm
 
@@ -161,7 +161,7 @@ def _geometry_values(args, n_h_row, n_v):
     frame, detector = args
 
     def one(h):
-        theta_s, phi_s = detector.angles(h, n_v, frame.theta_i if detector.theta_c is None else None)
+        theta_s, phi_s = detector.angles(h, n_v, detector.arm_angle(frame.theta_i))
         return {"theta_s": theta_s, "phi_s": phi_s, "omega": detector.solid_angle(h, n_v)}
 
     return jax.vmap(one)(n_h_row)

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from . import __version__
-from .io import write_json_atomic
-from .io.exr import write_frame_exr
+from .io import frame_attrs, write_frame_exr, write_json_atomic
+from .plotting import plot_frame
 from .render import render, render_geometry
 
 __all__ = ["FrameResult", "run_simulate", "simulate_frame"]
@@ -68,23 +68,9 @@ def simulate_frame(model, frame, detector, grid, precision: str = "float32", ste
 
 
 def _frame_attrs(cfg, detector, frame, stem: str) -> dict[str, Any]:
-    h0, h1, v0, v1 = cfg.roi if cfg.roi is not None else detector.index_range
-    theta_c = frame.theta_i if detector.theta_c is None else detector.theta_c
+    roi = cfg.roi if cfg.roi is not None else detector.index_range
     return {
-        "theta_i": float(frame.theta_i),
-        "theta_c": float(theta_c),
-        "phi_ref": float(frame.phi_ref),
-        "wavelength": float(frame.wavelength),
-        "R": float(detector.distance),
-        "pixel_pitch": float(detector.pixel_pitch),
-        "pixel_pitch_v": float(detector.pixel_pitch_v),
-        "roll": float(detector.roll),
-        "yaw": float(detector.yaw),
-        "pitch": float(detector.pitch),
-        "m_h": float(detector.m_h),
-        "m_v": float(detector.m_v),
-        "step": int(cfg.grid.step),
-        "roi": (int(h0), int(h1), int(v0), int(v1)),
+        **frame_attrs(detector, frame, step=cfg.grid.step, roi=roi),
         "model": cfg.describe_model(),
         "precision": cfg.precision,
         "frame": stem,
@@ -145,8 +131,6 @@ def run_simulate(
     grid = cfg.build_grid(detector)
     model = cfg.build_model()
     frames = cfg.build_frames()
-    if plot:
-        from .plotting import plot_frame  # matplotlib is only imported when a figure is drawn
 
     t_start = time.perf_counter()
     entries = []

@@ -12,17 +12,37 @@
 """
 
 from .interfaces import (
-    Bench as Bench,
-    Camera as Camera,
-    CameraFrame as CameraFrame,
-    DeviceError as DeviceError,
-    FilterChanger as FilterChanger,
-    PowerMeter as PowerMeter,
-    RotationStage as RotationStage,
-    SampleMount as SampleMount,
-    Shutter as Shutter,
-    TranslationStage as TranslationStage,
-    check_bench as check_bench,
+    Bench,
+    Camera,
+    CameraFrame,
+    DeviceError,
+    FilterChanger,
+    PowerMeter,
+    RotationStage,
+    SampleMount,
+    Shutter,
+    TranslationStage,
+    bench_detector,
+    check_bench,
 )
-from .plans import Interlock as Interlock, InterlockError as InterlockError, Measurement as Measurement
-from .simulated import SimulatedBench as SimulatedBench
+from .plans import Interlock, InterlockError, Measurement
+from .simulated import SimulatedBench
+
+__all__ = [
+    "Bench",
+    "Camera",
+    "CameraFrame",
+    "DeviceError",
+    "FilterChanger",
+    "PowerMeter",
+    "RotationStage",
+    "SampleMount",
+    "Shutter",
+    "TranslationStage",
+    "bench_detector",
+    "check_bench",
+    "Interlock",
+    "InterlockError",
+    "Measurement",
+    "SimulatedBench",
+]

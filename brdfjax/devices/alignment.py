@@ -32,6 +32,7 @@ make them agree with the fit to first order.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -275,6 +276,4 @@ def run_alignment(
         bench.camera_axial.move_to(0.0)
     d_h, d_v = bench.pixel_pitch
     res = solve_alignment(spots, pixel_pitch=(d_h, d_v), distance=bench.distance, slew=slew, translation=translation)
-    from dataclasses import replace
-
-    return replace(res, nd_filters=nd_filters)
+    return dataclasses.replace(res, nd_filters=nd_filters)

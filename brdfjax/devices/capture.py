@@ -83,10 +83,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from ..config import ConfigError, ModelConfig, describe_validation_error
+from ..instrument.nd import stack_od
 from ..instrument.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
-from ..io import atomic_output
+from ..io import atomic_output, geometry_attrs
+from ..render import Frame
 from .alignment import AlignmentResult, run_alignment
-from .interfaces import Bench, DeviceError, check_bench
+from .interfaces import Bench, DeviceError, bench_detector, check_bench
 from .plans import (
     DEFAULT_EXPOSURES_S,
     Interlock,
@@ -95,7 +97,6 @@ from .plans import (
     peak_above_black,
     probe_stack,
 )
-from ..instrument.nd import stack_od
 
 __all__ = [
     "CaptureConfig",
@@ -516,7 +517,7 @@ class _Runner:
         self.call("detector arm: move", b.arm.move_to, m.theta_c)
 
     def choose_nd(self, idx: int, m: Measurement) -> str:
-        cam, b = self.bench.camera, self.bench
+        b = self.bench
         stacks = self.call("filter changer", b.filters.available_stacks)
         t0 = m.exposures_s[0]
         if m.nd != "auto":
@@ -555,15 +556,14 @@ class _Runner:
         self.log(f"{m.name}: ND '{res.stack or 'none'}' by the seed's rule ({res.evidence(t0)})")
         return res
 
-    def attrs(self, m: Measurement, kind: str, nd: str, black: float, full_scale: float) -> RawAttrs:
+    def attrs(self, m: Measurement, kind: str, nd: str, black: float, full_scale: float,
+              shape: tuple[int, int]) -> RawAttrs:
         b = self.bench
-        al = self.alignment or {}
+        det = bench_detector(b, self.alignment, shape)
+        frame = Frame(m.theta_i, m.phi_ref, b.wavelength)
         return RawAttrs(
             kind=kind, optical_density=round(stack_od(nd), 10), nd_filters=nd,
-            theta_i=m.theta_i, theta_c=m.theta_c, phi_ref=m.phi_ref, wavelength=b.wavelength, R=b.distance,
-            pixel_pitch=b.pixel_pitch[0], pixel_pitch_v=b.pixel_pitch[1], black_level=black, full_scale=full_scale,
-            roll=math.radians(al.get("roll_deg", 0.0)), yaw=math.radians(al.get("yaw_deg", 0.0)),
-            pitch=math.radians(al.get("pitch_deg", 0.0)), m_h=al.get("m_h_px", 0.0), m_v=al.get("m_v_px", 0.0),
+            **geometry_attrs(det, frame, theta_c=m.theta_c), black_level=black, full_scale=full_scale,
             sample=m.name if kind != "background" else f"background for: {m.name}",
             software=f"brdfjax.devices.capture ({b.name})",
             extra={"capture_seed": int(self.cfg.seed)},
@@ -596,7 +596,7 @@ class _Runner:
             e = Exposure(float(f.exposure_s), int(f.n_frames), np.asarray(f.counts, np.float32),
                          None if f.counts_std is None else np.asarray(f.counts_std, np.float32))
             a = self.attrs(m, "background" if not beam_open else ("beam" if m.kind == "beam" else "sample"),
-                           nd, float(f.black_level), float(f.full_scale))
+                           nd, float(f.black_level), float(f.full_scale), e.counts.shape)
             write_raw_exr(part, a, [e])
             out.append(e)
             if beam_open and self.live is not None:
@@ -622,13 +622,13 @@ class _Runner:
         fs = float(cam.full_scale)
         kind = "beam" if m.kind == "beam" else "sample"
         sig = self.exposures(idx, m, stem, 1, nd, True)
-        write_raw_exr(self.out / file, self.attrs(m, kind, nd, black, fs), sig)
+        write_raw_exr(self.out / file, self.attrs(m, kind, nd, black, fs, sig[0].counts.shape), sig)
         if m.kind == "beam":
             self.beam_flux = _beam_flux_estimate(sig, black, fs, nd)
         bg = self.exposures(idx, m, bg_stem, 2, nd, False) if m.background else [
             Exposure(e.exposure_s, e.n_frames, np.full_like(e.counts, black)) for e in sig
         ]
-        write_raw_exr(self.out / bg_file, self.attrs(m, "background", nd, black, fs), bg)
+        write_raw_exr(self.out / bg_file, self.attrs(m, "background", nd, black, fs, bg[0].counts.shape), bg)
         for p in list(self.parts.glob(f"{stem}.e*.exr")) + list(self.parts.glob(f"{bg_stem}.e*.exr")):
             p.unlink()
         return file, bg_file
@@ -800,8 +800,15 @@ class _Progress:
     def __init__(self, total: int, done: int, *, enabled: bool):
         self._p = None
         if enabled:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
             from rich.console import Console
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
 
             self._p = Progress(
                 TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),

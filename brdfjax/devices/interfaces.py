@@ -28,11 +28,14 @@ does not satisfy its interface.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+
+from ..detector import Detector
 
 __all__ = [
     "CameraFrame",
@@ -46,6 +49,7 @@ __all__ = [
     "Bench",
     "DeviceError",
     "check_bench",
+    "bench_detector",
 ]
 
 
@@ -226,3 +230,18 @@ def check_bench(bench: Bench) -> list[str]:
 
 def _members(proto: type) -> list[str]:
     return sorted(n for n in vars(proto) if not n.startswith("_"))
+
+
+def bench_detector(bench: Bench, alignment: Mapping[str, Any] | None, shape: tuple[int, int], theta_c: Any = None) -> Detector:
+    """The :class:`~brdfjax.Detector` of ``bench``'s camera: its pitch and distance, the arm at ``theta_c``.
+
+    ``alignment`` (the capture's ``roll_deg``, ``yaw_deg``, ``pitch_deg``,
+    ``m_h_px``, ``m_v_px``; missing ones 0) gives the misalignment.
+    """
+    al = alignment or {}
+    return Detector(
+        shape=(int(shape[0]), int(shape[1])), pixel_pitch=bench.pixel_pitch[0], pixel_pitch_v=bench.pixel_pitch[1],
+        distance=bench.distance, theta_c=theta_c,
+        roll=math.radians(al.get("roll_deg", 0.0)), yaw=math.radians(al.get("yaw_deg", 0.0)),
+        pitch=math.radians(al.get("pitch_deg", 0.0)), m_h=al.get("m_h_px", 0.0), m_v=al.get("m_v_px", 0.0),
+    )

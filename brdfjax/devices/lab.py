@@ -42,7 +42,6 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ..instrument.nd import ND_STACKS
-
 from .interfaces import Bench, CameraFrame, DeviceError
 
 __all__ = [
@@ -82,7 +81,10 @@ def _wrap(what: str, fn: Callable, *args, **kwargs):
 
 
 def _camera_errors():
-    from pylablib.devices.Thorlabs import ThorlabsTLCameraError, ThorlabsTLCameraTimeoutError
+    from pylablib.devices.Thorlabs import (
+        ThorlabsTLCameraError,
+        ThorlabsTLCameraTimeoutError,
+    )
 
     return ThorlabsTLCameraTimeoutError, ThorlabsTLCameraError
 

@@ -30,8 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from ..instrument.nd import stack_od
-
 from ..io import atomic_output
+from ..plotting import plot_frame
+from ..render import Frame, render_geometry
+from .interfaces import bench_detector
 
 __all__ = ["LiveView", "display_available"]
 
@@ -109,19 +111,10 @@ class LiveView:
 
     # -- internals -------------------------------------------------------------------------------
     def _geometry(self, m, alignment: dict, bench, shape):
-        from ..detector import Detector
-        from ..render import Frame, render_geometry
-
         n_v, n_h = shape
         self._step = max(1, int(math.ceil(n_h / self.max_width)))
         theta_c = m.theta_c if m.kind == "sample" else 0.0
-        det = Detector(
-            shape=(int(n_v), int(n_h)), pixel_pitch=bench.pixel_pitch[0], pixel_pitch_v=bench.pixel_pitch[1],
-            distance=bench.distance, theta_c=np.asarray(theta_c, dtype=np.float64),
-            roll=math.radians(alignment.get("roll_deg", 0.0)), yaw=math.radians(alignment.get("yaw_deg", 0.0)),
-            pitch=math.radians(alignment.get("pitch_deg", 0.0)), m_h=alignment.get("m_h_px", 0.0),
-            m_v=alignment.get("m_v_px", 0.0),
-        )
+        det = bench_detector(bench, alignment, shape, np.asarray(theta_c, dtype=np.float64))
         grid = det.grid(self._step)
         f64 = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
         frame = Frame(f64(m.theta_i), f64(m.phi_ref), f64(bench.wavelength))
@@ -131,8 +124,6 @@ class LiveView:
         return det, grid, frame
 
     def _draw(self, img, grid, det, frame, title: str) -> None:
-        from ..plotting import plot_frame
-
         self.folder.mkdir(parents=True, exist_ok=True)
         if np.all(np.isnan(img)):
             img = np.full(img.shape, 1e-12)

@@ -26,7 +26,6 @@ explicitly (``[capture] override_interlock = true`` or
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -176,6 +175,3 @@ def peak_above_black(counts: np.ndarray, black_level: float) -> float:
     """Brightest pixel minus the black level, counts (no filtering: a focused spot may be a few pixels wide)."""
     return float(np.max(np.asarray(counts, dtype=np.float32)) - black_level)
 
-
-def degrees(x: float) -> float:
-    return math.degrees(x)

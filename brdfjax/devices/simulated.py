@@ -34,12 +34,17 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 
+import equinox as eqx
 import numpy as np
 
 from ..detector import Detector
-from ..render import Frame
-from ..instrument.synthetic import InstrumentConfig, SyntheticInstrument, beam_flux_image
 from ..instrument.nd import ND_STACKS, parse_nd_filters
+from ..instrument.synthetic import (
+    InstrumentConfig,
+    SyntheticInstrument,
+    beam_flux_image,
+)
+from ..render import Frame
 from .alignment import spot_pixel
 from .interfaces import Bench, CameraFrame, DeviceError
 
@@ -137,8 +142,6 @@ class SimulatedBench:
     def _detector_now(self) -> Detector:
         d = self.true_detector
         if self.vertical:
-            import equinox as eqx
-
             d = eqx.tree_at(lambda x: x.m_v, d, d.m_v + self.vertical / d.pixel_pitch_v)
         return d
 
@@ -171,12 +174,12 @@ class SimulatedBench:
             pixel_pitch=(d_h, d_v), distance=float(det.distance),
         )
         h_min, _, v_min, _ = det.index_range
-        flux = ins.incident_flux(self.filters) * ins._drift()
+        flux = ins.incident_flux(self.filters) * ins.drift()
         if math.isfinite(n_h) and ins.config.footprint.enabled:
             phi = beam_flux_image(shape, (n_v - v_min, n_h - h_min), ins.config.footprint.w_px, flux)
         else:
             phi = np.zeros(shape, np.float32)
-        return ins._add_stray_and_ambient(phi)
+        return ins.add_stray_and_ambient(phi)
 
     def read(self) -> CameraFrame:
         self._fault("read_frame")

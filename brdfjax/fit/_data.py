@@ -129,9 +129,7 @@ class FrameData:
 
     def arm_detector(self) -> Detector:
         """The detector with its arm fixed at the nominal ``theta_i`` when it follows the peak."""
-        if self.detector.theta_c is None:
-            return self.detector.at(np.float64(self.theta_i))
-        return self.detector
+        return self.detector.with_arm(np.float64(self.theta_i))
 
 
 @dataclass(frozen=True, eq=False)

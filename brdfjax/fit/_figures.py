@@ -20,9 +20,13 @@ import re
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
-from ..plotting import save_figure_atomic, visible_contours, log10_floor
+from ..geometry import Directions, direction
+from ..instrument.synthetic import convolve_footprint
+from ..plotting import log10_floor, save_figure_atomic, visible_contours
+from ..render import render
 from ._data import FrameData, TableData
 
 __all__ = ["write_figures", "frame_model_image", "plot_frame_fit", "plot_table_fit"]
@@ -34,15 +38,9 @@ def _safe(name: str) -> str:
 
 def frame_model_image(model: Any, frame: Any, block: FrameData, use_footprint: bool = True) -> np.ndarray:
     """The fitted model on a frame's grid (convolved with its footprint when the fit did), float64."""
-    import jax
-
-    from ..render import render
-
     precision = "float64" if jax.config.jax_enable_x64 else "float32"
     img = np.asarray(render(model, frame, block.arm_detector(), grid=block.grid, precision=precision), np.float64)
     if block.footprint is not None and use_footprint:
-        from ..instrument.synthetic import convolve_footprint
-
         k = np.asarray(block.footprint, np.float64)
         img = convolve_footprint(img, k / k.sum()).astype(np.float64)
     return img
@@ -50,7 +48,6 @@ def frame_model_image(model: Any, frame: Any, block: FrameData, use_footprint: b
 
 def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Path, *, title: str = "", dpi: int = 100) -> Path:
     """The data / model / residual figure of one frame (module docstring)."""
-    from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
 
     d = np.asarray(block.brdf, np.float64)
@@ -71,10 +68,9 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
     dh = float(n_h[1] - n_h[0]) if n_h.size > 1 else 1.0
     dv = float(n_v[1] - n_v[0]) if n_v.size > 1 else 1.0
     box = (n_h[0] - dh / 2, n_h[-1] + dh / 2, n_v[0] - dv / 2, n_v[-1] + dv / 2)
-    det = block.arm_detector()
-    theta_c = None if det.theta_c is not None else np.asarray(block.theta_i, np.float64)
+    det = block.arm_detector()  # the arm is fixed: its contours need no theta_c
     try:
-        lines = visible_contours(det, theta_c, box)
+        lines = visible_contours(det, None, box)
     except Exception:  # contours are decoration; never fail a figure on them
         lines = []
 
@@ -163,8 +159,6 @@ def _with_bad(name: str):
 
 def table_model(model: Any, block: TableData) -> np.ndarray:
     """The fitted model at a table's rows (sr^-1)."""
-    from ..geometry import Directions
-
     ti, pi_, ts, ps = (np.asarray(getattr(block, f), np.float64) for f in ("theta_i", "phi_i", "theta_s", "phi_s"))
     dirs = Directions.from_angles(ti, pi_, ts, ps)
     wl = np.broadcast_to(np.asarray(block.wavelength, np.float64), ti.shape)
@@ -187,8 +181,6 @@ def plot_table_fit(block: TableData, model_vals: np.ndarray, path: Path, *, titl
         x = np.degrees(ts) * np.where(np.cos(rel) < 0, 1.0, -1.0)  # + forward (mirror side)
         xlabel = r"signed in-plane $\theta_s$ (deg; + mirror side)"
     else:
-        from ..geometry import direction
-
         tia = np.asarray(block.theta_i, float)
         mirror = np.stack([np.sin(tia) * np.cos(pi_ + np.pi) * -1, np.sin(tia) * np.sin(pi_ + np.pi) * -1, np.cos(tia)], -1)
         ws = np.asarray(direction(ts, ps))

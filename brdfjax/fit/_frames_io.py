@@ -1,13 +1,14 @@
 """Reduced BRDF frames (``brdfjax.instrument.reduce``) as fit data.
 
-A reduced frame (a :class:`~brdfjax.instrument.reduce.ReducedFrame` or its
-EXR file, written by ``brdfjax reduce``) carries the BRDF on a pixel grid
+A reduced frame (a :class:`~brdfjax.io.ExrFrame` or its EXR file, written by
+``brdfjax reduce``) carries the BRDF on a pixel grid
 with the extra channels ``sigma_rel`` and ``mask`` and header attributes that
 describe the measurement: ``theta_i``, ``theta_c``, ``phi_ref``,
 ``wavelength`` (rad, m), the detector (``R``, ``pixel_pitch``,
 ``pixel_pitch_v``, misalignment ``roll``, ``yaw``, ``pitch``, ``m_h``,
 ``m_v``, the raw array's ``detector_n_v`` x ``detector_n_h``) and the grid
-(``step``, ``roi = (h0, h1, v0, v1)`` seed pixel indices).
+(``step``, ``roi = (h0, h1, v0, v1)`` seed pixel indices): the frame header
+of :mod:`brdfjax.io.header`, which reads it back.
 :func:`frame_data_from_reduced` turns one into a :class:`FrameData` with the
 same :class:`~brdfjax.Detector` and :class:`~brdfjax.PixelGrid`, optionally
 decimated further (every ``step``-th row and column of the stored grid) and
@@ -45,7 +46,6 @@ the region through the convolution) but masked.  Files written before ``detector
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -54,6 +54,9 @@ from typing import Any
 import numpy as np
 
 from ..detector import Detector, PixelGrid
+from ..instrument.reduce import read_reduced_frame
+from ..instrument.synthetic import footprint_kernel
+from ..io import ExrError, header
 from ._common import FitInputError
 from ._data import FrameData
 
@@ -68,47 +71,19 @@ def _owner(name: str | None, source: str | None) -> str:
     return f"frame '{name}'" + (f" ({source})" if source else "")
 
 
-def _shape_from_roi(roi: tuple[int, int, int, int]) -> tuple[int, int]:
-    h0, h1, v0, v1 = roi
-
-    def size(lo: int, hi: int) -> int:
-        # even n: indices -(n/2 - 1) .. n/2
-        n = max(2 * hi, 2 - 2 * lo, 2)
-        return n + (n % 2)
-
-    return size(v0, v1), size(h0, h1)
-
-
 def detector_from_attrs(attrs: Mapping[str, Any], *, owner: str = "frame") -> Detector:
-    """The :class:`Detector` a reduced frame was measured with (arm ``None`` when centred on the peak)."""
+    """The :class:`Detector` a reduced frame was measured with (arm ``None`` when centred on the peak).
+
+    :func:`brdfjax.io.header.detector_from_attrs`, with the errors of a fit input.
+    """
     missing = [k for k in _REQUIRED if k not in attrs]
     if missing:
         raise FitInputError(
             f"{owner}: missing header attribute(s) {missing}; a reduced frame has {', '.join(_REQUIRED)} "
             "(written by brdfjax reduce)"
         )
-    roi = tuple(int(x) for x in attrs["roi"])
-    if "detector_n_v" in attrs and "detector_n_h" in attrs:
-        shape = (int(attrs["detector_n_v"]), int(attrs["detector_n_h"]))
-    else:
-        shape = _shape_from_roi(roi)  # type: ignore[arg-type]
-    theta_i = float(attrs["theta_i"])
-    theta_c = attrs.get("theta_c")
-    arm = None if theta_c is None or math.isclose(float(theta_c), theta_i, rel_tol=0.0, abs_tol=1e-12) else float(theta_c)
-    pitch = float(attrs["pixel_pitch"])
     try:
-        return Detector(
-            shape=shape,
-            pixel_pitch=pitch,
-            pixel_pitch_v=float(attrs.get("pixel_pitch_v", pitch) or pitch),
-            distance=float(attrs["R"]),
-            theta_c=arm,
-            roll=float(attrs.get("roll", 0.0)),
-            yaw=float(attrs.get("yaw", 0.0)),
-            pitch=float(attrs.get("pitch", 0.0)),
-            m_h=float(attrs.get("m_h", 0.0)),
-            m_v=float(attrs.get("m_v", 0.0)),
-        )
+        return header.detector_from_attrs(attrs)
     except (ValueError, TypeError) as e:
         raise FitInputError(f"{owner}: the header does not describe a valid detector: {e}") from None
 
@@ -128,8 +103,6 @@ def _stored_grid(attrs: Mapping[str, Any], shape: tuple[int, int], owner: str) -
 def _footprint_for(w_px: float | None, pixel_step: int):
     if w_px is None:
         return None
-    from ..instrument.synthetic import footprint_kernel
-
     return footprint_kernel(float(w_px), tail=1e-6, step=int(pixel_step))
 
 
@@ -146,7 +119,7 @@ def frame_data_from_reduced(
     sigma_floor: float = 0.0,
     source: str | None = None,
 ) -> FrameData:
-    """A :class:`FrameData` from a reduced frame (a ``ReducedFrame`` or anything with ``brdf``, ``extra``, ``attrs``).
+    """A :class:`FrameData` from a reduced frame (an :class:`~brdfjax.io.ExrFrame` or anything with ``brdf``, ``extra``, ``attrs``).
 
     ``step`` keeps every ``step``-th row and column of the stored grid;
     ``roi = (h0, h1, v0, v1)`` (inclusive seed pixel indices) keeps the part
@@ -260,9 +233,6 @@ def read_frame_data(
     Raises :class:`FitInputError` naming the file when it is missing, not a
     frame file, or lacks ``sigma_rel`` or a header attribute.
     """
-    from ..instrument.reduce import read_reduced_frame
-    from ..io.exr import ExrError
-
     path = Path(path)
     try:
         reduced = read_reduced_frame(path)

@@ -15,11 +15,11 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..io import atomic_output
 from ._common import natural_unit, to_natural
 
 __all__ = ["ParameterEstimate", "BlockSummary", "FitResult"]
@@ -171,10 +171,8 @@ class FitResult:
         """The JSON text; written (atomically) to ``path`` when given."""
         text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
         if path is not None:
-            path = Path(path)
-            tmp = path.with_name(path.name + ".tmp")
-            tmp.write_text(text + "\n")
-            os.replace(tmp, path)
+            with atomic_output(path) as tmp:
+                tmp.write_text(text + "\n", encoding="utf-8")
         return text
 
     def summary(self) -> str:

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from ..geometry import Directions
+from ..io import atomic_output
 from ..terms import AbstractTerm
 from ._common import FitInputError
 from ._data import TableData
@@ -562,9 +563,7 @@ def export_table(
         "brdf_per_sr": brdf,
     }
     if path is not None:
-        p = Path(path)
         table = np.stack(list(cols.values()), -1)
-        tmp = p.with_name(p.name + ".tmp")
-        np.savetxt(tmp, table, delimiter=",", header=",".join(cols), comments="", fmt="%.10g")
-        os.replace(tmp, p)
+        with atomic_output(path) as tmp:
+            np.savetxt(tmp, table, delimiter=",", header=",".join(cols), comments="", fmt="%.10g")
     return cols

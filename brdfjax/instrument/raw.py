@@ -117,8 +117,12 @@ damaged file whose header is intact -- they print a warning and silently drop
 the unreadable parts -- so the reader compares the part names in the header
 with the parts actually decoded, checks every channel's shape and verifies
 the stored checksums.  :func:`write_raw_exr` applies the same checks before
-writing and writes atomically (a temporary name in the same folder, then
-``os.replace``), so readers see either the old file or the whole new one.
+writing and writes atomically (:func:`brdfjax.io.atomic_output`), so readers
+see either the old file or the whole new one.
+
+The geometry attributes (``theta_i`` ... ``m_v``, ``pixel_pitch_v``) are the
+frame header of :mod:`brdfjax.io.header`: :meth:`RawAttrs.detector` and
+:meth:`RawAttrs.frame` read them back through it.
 """
 
 from __future__ import annotations
@@ -134,9 +138,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import OpenEXR  # the official bindings (3.x API)
 
+from ..detector import Detector
 from ..errors import InputError
 from ..io import atomic_output
+from ..io.header import GEOMETRY_ATTRS, detector_from_attrs, frame_from_attrs
+from ..render import Frame
 from .nd import parse_nd_filters
 
 __all__ = [
@@ -285,28 +293,17 @@ class RawAttrs:
         """The stacked ND filters' nominal ODs (from ``nd_filters``)."""
         return parse_nd_filters(self.nd_filters)
 
-    def detector(self, shape: tuple[int, int]):
-        """The :class:`brdfjax.Detector` of this measurement for an ``(n_v, n_h)`` array."""
-        from ..detector import Detector
+    def geometry(self) -> dict[str, Any]:
+        """The frame-header geometry attributes (:data:`brdfjax.io.header.GEOMETRY_ATTRS`) of this measurement."""
+        return {k: getattr(self, k) for k in GEOMETRY_ATTRS}
 
-        return Detector(
-            shape=(int(shape[0]), int(shape[1])),
-            pixel_pitch=self.pixel_pitch,
-            pixel_pitch_v=self.pixel_pitch if self.pixel_pitch_v is None else self.pixel_pitch_v,
-            distance=self.R,
-            theta_c=self.theta_c,
-            roll=self.roll,
-            yaw=self.yaw,
-            pitch=self.pitch,
-            m_h=self.m_h,
-            m_v=self.m_v,
-        )
+    def detector(self, shape: tuple[int, int]) -> Detector:
+        """The :class:`brdfjax.Detector` of this measurement for an ``(n_v, n_h)`` array (the arm at ``theta_c``)."""
+        return detector_from_attrs(self.geometry(), shape, follow_peak=False)
 
-    def frame(self):
+    def frame(self) -> Frame:
         """The :class:`brdfjax.Frame` (theta_i, phi_ref, wavelength) of this measurement."""
-        from ..render import Frame
-
-        return Frame(self.theta_i, self.phi_ref, self.wavelength)
+        return frame_from_attrs(self.geometry())
 
 
 @dataclass(frozen=True)
@@ -340,8 +337,7 @@ class RawStack:
 
 
 def _openexr():
-    import OpenEXR  # the official bindings (3.x API)
-
+    """The OpenEXR bindings (a seam: tests replace it to simulate a failing write)."""
     return OpenEXR
 
 

@@ -91,12 +91,20 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..errors import InputError
+from .. import __version__
 from ..detector import Detector, PixelGrid
-from ..io import atomic_output
+from ..errors import InputError
+from ..io import ExrFrame, atomic_output, frame_attrs, read_frame_exr, write_frame_exr
 from ..render import render_geometry
-from .raw import Manifest, RawAttrs, RawFormatError, RawStack, read_manifest, read_raw_exr
 from .nd import SEED_ND_TOLERANCES
+from .raw import (
+    Manifest,
+    RawAttrs,
+    RawFormatError,
+    RawStack,
+    read_manifest,
+    read_raw_exr,
+)
 from .uncertainty import (
     SEED_ARM_ANGLE_UNCERTAINTY,
     SEED_DISTANCE_UNCERTAINTY,
@@ -118,7 +126,6 @@ __all__ = [
     "FLAG_LOW_SNR",
     "ReductionError",
     "Stitched",
-    "ReducedFrame",
     "BeamSignature",
     "beam_signature",
     "stitch",
@@ -574,18 +581,6 @@ def dynamic_range_decades(phi_s_high: float, phi_s_low: float) -> float:
 # --- one measurement ------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class ReducedFrame:
-    """A reduced BRDF frame on a pixel grid: frame channels, extra channels and header attributes."""
-
-    brdf: np.ndarray
-    theta_s: np.ndarray
-    phi_s: np.ndarray
-    omega: np.ndarray
-    extra: Mapping[str, np.ndarray]
-    attrs: Mapping[str, Any]
-
-
 def _grid_slices(detector: Detector, grid: PixelGrid) -> tuple[np.ndarray, np.ndarray]:
     h_min, _, v_min, _ = detector.index_range
     return grid.n_v - v_min, grid.n_h - h_min
@@ -725,7 +720,7 @@ def reduce_measurement(
     curve_residual: float = SEED_CURVE_RESIDUAL,
     taper_start: float | None = None,
     detailed_uncertainty: bool = False,
-) -> ReducedFrame:
+) -> ExrFrame:
     """Reduce one sample measurement against a beam signature (module docstring, steps 1-7).
 
     ``beam`` comes from :func:`beam_signature`.  ``scatter_nonlinearity`` is
@@ -848,23 +843,10 @@ def reduce_measurement(
         "noise_equivalent_brdf": neb_map,
         **{f"u_{k}": unc[k] for k in per_pixel},
     }
+    roi = (int(grid.n_h[0]), int(grid.n_h[-1]), int(grid.n_v[0]), int(grid.n_v[-1]))
     attrs = {
-        "theta_i": a.theta_i,
-        "theta_c": a.theta_c,
-        "phi_ref": a.phi_ref,
-        "wavelength": a.wavelength,
-        "R": a.R,
-        "pixel_pitch": a.pixel_pitch,
-        "pixel_pitch_v": a.pixel_pitch if a.pixel_pitch_v is None else a.pixel_pitch_v,
-        "roll": a.roll,
-        "yaw": a.yaw,
-        "pitch": a.pitch,
-        "m_h": a.m_h,
-        "m_v": a.m_v,
-        "step": int(step),
-        "roi": (int(grid.n_h[0]), int(grid.n_h[-1]), int(grid.n_v[0]), int(grid.n_v[-1])),
-        "detector_n_v": int(sample.shape[0]),  # the raw array's shape (the roi is on its pixel indices)
-        "detector_n_h": int(sample.shape[1]),
+        # the frame header, with the raw array's shape (the roi is on its pixel indices)
+        **frame_attrs(detector, frame, step=step, roi=roi, array_shape=True),
         "model": f"measured: {a.sample}" if a.sample else "measured",
         "frame": "reduced from raw exposure stacks (brdfjax.instrument.reduce)",
         "merge": merge,
@@ -902,18 +884,15 @@ def reduce_measurement(
         "flags: 1 saturated, 2 below noise, 4 below artifact floor, 8 not finite, 16 low SNR; "
         "u_* attributes: contributions equal on every pixel (also in the u_* channels)",
     }
-    return ReducedFrame(brdf, theta_s.astype(np.float32), phi_s.astype(np.float32),
-                        omega.astype(np.float32), extra, attrs)
+    return ExrFrame(brdf, theta_s.astype(np.float32), phi_s.astype(np.float32),
+                    omega.astype(np.float32), attrs, extra)
 
 
 # --- frame files with extra channels --------------------------------------------------------------
 
 
-def write_reduced_frame(path: str | os.PathLike, frame: ReducedFrame) -> Path:
+def write_reduced_frame(path: str | os.PathLike, frame: ExrFrame) -> Path:
     """Write a reduced frame atomically: the frame format of :mod:`brdfjax.io.exr` plus its extra channels."""
-    from .. import __version__
-    from ..io.exr import write_frame_exr
-
     return write_frame_exr(
         path,
         frame.brdf,
@@ -925,12 +904,9 @@ def write_reduced_frame(path: str | os.PathLike, frame: ReducedFrame) -> Path:
     )
 
 
-def read_reduced_frame(path: str | os.PathLike) -> ReducedFrame:
-    """Read a frame written by :func:`write_reduced_frame`, with its extra channels."""
-    from ..io.exr import read_frame_exr
-
-    fd = read_frame_exr(path)
-    return ReducedFrame(fd.brdf, fd.theta_s, fd.phi_s, fd.omega, dict(fd.extra), fd.attrs)
+def read_reduced_frame(path: str | os.PathLike) -> ExrFrame:
+    """Read a frame written by :func:`write_reduced_frame`, with its extra channels (:func:`brdfjax.io.read_frame_exr`)."""
+    return read_frame_exr(path)
 
 
 # --- measurement sets -----------------------------------------------------------------------------

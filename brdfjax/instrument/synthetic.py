@@ -95,21 +95,29 @@ noise of each measurement comes from the instrument's ``numpy`` Generator
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import equinox as eqx
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from ..detector import Detector
+from ..io.header import geometry_attrs
 from ..render import Frame, render, render_geometry
 from ..terms import AbstractTerm
-from .raw import Calibration, Exposure, RawAttrs, RawStack, write_manifest, write_raw_exr
 from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
+from .raw import (
+    Calibration,
+    Exposure,
+    RawAttrs,
+    RawStack,
+    write_manifest,
+    write_raw_exr,
+)
 
 __all__ = [
     "EFFECTS",
@@ -407,10 +415,8 @@ def lens_cap_std(dark: Dark, exposure_s: float | np.ndarray) -> np.ndarray:
 
 
 def _integrated_gaussian_1d(n: np.ndarray, centre: float, w: float) -> np.ndarray:
-    from math import erf, sqrt
-
-    s = sqrt(2.0) / w  # exp(-2 x^2 / w^2) = exp(-(x s)^2)
-    erf_v = np.vectorize(erf)
+    s = math.sqrt(2.0) / w  # exp(-2 x^2 / w^2) = exp(-(x s)^2)
+    erf_v = np.vectorize(math.erf)
     return 0.5 * (erf_v((n + 0.5 - centre) * s) - erf_v((n - 0.5 - centre) * s))
 
 
@@ -653,28 +659,23 @@ class SyntheticInstrument:
         return self.detector.shape
 
     # -- attributes ------------------------------------------------------------------------------
-    def _attrs(self, kind: str, nd_filters: str, theta_i: float, theta_c: float, frame: Frame, sample: str) -> RawAttrs:
-        d = self.nominal_detector
-        f = lambda x: float(np.asarray(x))  # noqa: E731
+    def raw_attrs(self, kind: str, nd_filters: str, frame: Frame, sample: str, *, theta_c: float | None = None) -> RawAttrs:
+        """The raw file attributes of a ``kind`` measurement of ``frame`` through ``nd_filters``.
+
+        The geometry is the frame header (:func:`brdfjax.io.header.geometry_attrs`)
+        of the nominal detector, with the arm at ``theta_c`` (default: the
+        true detector's, :meth:`~brdfjax.Detector.arm_angle`).
+        """
+        if theta_c is None:
+            theta_c = self.detector.arm_angle(frame.theta_i)
         filters = parse_nd_filters(nd_filters)
         return RawAttrs(
             kind=kind,
             optical_density=round(float(sum(filters)), 10),
             nd_filters=nd_filters,
-            theta_i=float(theta_i),
-            theta_c=float(theta_c),
-            phi_ref=f(frame.phi_ref),
-            wavelength=f(frame.wavelength),
-            R=f(d.distance),
-            pixel_pitch=f(d.pixel_pitch),
-            pixel_pitch_v=f(d.pixel_pitch_v),
+            **geometry_attrs(self.nominal_detector, frame, theta_c=theta_c),
             black_level=self.config.black_level.counts if self.config.black_level.enabled else 0.0,
             full_scale=self.config.full_scale,
-            roll=f(d.roll),
-            yaw=f(d.yaw),
-            pitch=f(d.pitch),
-            m_h=f(d.m_h),
-            m_v=f(d.m_v),
             sample=sample,
             software="brdfjax.instrument.synthetic",
             extra={"synthetic_effects": ",".join(self.config.enabled_effects())},
@@ -685,7 +686,8 @@ class SyntheticInstrument:
         """Incident flux reaching the array through the ND stack, counts/s (drift not included)."""
         return self.config.incident_flux_cps * 10.0 ** (-self.camera.true_od(nd_filters, self.config))
 
-    def _drift(self) -> float:
+    def drift(self) -> float:
+        """A source-drift factor for one measurement (1 when drift is off); draws from :attr:`rng`."""
         c = self.config.source_drift
         return float(1.0 + self.rng.normal(0.0, c.rel_std)) if c.enabled else 1.0
 
@@ -720,17 +722,17 @@ class SyntheticInstrument:
             self.expected_brdf(brdf),
             np.asarray(geom["theta_s"]),
             np.asarray(geom["omega"]),
-            self.incident_flux(nd_filters) * self._drift(),
+            self.incident_flux(nd_filters) * self.drift(),
         )
         del geom
-        return self._add_stray_and_ambient(phi)
+        return self.add_stray_and_ambient(phi)
 
     def beam_flux(self, nd_filters: str) -> np.ndarray:
         """Light rate on every pixel of a beam-signature measurement (no sample, theta_c = 0), counts/s."""
         det0 = self.detector.at(0.0)
         n_h0, n_v0 = (float(np.asarray(x)) for x in det0.pixel_of(0.0, 0.0))
         h_min, _, v_min, _ = self.detector.index_range
-        flux = self.incident_flux(nd_filters) * self._drift()
+        flux = self.incident_flux(nd_filters) * self.drift()
         centre = (n_v0 - v_min, n_h0 - h_min)
         if self.config.footprint.enabled:
             phi = beam_flux_image(self.shape, centre, self.config.footprint.w_px, flux)
@@ -739,9 +741,10 @@ class SyntheticInstrument:
             r, c = int(round(centre[0])), int(round(centre[1]))
             if 0 <= r < self.shape[0] and 0 <= c < self.shape[1]:
                 phi[r, c] = flux
-        return self._add_stray_and_ambient(phi)
+        return self.add_stray_and_ambient(phi)
 
-    def _add_stray_and_ambient(self, phi: np.ndarray) -> np.ndarray:
+    def add_stray_and_ambient(self, phi: np.ndarray) -> np.ndarray:
+        """``phi`` (counts/s on every pixel) plus the stray light and the ambient light that are enabled."""
         if self.config.stray_light.enabled:
             main = phi.copy()
             for dh, dv, log_ratio in self.config.stray_light.peaks:
@@ -807,7 +810,8 @@ class SyntheticInstrument:
                 std[r0:r1] = np.where(saturated, 0.0, np.sqrt(var) * chi).astype(np.float16)
         return Exposure(t, n, counts, std)
 
-    def _stack(self, flux: np.ndarray | None, attrs: RawAttrs) -> RawStack:
+    def stack(self, flux: np.ndarray | None, attrs: RawAttrs) -> RawStack:
+        """A raw stack with ``attrs``: one :meth:`expose` of ``flux`` (counts/s; None: no light) per exposure time."""
         exposures = []
         for t in self.config.exposures_s:
             exposures.append(self.expose(flux, t, light=flux is not None))
@@ -829,29 +833,27 @@ class SyntheticInstrument:
         """
         if isinstance(brdf, AbstractTerm):
             brdf = self.render_brdf(brdf, frame)
-        theta_i = float(np.asarray(frame.theta_i))
-        theta_c = theta_i if self.detector.theta_c is None else float(np.asarray(self.detector.theta_c))
         flux = self.sample_flux(brdf, frame, nd_filters)
-        return self._stack(flux, self._attrs("sample", nd_filters, theta_i, theta_c, frame, sample))
+        return self.stack(flux, self.raw_attrs("sample", nd_filters, frame, sample))
 
     def measure_beam(self, nd_filters: str = SEED_BEAM_FILTERS, *, wavelength: float = 632.8e-9) -> RawStack:
         """A beam signature: the focused beam straight onto the array, no sample, ``theta_c = 0``."""
         frame = Frame(0.0, 0.0, wavelength)
         flux = self.beam_flux(nd_filters)
-        return self._stack(flux, self._attrs("beam", nd_filters, 0.0, 0.0, frame, "beam signature"))
+        return self.stack(flux, self.raw_attrs("beam", nd_filters, frame, "beam signature", theta_c=0.0))
 
     def measure_background(self, like: RawAttrs) -> RawStack:
         """Background for a measurement: laser on but blocked (ambient light only), same geometry attributes."""
         flux = np.zeros(self.shape, np.float32)
         if self.config.ambient.enabled:
             flux += self.camera.ambient
-        attrs = _replace(like, kind="background", sample=f"background for: {like.sample}")
-        return self._stack(flux, attrs)
+        attrs = dataclasses.replace(like, kind="background", sample=f"background for: {like.sample}")
+        return self.stack(flux, attrs)
 
     def measure_dark(self, like: RawAttrs) -> RawStack:
         """A lens-cap (dark) stack: no light at all."""
-        attrs = _replace(like, kind="dark", sample="lens cap")
-        return self._stack(None, attrs)
+        attrs = dataclasses.replace(like, kind="dark", sample="lens cap")
+        return self.stack(None, attrs)
 
     def measure_set(
         self,
@@ -927,8 +929,3 @@ class SyntheticInstrument:
             entries.append((name, f"{name}.exr", f"{name}_background.exr"))
         return write_manifest(folder / "manifest.toml", ("beam.exr", "beam_background.exr"), entries, calibration)
 
-
-def _replace(attrs: RawAttrs, **changes: Any) -> RawAttrs:
-    from dataclasses import replace
-
-    return replace(attrs, **changes)

@@ -1,16 +1,29 @@
 """File formats at the edge of brdfjax (the core never does I/O).
 
-:mod:`brdfjax.io.exr`: one rendered frame as a single-part OpenEXR file.
-:func:`atomic_output`: write a file under a temporary name, then rename it.
+:mod:`brdfjax.io.header`: the frame header -- the one mapping of a Detector
+and a Frame to file attributes and back (simulated, reduced and raw frames).
+:mod:`brdfjax.io.exr`: one rendered or reduced frame as a single-part OpenEXR
+file (:class:`ExrFrame`).
+:func:`atomic_output`: write a file under a temporary name, then rename it
+(every file brdfjax writes goes through it; :func:`write_json_atomic` for JSON).
 """
 
 from __future__ import annotations
 
-from .atomic import atomic_output as atomic_output, write_json_atomic as write_json_atomic
-from .exr import (
-    CHANNELS as CHANNELS,
-    ExrError as ExrError,
-    FrameData as FrameData,
-    read_frame_exr as read_frame_exr,
-    write_frame_exr as write_frame_exr,
-)
+from .atomic import atomic_output, write_json_atomic
+from .exr import CHANNELS, ExrError, ExrFrame, read_frame_exr, write_frame_exr
+from .header import detector_from_attrs, frame_attrs, frame_from_attrs, geometry_attrs
+
+__all__ = [
+    "CHANNELS",
+    "ExrError",
+    "ExrFrame",
+    "atomic_output",
+    "detector_from_attrs",
+    "frame_attrs",
+    "frame_from_attrs",
+    "geometry_attrs",
+    "read_frame_exr",
+    "write_frame_exr",
+    "write_json_atomic",
+]

@@ -33,8 +33,11 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
             tmp.unlink()
 
 
-def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
-    """Write ``data`` as indented JSON (UTF-8, trailing newline) through :func:`atomic_output`; returns the path."""
+def write_json_atomic(path: str | os.PathLike, data: Any, *, allow_nan: bool = True) -> Path:
+    """Write ``data`` as indented JSON (UTF-8, trailing newline) through :func:`atomic_output`; returns the path.
+
+    ``allow_nan=False`` refuses NaN and infinities (``ValueError``), for strict JSON.
+    """
     with atomic_output(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+        tmp.write_text(json.dumps(data, indent=2, allow_nan=allow_nan) + "\n", encoding="utf-8")
     return Path(path)

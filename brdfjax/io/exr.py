@@ -9,7 +9,9 @@ Channels (rows = n_v, top row = most negative n_v; columns = n_h):
 ``omega``  sr      solid angle of the pixel (Eq 86 / 109)
 ========== ======= ====================================================
 
-Header attributes: the angles ``theta_i``, ``theta_c``, ``phi_ref``, ``roll``,
+Header attributes (the geometry ones are the frame header of
+:mod:`brdfjax.io.header`, the one place that maps a Detector and a Frame to
+them and back): the angles ``theta_i``, ``theta_c``, ``phi_ref``, ``roll``,
 ``yaw``, ``pitch`` (rad), the lengths ``wavelength``, ``R``, ``pixel_pitch``,
 ``pixel_pitch_v`` (m) and the offsets ``m_h``, ``m_v`` (pixels) are stored as
 **doubles** (the OpenEXR bindings store a Python float as a 32-bit float, so
@@ -18,8 +20,8 @@ each is written as a float64 array of shape (1,)); ``step`` is an int,
 ``brdfjax_version``, ``precision`` and ``frame`` are strings, and ``checksum``
 is a CRC-32 of the four channels' float32 pixels.
 
-Files are written atomically (a temporary file in the same folder, then
-``os.replace``), so a reader never sees half a frame.  A damaged file whose
+Files are written atomically (:func:`brdfjax.io.atomic_output`), so a reader
+never sees half a frame.  A damaged file whose
 header is intact does not make the OpenEXR bindings raise (they warn and drop
 the pixel data): :func:`read_frame_exr` checks that every expected channel
 came back with the header's shape, and that the pixels match the stored
@@ -32,11 +34,12 @@ from __future__ import annotations
 import os
 import zlib
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from types import MappingProxyType
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
+import OpenEXR  # the official bindings (3.x API)
 
 from ..errors import InputError
 from .atomic import atomic_output
@@ -47,7 +50,7 @@ __all__ = [
     "DOUBLE_ATTRS",
     "REQUIRED_ATTRS",
     "ExrError",
-    "FrameData",
+    "ExrFrame",
     "pixel_checksum",
     "write_frame_exr",
     "read_frame_exr",
@@ -105,19 +108,23 @@ class ExrError(InputError):
     """A frame file that cannot be written or read as expected; the message names the file."""
 
 
-class FrameData(NamedTuple):
-    """A frame read back: float32 ``(rows, cols)`` channels, the header attributes and any extra channels.
+@dataclass(frozen=True)
+class ExrFrame:
+    """A frame on a pixel grid: float32 ``(rows, cols)`` channels, the header attributes and any extra channels.
 
-    ``extra`` holds the channels beyond :data:`CHANNELS` by name (e.g. a
-    reduced frame's ``sigma_rel``, ``mask`` and uncertainty contributions).
+    What :func:`read_frame_exr` returns and what the reduction produces
+    (:func:`brdfjax.instrument.reduce.reduce_measurement`).  ``extra`` holds
+    the channels beyond :data:`CHANNELS` by name (e.g. a reduced frame's
+    ``sigma_rel``, ``mask`` and uncertainty contributions).  Not to be
+    confused with :class:`brdfjax.fit.FrameData`, the fit's data block.
     """
 
     brdf: np.ndarray
     theta_s: np.ndarray
     phi_s: np.ndarray
     omega: np.ndarray
-    attrs: dict[str, Any]
-    extra: Mapping[str, np.ndarray] = MappingProxyType({})
+    attrs: Mapping[str, Any]
+    extra: Mapping[str, np.ndarray] = field(default_factory=dict)
 
 
 def pixel_checksum(channels: Mapping[str, np.ndarray]) -> str:
@@ -129,8 +136,7 @@ def pixel_checksum(channels: Mapping[str, np.ndarray]) -> str:
 
 
 def _openexr():
-    import OpenEXR  # the official bindings (3.x API)
-
+    """The OpenEXR bindings (a seam: tests replace it to simulate a failing write)."""
     return OpenEXR
 
 
@@ -223,7 +229,7 @@ def _attr_value(key: str, value: Any) -> Any:
     return value
 
 
-def read_frame_exr(path: str | os.PathLike) -> FrameData:
+def read_frame_exr(path: str | os.PathLike) -> ExrFrame:
     """Read a frame written by :func:`write_frame_exr`.
 
     Float attributes come back as Python floats (the doubles exactly), ``roi``
@@ -275,4 +281,4 @@ def read_frame_exr(path: str | os.PathLike) -> FrameData:
         raise ExrError(f"{path}: the pixel data does not match its checksum; the file is damaged")
     attrs = {k: _attr_value(k, v) for k, v in header.items() if k not in _STANDARD}
     extra = {k: arrays.pop(k) for k in list(arrays) if k not in CHANNELS}
-    return FrameData(attrs=attrs, extra=extra, **arrays)
+    return ExrFrame(attrs=attrs, extra=extra, **arrays)

@@ -26,6 +26,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,7 +69,7 @@ def _corrupt(path: Path, why: str) -> SampleError:
 
 def read_chain_info(path: str | os.PathLike) -> ChainInfo:
     """Open an existing chain file read-only and check it (raises :class:`SampleError` naming the file)."""
-    import h5py
+    import h5py  # only when a chain file is read or written
 
     path = Path(path)
     try:
@@ -99,7 +101,7 @@ def read_chain_info(path: str | os.PathLike) -> ChainInfo:
 
 
 def _write_meta(path: Path, meta: dict[str, Any]) -> None:
-    import h5py
+    import h5py  # only when a chain file is read or written
 
     with h5py.File(path, "a") as f:
         g = f.require_group(META)
@@ -184,7 +186,6 @@ def run_chain(
     is converged (module docstring).  ``KeyboardInterrupt`` ends the run
     with what was saved (``interrupted=True``).
     """
-    import time
 
     t0 = time.perf_counter()
     done = int(backend.iteration) if getattr(backend, "initialized", False) else 0
@@ -252,10 +253,9 @@ def _tau(chain: np.ndarray) -> np.ndarray:
     """emcee's integrated autocorrelation time with tol=0 (never raises); NaN for a chain too short."""
     if chain.shape[0] < 2:
         return np.full(chain.shape[2], np.nan)
-    import warnings as _w
 
-    with _w.catch_warnings():
-        _w.simplefilter("ignore")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
         return np.asarray(emcee.autocorr.integrated_time(chain, tol=0, quiet=True), np.float64)
 
 

@@ -1,20 +1,25 @@
 """Outputs of a posterior study: the summary (posterior.json), corner, trace and posterior-predictive figures.
 
 Every number is reported in natural units (angles in degrees, the rest as
-stored), like the fit's result.  Files are written atomically (temporary
-name, then ``os.replace``).
+stored), like the fit's result.  Files are written atomically
+(:func:`brdfjax.io.atomic_output`).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
+
+from ..io import atomic_output
+from ..io import write_json_atomic as _write_json
 
 __all__ = ["summarise", "write_json_atomic", "plot_corner", "plot_trace", "plot_predictive", "model_at_points", "QUANTILES"]
 
@@ -30,17 +35,14 @@ def _num(x: Any) -> Any:
 
 
 def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
-    os.replace(tmp, path)
-    return path
+    """Strict JSON (no NaN) through :func:`brdfjax.io.write_json_atomic`; returns the path."""
+    return _write_json(path, data, allow_nan=False)
 
 
 def _savefig_atomic(fig: Any, path: Path, **kw: Any) -> Path:
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    fig.savefig(tmp, **kw)
-    os.replace(tmp, path)
+    kw.setdefault("format", path.suffix.lstrip(".") or None)  # the temporary name has no image suffix
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, **kw)
     return path
 
 
@@ -82,7 +84,7 @@ def _labels(names: Sequence[str], units: Sequence[str]) -> list[str]:
 
 def plot_corner(path: Path, flat_natural: np.ndarray, names, units, truths=None, title: str | None = None) -> Path:
     import corner
-    import matplotlib
+    import matplotlib  # only when a figure is drawn
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
@@ -107,7 +109,7 @@ def plot_corner(path: Path, flat_natural: np.ndarray, names, units, truths=None,
 
 def plot_trace(path: Path, chain_natural: np.ndarray, names, units, burn: int, max_params: int = 16) -> Path:
     """Every walker's trace per parameter (up to ``max_params``), the burn-in marked."""
-    import matplotlib
+    import matplotlib  # only when a figure is drawn
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
@@ -133,7 +135,6 @@ def model_at_points(post: Any, X: np.ndarray) -> list[np.ndarray]:
     Recovered from the fit's weighted residuals ``r = (log(f + floor) - log d) / sigma_rel``, so it is
     exactly the model the likelihood sees (convolved with the footprint where the fit convolves).
     """
-    import jax.numpy as jnp
 
     problem = post.problem
     R = np.asarray(_weighted_residuals(jnp.asarray(np.asarray(X, np.float64), post.dtype), problem), np.float64)
@@ -148,8 +149,6 @@ def model_at_points(post: Any, X: np.ndarray) -> list[np.ndarray]:
 
 
 def _weighted_residuals(X, problem):
-    import equinox as eqx
-    import jax
 
     return eqx.filter_jit(lambda X, p: jax.vmap(p.weighted_residuals)(X))(X, problem)
 
@@ -159,7 +158,7 @@ def plot_predictive(
 ) -> Path:
     """Data (1-sigma bars) and, along grid columns, the model's 95 % credible band and the 95 % posterior-
     predictive band (model draws times the data's log-normal noise), at the usable points."""
-    import matplotlib
+    import matplotlib  # only when a figure is drawn
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
