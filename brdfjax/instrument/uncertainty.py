@@ -386,7 +386,7 @@ def geometry_uncertainty(
     if misaligned_solid_angle is None:
         misaligned_solid_angle = misaligned
 
-    theta_c = theta_i if detector.theta_c is None else float(np.asarray(detector.theta_c))
+    theta_c = float(np.asarray(detector.arm_angle(theta_i)))
     mis_theta_c = theta_c
     if misaligned is not None and misaligned.theta_c is not None:
         mis_theta_c = float(np.asarray(misaligned.theta_c))
