@@ -1,4 +1,4 @@
-"""Seed-style figures of rendered frames (matplotlib, Agg; imported lazily by the CLI).
+"""Seed-style figures of rendered frames (matplotlib's Figure API on Agg; no pyplot, no global backend).
 
 :func:`plot_frame` draws what the seed's Figs 33-35 show: the log10 BRDF over
 the CCD pixel grid with lines of constant ``theta_s`` and ``phi_s`` overlaid
@@ -9,11 +9,15 @@ so no pyplot state or backend switch leaks into the caller.
 
 from __future__ import annotations
 
+import importlib
 import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from .detector import Detector, PixelGrid
 from .io import atomic_output
@@ -58,8 +62,6 @@ def _max_pool(img: np.ndarray, limit: int = _MAX_DISPLAY) -> tuple[np.ndarray, i
 
 
 def _levels(lo: float, hi: float, n: int = 7) -> np.ndarray:
-    from matplotlib.ticker import MaxNLocator
-
     if not (np.isfinite(lo) and np.isfinite(hi)) or hi - lo <= 0:
         return np.array([])
     ticks = MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(lo, hi)
@@ -92,11 +94,16 @@ def _label_point(nh: np.ndarray, nv: np.ndarray, box, at: float) -> tuple[float,
     return float(nh[k]), float(nv[k])
 
 
-def save_figure_atomic(fig: Any, path: Path, dpi: int) -> Path:
-    from matplotlib.backends.backend_agg import (
-        FigureCanvasAgg,  # matplotlib only when a figure is drawn
-    )
+def agg_pyplot() -> Any:
+    """``matplotlib.pyplot`` on the non-interactive Agg backend, for figures drawn with pyplot (corner plots,
+    traces, the merge-seam figure).  The backend is chosen before pyplot is first imported."""
+    import matplotlib  # pyplot needs its backend chosen first, so it cannot be a module-level import
 
+    matplotlib.use("Agg", force=False)
+    return importlib.import_module("matplotlib.pyplot")
+
+
+def save_figure_atomic(fig: Any, path: Path, dpi: int) -> Path:
     FigureCanvasAgg(fig)
     with atomic_output(path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)
@@ -122,8 +129,6 @@ def plot_frame(
     BRDF along the pixel column through the centre peak (``n_h = 0``) and the
     column through the brightest pixel, log scale against ``n_v``.  ``brdf`` is the ``(rows, cols)`` image of ``grid``.
     """
-    from matplotlib.figure import Figure
-
     b = np.asarray(brdf, dtype=np.float64)
     if b.shape != grid.shape:
         raise ValueError(f"plot_frame: brdf has shape {b.shape} but the grid is {grid.shape} (rows, cols)")

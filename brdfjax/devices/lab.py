@@ -61,8 +61,8 @@ _MOTION_FAULTS = ("motion_error", "hw_fw_lim", "hw_bk_lim", "overcurrent", "curr
 
 
 def _errors():
-    from pylablib.core.devio.comm_backend import DeviceBackendError
-    from pylablib.devices.Thorlabs import ThorlabsError, ThorlabsTimeoutError
+    from pylablib.core.devio.comm_backend import DeviceBackendError  # pylablib is optional: the [lab] extra
+    from pylablib.devices.Thorlabs import ThorlabsError, ThorlabsTimeoutError  # the [lab] extra
 
     return ThorlabsTimeoutError, DeviceBackendError, ThorlabsError
 
@@ -81,7 +81,7 @@ def _wrap(what: str, fn: Callable, *args, **kwargs):
 
 
 def _camera_errors():
-    from pylablib.devices.Thorlabs import (
+    from pylablib.devices.Thorlabs import (  # pylablib is optional: the [lab] extra
         ThorlabsTLCameraError,
         ThorlabsTLCameraTimeoutError,
     )
@@ -304,7 +304,7 @@ class ManualTranslation(ManualRotation):
 def open_lab_bench(lab, *, wavelength: float = 632.8e-9) -> Bench:
     """Open the seed's bench from an ``[instrument.lab]`` config (:class:`~brdfjax.devices.capture.LabConfig`)."""
     try:
-        from pylablib.devices import Thorlabs
+        from pylablib.devices import Thorlabs  # pylablib is optional: the [lab] extra
     except ImportError as e:  # pragma: no cover - depends on the install
         raise DeviceError("the lab bench needs pylablib: pip install 'brdfjax[lab]'") from e
 

@@ -27,6 +27,7 @@ import os
 import time
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 
 from ..instrument.nd import stack_od
@@ -38,12 +39,16 @@ from .interfaces import bench_detector
 __all__ = ["LiveView", "display_available"]
 
 
+def _interactive_pyplot():
+    import matplotlib.pyplot as plt  # window mode only: importing pyplot settles the session's (GUI) backend
+
+    return plt
+
+
 def display_available() -> bool:
     """A display and an interactive matplotlib backend are available."""
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         return False
-    import matplotlib
-
     return matplotlib.get_backend().lower() not in ("agg", "pdf", "svg", "ps", "cairo", "template")
 
 
@@ -104,8 +109,7 @@ class LiveView:
 
     def close(self) -> None:
         if self._fig is not None:
-            import matplotlib.pyplot as plt
-
+            plt = _interactive_pyplot()
             plt.close(self._fig)
             self._fig = None
 
@@ -139,8 +143,7 @@ class LiveView:
                 encoding="utf-8",
             )
         if self.mode == "window":
-            import matplotlib.pyplot as plt
-
+            plt = _interactive_pyplot()
             if self._fig is None:
                 plt.ion()
                 self._fig = plt.figure("brdfjax live view", figsize=(11, 5))

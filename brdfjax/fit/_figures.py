@@ -21,7 +21,9 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import matplotlib
 import numpy as np
+from matplotlib.figure import Figure
 
 from ..geometry import Directions, direction
 from ..instrument.synthetic import convolve_footprint
@@ -48,8 +50,6 @@ def frame_model_image(model: Any, frame: Any, block: FrameData, use_footprint: b
 
 def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Path, *, title: str = "", dpi: int = 100) -> Path:
     """The data / model / residual figure of one frame (module docstring)."""
-    from matplotlib.figure import Figure
-
     d = np.asarray(block.brdf, np.float64)
     u = block.usable()
     sig = np.broadcast_to(np.asarray(block.sigma_rel, np.float64), d.shape)
@@ -152,8 +152,6 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
 
 
 def _with_bad(name: str):
-    import matplotlib
-
     return matplotlib.colormaps[name].with_extremes(bad="#bbbbbb")
 
 
@@ -167,8 +165,6 @@ def table_model(model: Any, block: TableData) -> np.ndarray:
 
 def plot_table_fit(block: TableData, model_vals: np.ndarray, path: Path, *, title: str = "", dpi: int = 100) -> Path:
     """Data and model per incident angle, one panel each, in one figure (module docstring)."""
-    from matplotlib.figure import Figure
-
     u = block.usable()
     ti = np.degrees(np.asarray(block.theta_i, float))
     ts = np.asarray(block.theta_s, float)

@@ -21,12 +21,12 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from ..geometry import Directions
-from ..render import Frame, resolve_dtype, cast
+from ..render import Frame, cast, resolve_dtype
 from ..terms import Model
+from ._auto_init import get_initializer
 from ._common import FRAME_PARAMETERS, FitInputError
 from ._covariance import covariance
 from ._data import FrameData, TableData
-from ._auto_init import get_initializer
 from ._params import Layout, as_param, build_layout
 from ._problem import (
     FrameBlock,
@@ -34,10 +34,10 @@ from ._problem import (
     TableBlock,
     build_targets,
     can_stack,
-    stack_frames,
     evaluate,
     frame_for_block,
     jacobian,
+    stack_frames,
     template_for_block,
     with_loss,
     with_scale,

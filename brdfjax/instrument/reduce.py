@@ -95,6 +95,7 @@ from .. import __version__
 from ..detector import Detector, PixelGrid
 from ..errors import InputError
 from ..io import ExrFrame, atomic_output, frame_attrs, read_frame_exr, write_frame_exr
+from ..plotting import agg_pyplot
 from ..render import render_geometry
 from .nd import SEED_ND_TOLERANCES
 from .raw import (
@@ -1020,11 +1021,7 @@ def plot_merge_comparison(
     all rows (for a target constant down each column, so that seams stand
     out of the noise).  Written atomically as PNG (matplotlib Agg).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = agg_pyplot()
     kw = dict(saturation_fraction=saturation_fraction)
     curve = _curve(nonlinearity_curve)
     merges = {"replacement (seed §3.6)": stitch_replacement(stack, background, **kw),

@@ -17,9 +17,9 @@ from ..fit import FitResult, FrameData, TableData, fit, prepare, versions
 from ..fit.internal import as_param, block_names, get_solver, to_natural
 from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
 from ._outputs import (
+    model_at_points,
     plot_corner,
     plot_predictive,
-    model_at_points,
     plot_trace,
     slice_columns,
     summarise,

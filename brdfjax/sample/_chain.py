@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import emcee
+import h5py
 import numpy as np
 
 from ._priors import SampleError
@@ -69,8 +70,6 @@ def _corrupt(path: Path, why: str) -> SampleError:
 
 def read_chain_info(path: str | os.PathLike) -> ChainInfo:
     """Open an existing chain file read-only and check it (raises :class:`SampleError` naming the file)."""
-    import h5py  # only when a chain file is read or written
-
     path = Path(path)
     try:
         with h5py.File(path, "r") as f:
@@ -101,8 +100,6 @@ def read_chain_info(path: str | os.PathLike) -> ChainInfo:
 
 
 def _write_meta(path: Path, meta: dict[str, Any]) -> None:
-    import h5py  # only when a chain file is read or written
-
     with h5py.File(path, "a") as f:
         g = f.require_group(META)
         g.attrs["meta"] = json.dumps(meta)

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..io import atomic_output
 from ..io import write_json_atomic as _write_json
+from ..plotting import agg_pyplot
 
 __all__ = ["summarise", "write_json_atomic", "plot_corner", "plot_trace", "plot_predictive", "model_at_points", "QUANTILES"]
 
@@ -83,11 +84,8 @@ def _labels(names: Sequence[str], units: Sequence[str]) -> list[str]:
 
 
 def plot_corner(path: Path, flat_natural: np.ndarray, names, units, truths=None, title: str | None = None) -> Path:
-    import corner
-    import matplotlib  # only when a figure is drawn
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    plt = agg_pyplot()
+    import corner  # imports pyplot at import time: only after agg_pyplot() has chosen the backend
 
     fig = corner.corner(
         flat_natural,
@@ -109,11 +107,7 @@ def plot_corner(path: Path, flat_natural: np.ndarray, names, units, truths=None,
 
 def plot_trace(path: Path, chain_natural: np.ndarray, names, units, burn: int, max_params: int = 16) -> Path:
     """Every walker's trace per parameter (up to ``max_params``), the burn-in marked."""
-    import matplotlib  # only when a figure is drawn
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
+    plt = agg_pyplot()
     p = min(len(names), max_params)
     fig, axes = plt.subplots(p, 1, figsize=(8, 1.3 * p + 0.6), sharex=True, squeeze=False)
     steps = np.arange(chain_natural.shape[0])
@@ -158,11 +152,7 @@ def plot_predictive(
 ) -> Path:
     """Data (1-sigma bars) and, along grid columns, the model's 95 % credible band and the 95 % posterior-
     predictive band (model draws times the data's log-normal noise), at the usable points."""
-    import matplotlib  # only when a figure is drawn
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
+    plt = agg_pyplot()
     brdf = np.asarray(data.brdf, np.float64)
     sigma = np.broadcast_to(np.asarray(data.sigma_rel, np.float64), brdf.shape)
     usable = data.usable()
