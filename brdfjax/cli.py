@@ -32,14 +32,14 @@ import numpy as np
 from rich.console import Console
 
 from . import __version__
-from .config import ConfigError, load_instrument_config, load_simulate_config
+from .config import load_simulate_config
 from .detector import PixelGrid
 from .devices import capture as capture_cli
 from .diagnose import cli as diagnose_cli
+from .errors import InputError
 from .fit import cli_fit
-from .instrument.raw import ManifestError, RawFormatError
 from .instrument.reduce import ReductionError, read_reduced_frame, reduce_measurement_set
-from .instrument.synthetic import EFFECTS, SyntheticInstrument
+from .instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
 from .io import ExrError, detector_from_attrs, frame_from_attrs, write_json_atomic
 from .plotting import plot_frame
 from .sample import cli as sample_cli
@@ -90,7 +90,7 @@ def _run_simulate(args: argparse.Namespace) -> int:
         cfg = load_simulate_config(args.config)
         if args.step is not None or args.precision is not None:
             cfg = cfg.with_overrides(step=args.step, precision=args.precision)
-    except ConfigError as e:
+    except InputError as e:
         _error(prog, str(e))
         return EXIT_USAGE
     if cfg.precision == "float64":
@@ -110,7 +110,7 @@ def _run_simulate(args: argparse.Namespace) -> int:
     except (OSError, ExrError) as e:
         _error(prog, str(e))
         return EXIT_FAILURE
-    except ConfigError as e:  # e.g. a ROI that only fails once the detector is built
+    except InputError as e:  # e.g. a ROI that only fails once the detector is built
         _error(prog, str(e))
         return EXIT_USAGE
     console.print(f"wrote {Path(args.out) / 'summary.json'} ({summary['wall_s']:.1f} s)", markup=False)
@@ -171,12 +171,12 @@ def _run_reduce(args: argparse.Namespace) -> int:
         paths = reduce_measurement_set(
             args.manifest, args.out, merge=args.merge, step=args.step, correct_nonlinearity=args.correct_nonlinearity
         )
-    except (ManifestError, RawFormatError, FileNotFoundError) as e:
-        _error(prog, str(e))
-        return EXIT_USAGE
-    except (ReductionError, ExrError, OSError) as e:
+    except (ReductionError, ExrError, OSError) as e:  # before InputError: a set that cannot be reduced exits 1
         _error(prog, str(e))
         return EXIT_FAILURE
+    except (InputError, FileNotFoundError) as e:
+        _error(prog, str(e))
+        return EXIT_USAGE
     frames = []
     for path in paths:
         frame = read_reduced_frame(path)
@@ -233,12 +233,12 @@ def _run_synthesize(args: argparse.Namespace) -> int:
     prog = "brdfjax synthesize"
     try:
         cfg = load_simulate_config(args.config)
-    except ConfigError as e:
+    except InputError as e:
         _error(prog, str(e))
         return EXIT_USAGE
     try:
         inst_cfg = load_instrument_config(args.instrument, args.camera_seed)
-    except ConfigError as e:
+    except InputError as e:
         _error(prog, str(e))
         return EXIT_USAGE
     off = [x.strip() for x in args.without.split(",") if x.strip()]
@@ -268,6 +268,9 @@ def _run_synthesize(args: argparse.Namespace) -> int:
         manifest = instrument.measure_set(
             args.out, model, frames, nd_filters=args.nd, log=lambda line: console.print(line, markup=False)
         )
+    except InputError as e:
+        _error(prog, str(e))
+        return EXIT_USAGE
     except (OSError, ValueError) as e:
         _error(prog, str(e))
         return EXIT_FAILURE

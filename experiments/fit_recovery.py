@@ -99,7 +99,7 @@ def _atomic_json(path: Path, obj) -> None:
 
 
 def instrument(bin_: int, seed: int):
-    from brdfjax.config import load_instrument_config
+    from brdfjax.instrument.synthetic import load_instrument_config
     from brdfjax.instrument.synthetic import SyntheticInstrument
 
     det = bj.Detector.seed(shape=(2472 // bin_, 3296 // bin_), pixel_pitch=5.5e-6 * bin_, pixel_pitch_v=5.5e-6 * bin_)

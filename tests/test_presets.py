@@ -61,9 +61,9 @@ def test_oriented_turns_the_distribution_about_the_normal():
 
 
 def test_preset_params_in_configs():
-    from brdfjax.config import _build_preset
+    from brdfjax.config import build_preset
 
-    m = _build_preset("test.toml", "polished_aluminium", {"psi_deg": 45.0, "mx": 7e-4})
+    m = build_preset("test.toml", "polished_aluminium", {"psi_deg": 45.0, "mx": 7e-4})
     assert float(m.params()["psi"]) == pytest.approx(math.pi / 4)
     assert m.parameter_units()["psi"] == "rad"
     assert float(m.params()["mx"]) == pytest.approx(7e-4)

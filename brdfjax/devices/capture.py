@@ -80,10 +80,13 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from ..config import ConfigError, ModelConfig, describe_validation_error
+from ..config import ConfigError, ModelConfig, StrictModel, build_model, read_toml, validate
+from ..detector import Detector
+from ..errors import InputError
 from ..instrument.nd import stack_od
+from ..instrument.synthetic import EFFECTS, load_instrument_config
 from ..instrument.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
 from ..io import atomic_output, geometry_attrs
 from ..render import Frame
@@ -117,17 +120,13 @@ class CaptureError(RuntimeError):
     """The capture stopped; the message says where, why and what to check."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-
-class LabStage(_Strict):
+class LabStage(StrictModel):
     serial: str = Field(description="the Kinesis controller's serial number")
     scale: str | float = Field("stage", description="pylablib scale: a stage name (e.g. 'PRM1-Z8'), 'stage' or steps per unit")
     channel: int = Field(1, ge=1)
 
 
-class LabConfig(_Strict):
+class LabConfig(StrictModel):
     camera_serial: str | None = None
     sample_theta: LabStage
     arm: LabStage
@@ -140,7 +139,7 @@ class LabConfig(_Strict):
     distance_m: float = Field(0.325, gt=0)
 
 
-class InstrumentSection(_Strict):
+class InstrumentSection(StrictModel):
     kind: Literal["simulated", "lab"] = "simulated"
     bin: int = Field(8, ge=1, description="binning of the seed camera (pixel pitch 5.5 um x bin)")
     shape: tuple[int, int] | None = Field(None, description="(n_v, n_h) pixels; default the seed array / bin")
@@ -162,7 +161,7 @@ class InstrumentSection(_Strict):
         return self
 
 
-class ExposureSection(_Strict):
+class ExposureSection(StrictModel):
     exposures_ms: list[float] = Field(default_factory=lambda: [t * 1e3 for t in DEFAULT_EXPOSURES_S])
     n_frames: int = Field(32, ge=1)
     background: bool = True
@@ -175,7 +174,7 @@ class ExposureSection(_Strict):
         return v
 
 
-class AlignmentSection(_Strict):
+class AlignmentSection(StrictModel):
     enabled: bool = False
     slew_deg: float = Field(1.0, gt=0, lt=10)
     translation_mm: float = Field(25.4, gt=0, le=25.4)
@@ -188,11 +187,11 @@ class AlignmentSection(_Strict):
     m_v_px: float = 0.0
 
 
-class BeamSection(_Strict):
+class BeamSection(StrictModel):
     nd: str = "auto"
 
 
-class MeasurementSection(_Strict):
+class MeasurementSection(StrictModel):
     name: str | None = None
     theta_i_deg: float = Field(ge=0, lt=89)
     phi_ref_deg: float = 0.0
@@ -211,18 +210,18 @@ class MeasurementSection(_Strict):
         return f"ti{self.theta_i_deg:g}_phi{self.phi_ref_deg:g}".replace("-", "m")
 
 
-class CaptureSection(_Strict):
+class CaptureSection(StrictModel):
     override_interlock: bool = False
     retries: int = Field(2, ge=0, le=10)
     live: Literal["auto", "window", "png", "off"] = "auto"
     live_interval_s: float = Field(1.0, ge=0)
 
 
-class CalibrationSection(_Strict):
+class CalibrationSection(StrictModel):
     nd_tolerances: dict[str, float] = Field(default_factory=dict)
 
 
-class CaptureConfig(_Strict):
+class CaptureConfig(StrictModel):
     seed: int = 0
     wavelength_nm: float = Field(632.8, gt=0)
     instrument: InstrumentSection = InstrumentSection()
@@ -261,16 +260,7 @@ class CaptureConfig(_Strict):
 def load_capture_config(path: str | os.PathLike) -> CaptureConfig:
     """Read and validate a capture config; raises :class:`~brdfjax.config.ConfigError` naming the file and key."""
     source = str(path)
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(source, [("", "config file not found")]) from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(source, [("", f"not valid TOML: {e}")]) from None
-    try:
-        cfg = CaptureConfig.model_validate(data)
-    except ValidationError as e:
-        raise ConfigError(source, [describe_validation_error(CaptureConfig, err) for err in e.errors()]) from None
+    cfg = validate(CaptureConfig, read_toml(path), source)
     cfg._source = source
     if cfg.model is not None:
         _build_model(cfg)  # a config that loads is a config that runs
@@ -286,12 +276,7 @@ def load_capture_config(path: str | os.PathLike) -> CaptureConfig:
 
 
 def _build_model(cfg: CaptureConfig):
-    from ..config import parse_simulate_config
-
-    data = {"model": cfg.model.model_dump(exclude_none=True, exclude_defaults=True), "frames": [{"theta_i_deg": 20.0}]}
-    if not data["model"]:
-        data["model"] = {"preset": cfg.model.preset}
-    return parse_simulate_config(data, source=cfg.source).build_model()
+    return build_model(cfg.source, cfg.model)
 
 
 # --- bench and plan ------------------------------------------------------------------------------
@@ -304,9 +289,6 @@ def build_bench(cfg: CaptureConfig, *, config_dir: Path | None = None):
         from .lab import open_lab_bench
 
         return open_lab_bench(ins.lab, wavelength=cfg.wavelength_nm * 1e-9), None
-    from ..config import load_instrument_config
-    from ..detector import Detector
-    from ..instrument.synthetic import EFFECTS
     from .simulated import SimulatedBench
 
     shape = tuple(ins.shape) if ins.shape else (2472 // ins.bin, 3296 // ins.bin)
@@ -849,7 +831,7 @@ def run_capture_command(args: argparse.Namespace) -> int:
 
     try:
         cfg = load_capture_config(args.config)
-    except ConfigError as e:
+    except InputError as e:
         err(str(e))
         return EXIT_USAGE
     updates: dict[str, Any] = {}
@@ -881,7 +863,7 @@ def run_capture_command(args: argparse.Namespace) -> int:
     except FileExistsError as e:
         err(str(e))
         return EXIT_FAILURE
-    except ConfigError as e:
+    except InputError as e:
         err(str(e))
         return EXIT_USAGE
     except (CaptureError, InterlockError, ValueError, OSError) as e:

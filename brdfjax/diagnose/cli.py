@@ -34,6 +34,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..config import ModelConfig
+from ..errors import InputError
 
 __all__ = ["DiagnoseSection", "add_arguments", "run", "run_diagnose"]
 
@@ -150,10 +151,6 @@ def _enable_x64_if_asked(config: str | Path) -> None:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from ..config import ConfigError
-    from ..fit import FitInputError
-    from .engine import DiagnoseInputError
-
     console = Console(stderr=True, highlight=False, soft_wrap=True)
     effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
     t0 = time.perf_counter()
@@ -163,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
             args.config, args.out, effects=effects, figures=False if args.no_figures else None,
             progress=lambda msg: console.print(msg, markup=False),
         )
-    except (ConfigError, DiagnoseInputError, FitInputError) as e:
+    except InputError as e:
         _error(str(e))
         return EXIT_USAGE
     except OSError as e:

@@ -12,7 +12,13 @@ the key), 1 for a failure while writing the output.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
+
+from rich.console import Console
+
+from ..errors import InputError
+from .config import enable_config_precision, run_fit
 
 __all__ = ["add_arguments", "run"]
 
@@ -24,25 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import sys
-
-    from rich.console import Console
-
-    from ..config import ConfigError
-    from ..instrument.raw import RawFormatError
-    from ..instrument.reduce import ReductionError
-    from ..io.exr import ExrError
-    from ._common import FitInputError
-    from .config import enable_config_precision
-
     console = Console(stderr=True, highlight=False, soft_wrap=True)
     prog = "brdfjax fit"
     enable_config_precision(args.config)
-    from .config import run_fit
 
     try:
         result = run_fit(args.config, args.out, console=console, figures=False if args.no_figures else None)
-    except (ConfigError, FitInputError, ReductionError, RawFormatError, ExrError, FileNotFoundError) as e:
+    except (InputError, FileNotFoundError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     except OSError as e:

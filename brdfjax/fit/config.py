@@ -75,37 +75,60 @@ writes ``result.json`` and the figures (``brdfjax fit CONFIG --out DIR``).
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import hashlib
 import json
 import math
 import os
 import tempfile
-import tomllib
-import typing
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
+import jax
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
-from .. import registry
 from ..config import (
     ConfigError,
     ModelConfig,
-    _build_preset,
-    _build_term,
-    _unknown_key_message,
+    StrictModel,
+    build_model,
+    check_choice,
     describe_validation_error,
     parameter_keys,
+    quoted_choices,
+    read_toml,
+    unknown_key_message,
 )
+from ..detector import Detector
+from ..instrument.raw import RawFormatError
+from ..instrument.reduce import MERGES, ReductionError, reduce_measurement_set
+from ..instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
+from ..io import atomic_output, write_json_atomic
+from ..render import Frame, Precision
 from ..terms import Model
-from ._common import FRAME_PARAMETERS, FitInputError
+from ._auto_init import INITIALIZERS
+from ._common import FRAME_PARAMETERS, FitInputError, natural_unit, to_natural
 from ._data import FrameData, TableData
+from ._figures import write_figures
+from ._fit import FIRST_STAGES, _check_detectors, _resolve_precision, block_names, fit
 from ._frames_io import SIGMA_CHOICES, read_frame_data
 from ._params import Param
+from ._residuals import LOSSES
+from ._result import FitResult
+from ._solvers import SOLVERS
+from ._tables import read_astm_e1392, read_cornell_brdf, read_merl_inplane, read_table
 
 __all__ = [
     "FitConfig",
@@ -122,11 +145,10 @@ __all__ = [
     "run_fit",
 ]
 
-_SPEC_KEYS = ("value", "lower", "upper", "free", "per_frame", "scale")
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False)
+#: The keys of a [params] table: the fields of :class:`~brdfjax.fit.Param`.
+_SPEC_KEYS = tuple(f.name for f in dataclasses.fields(Param))
+#: ``[fit] first_stage``: the fit's first stages, or "none".
+_FIRST_STAGE_CHOICES = (*FIRST_STAGES, "none")
 
 
 def _check_roi(v: list[int] | list[float] | None) -> Any:
@@ -135,18 +157,23 @@ def _check_roi(v: list[int] | list[float] | None) -> Any:
     return v
 
 
-class ReduceConfig(_Strict):
+class ReduceConfig(StrictModel):
     """``[data.reduce]``: options of the on-the-fly reduction (``brdfjax.instrument.reduce``)."""
 
-    merge: Literal["weighted", "replacement"] = Field("weighted", description="'weighted' or 'replacement'")
+    merge: str = Field("weighted", description=f"the merge of the exposures: {quoted_choices(MERGES)}")
     step: int = Field(1, ge=1, description="keep every step-th pixel of the reduced frames, an integer >= 1")
     correct_nonlinearity: bool = Field(False, description="correct the readings by the calibrated response curve")
     min_snr: float = Field(3.0, ge=0, description="mask pixels under this signal-to-noise ratio (0: off)")
     artifact_decades: float = Field(4.8, gt=0, description="artifact floor, decades below the peak")
     saturation_fraction: float = Field(0.98, gt=0, le=1, description="saturation level as a fraction of full scale")
 
+    @field_validator("merge")
+    @classmethod
+    def _merge(cls, v: str) -> str:
+        return check_choice("merge", v, MERGES)
 
-class SyntheticConfig(_Strict):
+
+class SyntheticConfig(StrictModel):
     """``[data.synthetic]``: frames measured by the synthetic instrument from ``[model]`` (the truth)."""
 
     theta_i_deg: list[float] = Field(min_length=1, description="incidence angles in degrees, 0 <= theta_i < 90")
@@ -172,8 +199,6 @@ class SyntheticConfig(_Strict):
     @field_validator("without")
     @classmethod
     def _effects(cls, v: list[str]) -> list[str]:
-        from ..instrument.synthetic import EFFECTS
-
         unknown = [x for x in v if x not in EFFECTS]
         if unknown:
             raise ValueError(f"unknown instrument effect(s) {unknown}; known: {', '.join(EFFECTS)}")
@@ -189,7 +214,7 @@ class SyntheticConfig(_Strict):
         return self
 
 
-class TableConfig(_Strict):
+class TableConfig(StrictModel):
     """``[[data.tables]]``: one goniometer table."""
 
     path: str = Field(description="the table file, relative to the config")
@@ -222,7 +247,7 @@ class TableConfig(_Strict):
         return self
 
 
-class FitDataConfig(_Strict):
+class FitDataConfig(StrictModel):
     """``[data]``: what the model is fitted to."""
 
     frames: list[str] = Field(default_factory=list, description="reduced frame EXR paths, relative to the config")
@@ -238,9 +263,7 @@ class FitDataConfig(_Strict):
         None, min_length=4, max_length=4,
         description="[h0, h1, v0, v1] as angles (deg) from the alignment pixel: n = tan(angle) R / pitch",
     )
-    sigma: Literal["total", "pixel", "noise"] = Field(
-        "pixel", description=f"the per-pixel weights of frames: {', '.join(SIGMA_CHOICES)}"
-    )
+    sigma: str = Field("pixel", description=f"the per-pixel weights of frames: {quoted_choices(SIGMA_CHOICES)}")
     sigma_floor: float = Field(0.0, ge=0, description="relative uncertainty added in quadrature, >= 0")
     max_sigma_rel: float | None = Field(None, gt=0, description="mask pixels whose relative uncertainty exceeds this")
     min_brdf: float | None = Field(None, ge=0, description="mask pixels below this BRDF (sr^-1)")
@@ -254,6 +277,11 @@ class FitDataConfig(_Strict):
     @classmethod
     def _ordered(cls, v: Any) -> Any:
         return _check_roi(v)
+
+    @field_validator("sigma")
+    @classmethod
+    def _sigma(cls, v: str) -> str:
+        return check_choice("sigma", v, SIGMA_CHOICES)
 
     @field_validator("exclude")
     @classmethod
@@ -275,27 +303,33 @@ class FitDataConfig(_Strict):
         return self
 
 
-class FitSection(_Strict):
+class FitSection(StrictModel):
     """``[fit]``: solver, loss and initialisation."""
 
-    solver: str = Field("levenberg_marquardt", description="a solver name (levenberg_marquardt, lbfgsb)")
+    solver: str = Field("levenberg_marquardt", description=f"a solver name ({', '.join(SOLVERS)})")
     solver_options: dict[str, Any] = Field(default_factory=dict, description="options of the solver")
-    loss: Literal["linear", "huber", "cauchy"] = Field("linear", description="'linear', 'huber' or 'cauchy'")
+    loss: str = Field("linear", description=f"the loss: {quoted_choices(LOSSES)}")
     loss_scale: float | None = Field(None, gt=0, description="the robust loss's scale in sigma (default 3)")
-    first_stage: Literal["soft", "huber", "cauchy", "none"] = Field(
-        "soft", description="'soft', 'huber', 'cauchy' or 'none'"
-    )
+    first_stage: str = Field("soft", description=f"the first stage: {quoted_choices(_FIRST_STAGE_CHOICES)}")
     initializer: str | None = Field(None, description="the automatic initialisation (default: chosen from the model)")
     init_options: dict[str, Any] = Field(default_factory=dict, description="options of the initializer (e.g. n1 = 1.5)")
     floor: float | Literal["auto"] = Field("auto", description="underflow guard of the log model, sr^-1, or 'auto'")
     absolute_sigma: bool | None = Field(None, description="take the data's uncertainties at face value")
     use_footprint: bool = Field(True, description="convolve the model with the frames' footprint")
 
+    @field_validator("loss")
+    @classmethod
+    def _loss(cls, v: str) -> str:
+        return check_choice("loss", v, LOSSES)
+
+    @field_validator("first_stage")
+    @classmethod
+    def _first_stage(cls, v: str) -> str:
+        return check_choice("first_stage", v, _FIRST_STAGE_CHOICES)
+
     @field_validator("solver")
     @classmethod
     def _solver(cls, v: str) -> str:
-        from ._solvers import SOLVERS
-
         if v not in SOLVERS:
             close = difflib.get_close_matches(v, list(SOLVERS), n=1)
             raise ValueError(f"unknown solver '{v}'" + (f" (did you mean '{close[0]}'?)" if close else "") + f"; known: {', '.join(SOLVERS)}")
@@ -304,24 +338,22 @@ class FitSection(_Strict):
     @field_validator("initializer")
     @classmethod
     def _initializer(cls, v: str | None) -> str | None:
-        from ._auto_init import INITIALIZERS
-
         if v is not None and v not in INITIALIZERS:
             raise ValueError(f"unknown initializer '{v}'; known: {', '.join(INITIALIZERS)}")
         return v
 
 
-class OutputConfig(_Strict):
+class OutputConfig(StrictModel):
     """``[output]``: what ``brdfjax fit`` writes beside ``result.json``."""
 
     figures: bool = Field(True, description="write the figures (PNG)")
     dpi: int = Field(100, ge=30, le=600, description="figure resolution")
 
 
-class FitConfig(_Strict):
+class FitConfig(StrictModel):
     """A whole fit config; see the module docstring for the TOML layout."""
 
-    precision: Literal["float32", "float64"] = Field("float64", description="'float32' or 'float64'")
+    precision: Precision = Field("float64", description="'float32' or 'float64'")
     data: FitDataConfig = Field(description="the [data] table")
     model: ModelConfig = Field(description="the [model] table: preset = \"...\" or [model.terms.<name>]")
     params: dict[str, Any] = Field(default_factory=dict, description="the [params] table")
@@ -355,7 +387,7 @@ class FitConfig(_Strict):
     def build_model(self) -> Model:
         """The model of ``[model]`` (its values are the starts of parameters not given, and the truth of synthetic data)."""
         if self._model is None:
-            self._model = _build_model(str(self._source), self.model)
+            self._model = build_model(str(self._source), self.model)
         return self._model
 
     def build_params(self) -> dict[str, Param]:
@@ -364,13 +396,6 @@ class FitConfig(_Strict):
 
 
 # --- model and parameters ---------------------------------------------------------------------
-
-
-def _build_model(source: str, m: ModelConfig) -> Model:
-    if m.preset is not None:
-        return _build_preset(source, m.preset, m.params)
-    terms = {name: _build_term(source, f"model.terms.{name}", t) for name, t in (m.terms or {}).items()}
-    return registry.build_model(terms)
 
 
 def _flatten_spec(v: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -409,7 +434,7 @@ def _resolve_params(source: str, raw: Mapping[str, Any], model: Model) -> dict[s
     for key, spec in _flatten_spec(raw).items():
         loc = f"params.{key}"
         if key not in keys:
-            problems.append((loc, _unknown_key_message(key, keys, "this model")))
+            problems.append((loc, unknown_key_message(key, keys, "this model")))
             continue
         name, scale, unit = keys[key]
         if isinstance(spec, str):
@@ -476,32 +501,16 @@ def enable_config_precision(path: str | os.PathLike) -> None:
     """Turn on 64-bit JAX when the config at ``path`` asks for ``precision = "float64"`` (its default).
 
     For the command-line edges only (``brdfjax fit``, ``sample``): the switch is process-wide, so the
-    library never flips it; it is read before the config is validated, which reports any problem.
+    library never flips it.  It must be set before any array is made (the model is built while the
+    config is validated), so the key is read from the raw file here; :func:`load_fit_config` then
+    reports any problem with the file or the value.
     """
     try:
-        precision = tomllib.loads(Path(path).read_text(encoding="utf-8")).get("precision", "float64")
-    except Exception:  # noqa: BLE001 - the loader reports the problem properly
+        precision = read_toml(path).get("precision", "float64")
+    except ConfigError:  # the loader reports the problem properly
         precision = "float64"
     if precision == "float64":
-        import jax
-
         jax.config.update("jax_enable_x64", True)
-
-
-def _read_toml(path: Path) -> dict[str, Any]:
-    source = str(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(source, [("", "config file not found")]) from None
-    except IsADirectoryError:
-        raise ConfigError(source, [("", "is a directory, not a TOML config file")]) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(source, [("", f"cannot read config file: {e}")]) from None
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(source, [("", f"not valid TOML: {e}")]) from None
 
 
 def load_fit_config(
@@ -516,8 +525,7 @@ def load_fit_config(
     loads is a config that runs.
     """
     path = Path(path)
-    data = _read_toml(path)
-    return parse_fit_config(data, source=path, sections=sections)
+    return parse_fit_config(read_toml(path), source=path, sections=sections)
 
 
 def parse_fit_config(
@@ -594,8 +602,6 @@ class FitJob:
 
     def run(self):
         """``brdfjax.fit.fit(model, blocks, params, **fit_kwargs)``."""
-        from ._fit import fit
-
         return fit(self.model, self.blocks, self.params, **self.fit_kwargs)
 
 
@@ -605,12 +611,6 @@ def _fingerprint(obj: Any) -> str:
 
 def _synthesize(cfg: FitConfig, model: Model, folder: Path, notes: list[str]) -> tuple[list[Path], float | None]:
     """Generate (or reuse) the synthetic measurement set and its reduction; returns the frames and the footprint."""
-    from ..config import load_instrument_config
-    from ..detector import Detector
-    from ..instrument.reduce import reduce_measurement_set
-    from ..instrument.synthetic import SyntheticInstrument
-    from ..render import Frame
-
     s = cfg.data.synthetic
     assert s is not None
     inst_cfg = load_instrument_config(None if s.instrument is None else cfg.resolve(s.instrument), s.camera_seed)
@@ -644,10 +644,8 @@ def _synthesize(cfg: FitConfig, model: Model, folder: Path, notes: list[str]) ->
     manifest = instrument.measure_set(folder / "raw", model, frames)
     r = cfg.data.reduce
     reduce_measurement_set(manifest, reduced_dir, merge=r.merge, step=r.step, **_reduce_options(r))
-    tmp = stamp.with_name(stamp.name + ".tmp")
-    tmp.write_text(json.dumps({"key": key, "frames": [p.name for p in paths], "footprint_w_px": w_px,
-                               "truth": truth, "camera": list(det.shape)}, indent=2))
-    os.replace(tmp, stamp)
+    write_json_atomic(stamp, {"key": key, "frames": [p.name for p in paths], "footprint_w_px": w_px,
+                              "truth": truth, "camera": list(det.shape)})
     notes.append(f"synthetic frames generated in {folder} (seed {s.seed})")
     return paths, w_px
 
@@ -701,9 +699,6 @@ def _empty_message(f: FrameData, d: FitDataConfig) -> str:
 
 
 def _load_frames(cfg: FitConfig, work_dir: Path | None, notes: list[str], model: Model) -> tuple[list[FrameData], dict]:
-    from ..instrument.raw import RawFormatError
-    from ..instrument.reduce import ReductionError, reduce_measurement_set
-
     d = cfg.data
     entries: list[tuple[str, Path]] = [(f"data.frames[{i}]", cfg.resolve(p)) for i, p in enumerate(d.frames)]
     footprint = d.footprint_w_px
@@ -742,8 +737,6 @@ def _load_frames(cfg: FitConfig, work_dir: Path | None, notes: list[str], model:
 
 
 def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
-    from ._tables import read_astm_e1392, read_cornell_brdf, read_merl_inplane, read_table
-
     key = f"data.tables[{i}]"
     path = cfg.resolve(t.path)
     name = t.name or path.stem
@@ -811,8 +804,6 @@ def build_fit_job(cfg: FitConfig, *, work_dir: str | os.PathLike | None = None) 
         dup = sorted({n for n in names if names.count(n) > 1})
         notes.append(f"blocks share names {dup}; the result numbers them")
     if len(frames) > 1 and not cfg.data.allow_different_detectors:
-        from ._fit import _check_detectors, block_names
-
         try:
             _check_detectors(frames, block_names(frames), False)
         except FitInputError as e:
@@ -843,7 +834,9 @@ def build_fit_job(cfg: FitConfig, *, work_dir: str | os.PathLike | None = None) 
 # --- running ----------------------------------------------------------------------------------
 
 
-def run_fit(config_path: str | os.PathLike, out_dir: str | os.PathLike, *, console: Any = None, figures: bool | None = None):
+def run_fit(
+    config_path: str | os.PathLike, out_dir: str | os.PathLike, *, console: Any = None, figures: bool | None = None
+) -> FitResult:
     """Load a config, run the fit and write ``out_dir/result.json`` (atomically) and the figures.
 
     Returns the :class:`~brdfjax.fit.FitResult`.  ``result.json`` is
@@ -852,21 +845,10 @@ def run_fit(config_path: str | os.PathLike, out_dir: str | os.PathLike, *, conso
     Raises :class:`ConfigError` / :class:`FitInputError` for a config or
     data that cannot be fitted (nothing is written then).
     """
-    import time
-
-    from ._common import natural_unit, to_natural
-
     out = Path(out_dir)
     t0 = time.perf_counter()
     cfg = load_fit_config(config_path)
-    if cfg.precision == "float64":
-        import jax
-
-        if not jax.config.jax_enable_x64:
-            raise FitInputError(
-                "precision 'float64' needs 64-bit JAX on (brdfjax fit turns it on; in Python call "
-                "jax.config.update('jax_enable_x64', True) first)"
-            )
+    _resolve_precision(cfg.precision)  # float64 without 64-bit JAX fails now, before anything is written
     out.mkdir(parents=True, exist_ok=True)
     job = build_fit_job(cfg, work_dir=out)
     t_data = time.perf_counter() - t0
@@ -887,8 +869,6 @@ def run_fit(config_path: str | os.PathLike, out_dir: str | os.PathLike, *, conso
     _write_json(out / "result.json", doc)
     say(result.summary())
     if (cfg.output.figures if figures is None else figures):
-        from ._figures import write_figures
-
         paths = write_figures(job, result, out, dpi=cfg.output.dpi)
         say(f"figures: {', '.join(p.name for p in paths)}")
     return result
@@ -915,10 +895,5 @@ def _write_json(path: Path, doc: Mapping[str, Any]) -> None:
         return x
 
     text = json.dumps(clean(dict(doc)), indent=2, allow_nan=False)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text + "\n")
-    os.replace(tmp, path)
-
-
-if typing.TYPE_CHECKING:  # pragma: no cover
-    from ._result import FitResult  # noqa: F401
+    with atomic_output(path) as tmp:
+        tmp.write_text(text + "\n")

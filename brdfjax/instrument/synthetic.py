@@ -103,8 +103,9 @@ from pathlib import Path
 
 import equinox as eqx
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
+from ..config.base import StrictModel, read_toml, validate
 from ..detector import Detector
 from ..io.header import geometry_attrs
 from ..render import Frame, render, render_geometry
@@ -122,6 +123,7 @@ from .raw import (
 __all__ = [
     "EFFECTS",
     "InstrumentConfig",
+    "load_instrument_config",
     "Footprint",
     "StrayLight",
     "Ambient",
@@ -153,25 +155,21 @@ SEED_BEAM_OD = 5.2
 SEED_BEAM_FILTERS = "4.0+1.0+0.2"
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-
-class Footprint(_Strict):
+class Footprint(StrictModel):
     """Focused beam footprint, the instrument function (Eq 73): Gaussian with 1/e^2 radius ``w_px`` pixels."""
 
     enabled: bool = True
     w_px: float = Field(25.0, gt=0)
 
 
-class ShotNoise(_Strict):
+class ShotNoise(StrictModel):
     """Photon shot noise: Poisson in electrons; ``gain`` in electrons per count (full well 20000 e- / 16383)."""
 
     enabled: bool = True
     gain_e_per_count: float = Field(20000.0 / 16383.0, gt=0)
 
 
-class Dark(_Strict):
+class Dark(StrictModel):
     """Dark signal and noise; counts.  Defaults fitted to the seed's lens-cap figures (module docstring).
 
     Mean dark signal ``rate_counts_per_s * t``; array std of an ``n_ref_frames``
@@ -188,14 +186,14 @@ class Dark(_Strict):
     fixed_pattern_fraction: float = Field(0.0, ge=0, le=1)
 
 
-class BlackLevel(_Strict):
+class BlackLevel(StrictModel):
     """Black-level offset added by the camera, counts (29.29 at 1 ms minus 1 ms of dark signal)."""
 
     enabled: bool = True
     counts: float = Field(29.2736, ge=0)
 
 
-class Ambient(_Strict):
+class Ambient(StrictModel):
     """Ambient room light, counts/s per pixel, with a smooth pattern of relative std ``nonuniformity``."""
 
     enabled: bool = True
@@ -203,14 +201,14 @@ class Ambient(_Strict):
     nonuniformity: float = Field(0.3, ge=0, lt=0.5)
 
 
-class StrayLight(_Strict):
+class StrayLight(StrictModel):
     """Displaced faint copies of the image: ``(dh_px, dv_px, log10 of the copy's peak / main peak)`` each."""
 
     enabled: bool = True
     peaks: tuple[tuple[int, int, float], ...] = ((310, -140, -4.85), (-420, 95, -5.05), (150, 380, -5.3))
 
 
-class NonLinearity(_Strict):
+class NonLinearity(StrictModel):
     """Response ``S (1 + g + common_max (2 S / full_scale - 1))`` (seed §4.2; module docstring).
 
     ``common_max``: the array-average deviation from linear, fraction; the per-pixel
@@ -229,7 +227,7 @@ class NonLinearity(_Strict):
     outlier_max: float = Field(0.1632, ge=0)
 
 
-class Quantisation(_Strict):
+class Quantisation(StrictModel):
     """Rounding to integer counts: of the averaged output (``round_average``, the camera's internal
     averaging, seed §3.1) or of every frame before a software average (``round_average=False``)."""
 
@@ -237,20 +235,20 @@ class Quantisation(_Strict):
     round_average: bool = True
 
 
-class Saturation(_Strict):
+class Saturation(StrictModel):
     """Clipping at the ADC's full scale ``2**adc_bits - 1`` counts (and at 0)."""
 
     enabled: bool = True
 
 
-class SourceDrift(_Strict):
+class SourceDrift(StrictModel):
     """Incident flux of each measurement scaled by ``1 + N(0, rel_std)`` (seed Eq 96: 1.01 %)."""
 
     enabled: bool = False
     rel_std: float = Field(0.0101, ge=0)
 
 
-class Source(_Strict):
+class Source(StrictModel):
     """The source's spectrum: a Gaussian line of relative rms width ``rel_width`` (sigma_lambda / lambda).
 
     0 (the default): the monochromatic HeNe.  A finite width (a broadband LED, a
@@ -282,7 +280,7 @@ class Source(_Strict):
         return [(float(wavelength) * (1.0 + self.rel_width * xi), float(wi)) for xi, wi in zip(x, w)]
 
 
-class NDError(_Strict):
+class NDError(StrictModel):
     """True OD of each physical filter = nominal + U(-tol, tol); tolerances by nominal OD (seed §4.3)."""
 
     enabled: bool = False
@@ -305,7 +303,7 @@ EFFECTS: tuple[str, ...] = (
 )
 
 
-class InstrumentConfig(_Strict):
+class InstrumentConfig(StrictModel):
     """Every effect of the synthetic instrument: a switch (``enabled``) and its parameters.
 
     Top-level: ``exposures_s`` (s, strictly increasing; seed: 1, 10, 100,
@@ -406,6 +404,19 @@ class InstrumentConfig(_Strict):
 
 
 # --- deterministic forward operators (NumPy, float64 internally) ------------------------------------
+
+
+def load_instrument_config(path: str | Path | None, camera_seed: int | None = None) -> InstrumentConfig:
+    """Read an instrument TOML (``configs/instrument_seed.toml`` layout) into :class:`InstrumentConfig`.
+
+    ``None`` gives the defaults (the seed instrument); ``camera_seed`` replaces the file's.
+    Raises :class:`~brdfjax.config.ConfigError` naming the file and the dotted key.
+    """
+    source = str(path) if path is not None else "<default instrument>"
+    data = read_toml(path, "instrument config") if path is not None else {}
+    if camera_seed is not None:
+        data["camera_seed"] = camera_seed
+    return validate(InstrumentConfig, data, source)
 
 
 def lens_cap_std(dark: Dark, exposure_s: float | np.ndarray) -> np.ndarray:

@@ -44,28 +44,46 @@ import sys
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
+from rich.console import Console
+
+from ..config import (
+    ConfigError,
+    StrictModel,
+    check_choice,
+    parameter_keys,
+    quoted_choices,
+    unknown_key_message,
+)
+from ..errors import InputError
+from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
+from ..fit.internal import FRAME_PARAMETERS
+from ._api import sample
+from ._priors import PRIOR_KINDS, Prior, SampleError
 
 __all__ = ["SampleSection", "PriorConfig", "add_arguments", "run", "priors_from_config"]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=True)
+#: The prior kinds a config may name (``flat`` is what a parameter without a prior gets).
+_PRIOR_CHOICES = tuple(k for k in PRIOR_KINDS if k != "flat")
 
 
-class PriorConfig(_Strict):
+class PriorConfig(StrictModel):
     """One entry of ``[sample.priors]``, numbers in the key's unit (degrees for ``<name>_deg``)."""
 
-    kind: Literal["uniform", "log_uniform", "normal", "truncated_normal"] = Field(
-        description="'uniform', 'log_uniform', 'normal' or 'truncated_normal'"
-    )
-    lower: float | None = Field(None, description="lower end (uniform, log_uniform, truncated_normal)")
-    upper: float | None = Field(None, description="upper end (uniform, log_uniform, truncated_normal)")
-    mu: float | None = Field(None, description="mean (normal, truncated_normal)")
-    sigma: float | None = Field(None, description="standard deviation > 0 (normal, truncated_normal)")
+    kind: str = Field(description=quoted_choices(_PRIOR_CHOICES))
+    lower: float | None = Field(None, allow_inf_nan=True, description="lower end (uniform, log_uniform, truncated_normal)")
+    upper: float | None = Field(None, allow_inf_nan=True, description="upper end (uniform, log_uniform, truncated_normal)")
+    mu: float | None = Field(None, allow_inf_nan=True, description="mean (normal, truncated_normal)")
+    sigma: float | None = Field(None, allow_inf_nan=True, description="standard deviation > 0 (normal, truncated_normal)")
+
+    @field_validator("kind")
+    @classmethod
+    def _kind(cls, v: str) -> str:
+        return check_choice("prior kind", v, _PRIOR_CHOICES)
 
 
-class SampleSection(_Strict):
+class SampleSection(StrictModel):
     """The ``[sample]`` table of a fit config (see the module docstring)."""
 
     n_walkers: int | None = Field(None, ge=2, description="number of walkers, even, >= 2 x the free parameters")
@@ -103,10 +121,6 @@ _ENTRY = re.compile(r"^(?P<key>[^\[\]]+)\[(?P<block>[^\[\]]+)\]$")
 
 def priors_from_config(source: str, sec: SampleSection, model: Any) -> dict[str, Any]:
     """``[sample.priors]`` -> {parameter name: Prior (stored units)}; unknown keys raise ConfigError."""
-    from ..config import ConfigError, _unknown_key_message, parameter_keys
-    from ..fit.internal import FRAME_PARAMETERS
-    from ._priors import Prior, SampleError
-
     keys = parameter_keys({**model.parameter_units(), **FRAME_PARAMETERS})
     out: dict[str, Any] = {}
     problems = []
@@ -114,7 +128,7 @@ def priors_from_config(source: str, sec: SampleSection, model: Any) -> dict[str,
         m = _ENTRY.match(key)
         base_key, block = (m.group("key"), m.group("block")) if m else (key, None)
         if base_key not in keys:
-            problems.append((f"sample.priors.{key}", "prior on unknown parameter: " + _unknown_key_message(base_key, keys, "this model")))
+            problems.append((f"sample.priors.{key}", "prior on unknown parameter: " + unknown_key_message(base_key, keys, "this model")))
             continue
         name, scale, _ = keys[base_key]
         full = name if block is None else f"{name}[{block}]"
@@ -161,30 +175,9 @@ def _print_summary(console: Any, s: dict[str, Any]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
-    from ..config import ConfigError
-    from ..fit import FitInputError
-
     console = Console(stderr=True, highlight=False, soft_wrap=True)
     prog = "brdfjax sample"
-    from ..fit.config import enable_config_precision
-
     enable_config_precision(args.config)
-
-    from ..fit.config import build_fit_job, load_fit_config
-    from ._api import sample
-    from ._priors import SampleError
-
-    errors: tuple[type[BaseException], ...] = (ConfigError, FitInputError, SampleError, FileNotFoundError)
-    try:
-        from ..instrument.raw import RawFormatError
-        from ..instrument.reduce import ReductionError
-        from ..io.exr import ExrError
-
-        errors = errors + (RawFormatError, ReductionError, ExrError)
-    except ImportError:  # pragma: no cover
-        pass
     out = Path(args.out)
     try:
         cfg = load_fit_config(args.config, sections={"sample": SampleSection})
@@ -250,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
             log=lambda m: console.print(m, markup=False),
             extra_record=record,
         )
-    except errors as e:
+    except (InputError, FileNotFoundError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     except OSError as e:
