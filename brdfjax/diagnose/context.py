@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import field
+from dataclasses import dataclass, field
 from typing import Any
 
 import jax
@@ -41,6 +41,7 @@ def precision_name() -> str:
 # --- the context ---------------------------------------------------------------------------
 
 
+@dataclass
 class Context:
     """The base fit as the effects see it (built by :func:`build_context`)."""
 
