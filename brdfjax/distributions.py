@@ -35,6 +35,7 @@ so that ``cos(th) sin(th) dth / cos^4(th) = du / 2``):
 from __future__ import annotations
 
 import abc
+import math
 from typing import ClassVar
 
 import equinox as eqx
@@ -75,6 +76,18 @@ class AbstractDistribution(eqx.Module):
 
     name: ClassVar[str]
     equation: ClassVar[str]
+    #: the main width parameter (the first parameter field): what a width scan or a width-matched swap scales
+    width_field: ClassVar[str]
+    #: every width parameter (two for an anisotropic distribution: along x, y)
+    width_fields: ClassVar[tuple[str, ...]]
+    #: the tail/shape exponent's field, or None
+    shape_field: ClassVar[str | None] = None
+    #: a start value of the shape exponent for a fit that swaps in this family (None: no shape exponent)
+    shape_start: ClassVar[float | None] = None
+    #: the anisotropic form of an isotropic distribution (widths :attr:`width_fields` along x, y), or None
+    anisotropic: ClassVar[type[AbstractDistribution] | None] = None
+    #: factor from the Beckmann-equivalent slope width (peak curvature) to this width, where known
+    peak_width_factor: ClassVar[float | None] = None
 
     @abc.abstractmethod
     def __call__(self, tx2: Array, ty2: Array) -> Array:
@@ -96,6 +109,9 @@ class Beckmann(AbstractDistribution):
 
     name: ClassVar[str] = "beckmann"
     equation: ClassVar[str] = "Eq 64"
+    width_field: ClassVar[str] = "m"
+    width_fields: ClassVar[tuple[str, ...]] = ('m',)
+    peak_width_factor: ClassVar[float | None] = 1.0
     m: Array = param("1", "rms microfacet slope")
 
     def __check_init__(self):
@@ -112,6 +128,9 @@ class BeckmannAniso(AbstractDistribution):
 
     name: ClassVar[str] = "beckmann_aniso"
     equation: ClassVar[str] = "Eq 65"
+    width_field: ClassVar[str] = "mx"
+    width_fields: ClassVar[tuple[str, ...]] = ('mx', 'my')
+    peak_width_factor: ClassVar[float | None] = 1.0
     mx: Array = param("1", "rms slope along x")
     my: Array = param("1", "rms slope along y")
 
@@ -129,6 +148,9 @@ class GGX(AbstractDistribution):
 
     name: ClassVar[str] = "ggx"
     equation: ClassVar[str] = "Eq 59-60 (gamma = 2)"
+    width_field: ClassVar[str] = "alpha"
+    width_fields: ClassVar[tuple[str, ...]] = ('alpha',)
+    peak_width_factor: ClassVar[float | None] = math.sqrt(2.0)
     alpha: Array = param("1", "width (the c of Eq 59)")
 
     def __check_init__(self):
@@ -145,6 +167,9 @@ class GGXAniso(AbstractDistribution):
 
     name: ClassVar[str] = "ggx_aniso"
     equation: ClassVar[str] = "Eq 62"
+    width_field: ClassVar[str] = "alpha_x"
+    width_fields: ClassVar[tuple[str, ...]] = ('alpha_x', 'alpha_y')
+    peak_width_factor: ClassVar[float | None] = math.sqrt(2.0)
     alpha_x: Array = param("1", "width along x")
     alpha_y: Array = param("1", "width along y")
 
@@ -162,6 +187,9 @@ class GTR(AbstractDistribution):
 
     name: ClassVar[str] = "gtr"
     equation: ClassVar[str] = "Eq 60-61"
+    width_field: ClassVar[str] = "c"
+    width_fields: ClassVar[tuple[str, ...]] = ('c',)
+    shape_field: ClassVar[str | None] = "gamma"
     c: Array = param("1", "width, 0 < c < 1")
     gamma: Array = param("1", "tail exponent, gamma > 0")
 
@@ -189,6 +217,8 @@ class Ribardiere(AbstractDistribution):
 
     name: ClassVar[str] = "ribardiere"
     equation: ClassVar[str] = "Eq 66"
+    width_field: ClassVar[str] = "B"
+    width_fields: ClassVar[tuple[str, ...]] = ('B',)
     B: Array = param("1", "B > 0")
     C: Array = param("1", "C > 1")
 
@@ -206,6 +236,10 @@ class HyperCauchy(AbstractDistribution):
 
     name: ClassVar[str] = "hyper_cauchy"
     equation: ClassVar[str] = "Eq 63"
+    width_field: ClassVar[str] = "sigma"
+    width_fields: ClassVar[tuple[str, ...]] = ('sigma',)
+    shape_field: ClassVar[str | None] = "gamma"
+    shape_start: ClassVar[float | None] = 2.0
     sigma: Array = param("1", "width")
     gamma: Array = param("1", "tail exponent, > 1")
 
@@ -226,6 +260,10 @@ class StudentT(AbstractDistribution):
 
     name: ClassVar[str] = "student_t"
     equation: ClassVar[str] = "Eq 67"
+    width_field: ClassVar[str] = "sigma"
+    width_fields: ClassVar[tuple[str, ...]] = ('sigma',)
+    shape_field: ClassVar[str | None] = "gamma"
+    shape_start: ClassVar[float | None] = 3.0
     sigma: Array = param("1", "width (rms slope in the Beckmann limit)")
     gamma: Array = param("1", "shape, > 1")
 
@@ -245,6 +283,9 @@ class StudentTAniso(AbstractDistribution):
 
     name: ClassVar[str] = "student_t_aniso"
     equation: ClassVar[str] = "Eq 68"
+    width_field: ClassVar[str] = "sigma_x"
+    width_fields: ClassVar[tuple[str, ...]] = ('sigma_x', 'sigma_y')
+    shape_field: ClassVar[str | None] = "gamma"
     sigma_x: Array = param("1", "width along x")
     sigma_y: Array = param("1", "width along y")
     gamma: Array = param("1", "shape, > 1")
@@ -265,6 +306,8 @@ class CosineLobe(AbstractDistribution):
 
     name: ClassVar[str] = "cosine_lobe"
     equation: ClassVar[str] = "Eq 57"
+    width_field: ClassVar[str] = "k"
+    width_fields: ClassVar[tuple[str, ...]] = ('k',)
     k: Array = param("1", "exponent, k >= 0")
 
     def __check_init__(self):
@@ -279,6 +322,8 @@ class AshikhminShirley(AbstractDistribution):
 
     name: ClassVar[str] = "ashikhmin_shirley"
     equation: ClassVar[str] = "Eq 58"
+    width_field: ClassVar[str] = "kx"
+    width_fields: ClassVar[tuple[str, ...]] = ('kx', 'ky')
     kx: Array = param("1", "exponent along x, >= 0")
     ky: Array = param("1", "exponent along y, >= 0")
 
@@ -319,6 +364,8 @@ class BeardMaxwell(AbstractDistribution):
 
     name: ClassVar[str] = "beard_maxwell"
     equation: ClassVar[str] = "Eq 56"
+    width_field: ClassVar[str] = "s"
+    width_fields: ClassVar[tuple[str, ...]] = ('s',)
     s: Array = param("1", "width")
 
     def __check_init__(self):
@@ -328,3 +375,9 @@ class BeardMaxwell(AbstractDistribution):
         t2 = tx2 + ty2
         B = 1.0 / (2.0 * _PI * _beard_maxwell_integral(self.s))
         return B * jnp.sqrt(1.0 + t2) / (jnp.square(self.s) + t2)
+
+
+# the anisotropic partners (set here: each is defined after its isotropic form)
+Beckmann.anisotropic = BeckmannAniso
+GGX.anisotropic = GGXAniso
+StudentT.anisotropic = StudentTAniso

@@ -1,6 +1,6 @@
 """Withheld-effect benchmark of the diagnosis (issue 6): is the effect the truth has and the base lacks found?
 
-For each effect of :data:`brdfjax.diagnose.effects.EFFECTS`, ``--trials``
+For each effect of :data:`brdfjax.diagnose.effects.EFFECT_LIBRARY`, ``--trials``
 single-effect trials (random plausible parameters and geometry: theta_i in
 20-60 deg, phi_ref in 0-180 deg, from :func:`~brdfjax.diagnose.effects.base_scenario`
 and :func:`~brdfjax.diagnose.effects.inject`), frames from the synthetic
@@ -287,7 +287,7 @@ def runtime_check(args: argparse.Namespace) -> dict[str, Any]:
     out = {
         "frame_shape": list(blocks[0].shape),
         "usable_pixels": int(blocks[0].usable().sum()),
-        "n_effects": len(fx.EFFECTS),
+        "n_effects": len(fx.EFFECT_LIBRARY),
         "wall_s": wall,
         "timings_s": d.timings,
         "path": [s.effect for s in d.path],
@@ -323,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="refit only the K candidates with the highest signature scores (default: every candidate)")
     args = p.parse_args(argv)
     out = Path(args.out)
-    names = list(fx.EFFECTS) if args.effects is None else [e.strip() for e in args.effects.split(",")]
+    names = list(fx.EFFECT_LIBRARY) if args.effects is None else [e.strip() for e in args.effects.split(",")]
     if args.summarize:
         results = []
         for f in args.summarize:

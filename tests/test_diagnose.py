@@ -245,9 +245,10 @@ def test_refit_top_keeps_the_runners_up():
     never entered the path.)  Four copies of the diffuse-floor effect with scores set per step: at step 1
     A and B are the two best (refitted; A added, B the runner-up), at step 2 C and D outrank B.
     """
-    from brdfjax.diagnose.effects import EFFECTS, Lambertian, Signature
+    from brdfjax.diagnose.effects import EFFECT_LIBRARY, Signature
+    from brdfjax.terms import Lambertian
 
-    floor = EFFECTS["lambertian"]
+    floor = EFFECT_LIBRARY["lambertian"]
 
     class Copy(type(floor)):
         def __init__(self, name, scores):

@@ -17,8 +17,12 @@ import numpy as np
 import pytest
 
 from brdfjax.diagnose import effects as E
-from brdfjax.diagnose._extensions import InstrumentResponse, Oriented, SpectralDiffraction
-from brdfjax.diagnose.engine import build_context
+from brdfjax.diagnose.context import build_context
+from brdfjax.diagnose.effects.terms import (
+    InstrumentResponse,
+    Oriented,
+    SpectralDiffraction,
+)
 from brdfjax.fit import Param, fit
 
 SLOW = os.environ.get("BRDFJAX_SLOW") == "1"
@@ -27,8 +31,8 @@ SLOW = os.environ.get("BRDFJAX_SLOW") == "1"
 #: every other effect's round trip (signature and refit) runs with BRDFJAX_SLOW=1 (about 80 s each on a
 #: loaded 2-core box: two fits, each compiled for its own model structure).
 QUICK = ("diffraction", "offset_normal_peak", "lambertian")
-FRAME_EFFECTS = [n for n in E.EFFECTS if n != "angular_sampling"]
-SEEDS = {n: 11 + i for i, n in enumerate(E.EFFECTS)}
+FRAME_EFFECTS = [n for n in E.EFFECT_LIBRARY if n != "angular_sampling"]
+SEEDS = {n: 11 + i for i, n in enumerate(E.EFFECT_LIBRARY)}
 
 
 def _scenario(name: str, seed: int):
@@ -54,34 +58,34 @@ def null_ctx():
 
 
 def test_library_interface():
-    assert set(E.EFFECTS) >= {
+    assert set(E.EFFECT_LIBRARY) >= {
         "offset_normal_peak", "diffraction", "instrument_function", "lambertian", "anisotropic_roughness",
         "distribution_shape", "misalignment", "flux_scale", "pixel_nonlinearity", "spectral_bandwidth",
         "stray_light", "angular_sampling",
     }
-    for name, eff in E.EFFECTS.items():
+    for name, eff in E.EFFECT_LIBRARY.items():
         assert eff.name == name and eff.title and len(eff.doc) > 80
         assert isinstance(eff.needs_2d, bool)
-    assert E.EFFECTS["angular_sampling"].needs_2d is False and E.EFFECTS["diffraction"].needs_2d is True
+    assert E.EFFECT_LIBRARY["angular_sampling"].needs_2d is False and E.EFFECT_LIBRARY["diffraction"].needs_2d is True
 
 
 def test_present_in_and_identifiability():
     import brdfjax as bj
 
     sc = bj.solar_cell()
-    assert E.EFFECTS["diffraction"].present_in(sc) and E.EFFECTS["offset_normal_peak"].present_in(sc)
-    assert not E.EFFECTS["lambertian"].present_in(sc)
-    assert E.EFFECTS["flux_scale"].present_in(InstrumentResponse.wrap(sc, "flux_scale"))
+    assert E.EFFECT_LIBRARY["diffraction"].present_in(sc) and E.EFFECT_LIBRARY["offset_normal_peak"].present_in(sc)
+    assert not E.EFFECT_LIBRARY["lambertian"].present_in(sc)
+    assert E.EFFECT_LIBRARY["flux_scale"].present_in(InstrumentResponse.wrap(sc, "flux_scale"))
     # flux_scale: not identifiable when every weight is free; identifiable when one is fixed
     free = {"rho_s1": "free", "rho_s2": "free", "rho_s3": "free"}
-    why = E.EFFECTS["flux_scale"].identifiable(sc, free, [])
+    why = E.EFFECT_LIBRARY["flux_scale"].identifiable(sc, free, [])
     assert "every term's weight is free" in why and "rho_s1, rho_s2, rho_s3" in why
-    assert E.EFFECTS["flux_scale"].identifiable(sc, {**free, "rho_s3": Param.fixed()}, []) is None
+    assert E.EFFECT_LIBRARY["flux_scale"].identifiable(sc, {**free, "rho_s3": Param.fixed()}, []) is None
     # spectral bandwidth needs a diffraction term, angular sampling a table, 2-D effects a frame
     single = bj.Model(terms={"center": bj.Specular(bj.Beckmann(2e-4), rho_s=0.02, n=3.6)})
-    assert "no diffraction term" in E.EFFECTS["spectral_bandwidth"].identifiable(single, {}, [])
-    assert "goniometer tables" in E.EFFECTS["angular_sampling"].identifiable(single, {}, [])
-    assert "needs detector frames" in E.EFFECTS["diffraction"].identifiable(single, {}, [])
+    assert "no diffraction term" in E.EFFECT_LIBRARY["spectral_bandwidth"].identifiable(single, {}, [])
+    assert "goniometer tables" in E.EFFECT_LIBRARY["angular_sampling"].identifiable(single, {}, [])
+    assert "needs detector frames" in E.EFFECT_LIBRARY["diffraction"].identifiable(single, {}, [])
 
 
 def test_extension_terms_evaluate():
@@ -108,7 +112,7 @@ def test_null_signatures_low(null_ctx):
     assert res.chi2_reduced < 1.2
     scores = {}
     for name in FRAME_EFFECTS:
-        eff = E.EFFECTS[name]
+        eff = E.EFFECT_LIBRARY[name]
         if eff.identifiable(ctx.model, ctx.params, ctx.blocks) is None:
             scores[name] = eff.signature(ctx).score
     print("null scores:", {k: round(v, 2) for k, v in scores.items()})
@@ -117,13 +121,13 @@ def test_null_signatures_low(null_ctx):
 
 
 @pytest.mark.parametrize(
-    "name", [n if n in QUICK else pytest.param(n, marks=pytest.mark.skipif(not SLOW, reason="BRDFJAX_SLOW=1")) for n in E.EFFECTS]
+    "name", [n if n in QUICK else pytest.param(n, marks=pytest.mark.skipif(not SLOW, reason="BRDFJAX_SLOW=1")) for n in E.EFFECT_LIBRARY]
 )
 def test_round_trip(name):
     seed = SEEDS[name]
     sc, sc_fx = _scenario(name, seed)
     blocks, res, ctx = _base(sc_fx, seed)
-    eff = E.EFFECTS[name]
+    eff = E.EFFECT_LIBRARY[name]
     assert not eff.present_in(sc_fx.base_model)
     assert eff.identifiable(sc_fx.base_model, sc_fx.params, blocks) is None
     sig = eff.signature(ctx)
@@ -155,9 +159,9 @@ def test_inject_errors():
     sc3 = E.inject("pixel_nonlinearity", rng, sc)
     assert "floor" in sc3.base_model.terms and "floor" in sc3.truth_model.terms
     assert sc3.params["center.rho_s"].free is False and sc3.params["floor.rho_d"].free is False
-    assert E.EFFECTS["pixel_nonlinearity"].identifiable(sc3.base_model, sc3.params, []) is None
+    assert E.EFFECT_LIBRARY["pixel_nonlinearity"].identifiable(sc3.base_model, sc3.params, []) is None
     # on the lone lobe of free width a power law is a narrower lobe times a scale
-    why = E.EFFECTS["pixel_nonlinearity"].identifiable(sc.base_model, {**sc.params, "center.rho_s": Param.fixed()}, [])
+    why = E.EFFECT_LIBRARY["pixel_nonlinearity"].identifiable(sc.base_model, {**sc.params, "center.rho_s": Param.fixed()}, [])
     assert "lone Beckmann lobe" in why and "center.m free" in why
 
 
@@ -204,7 +208,7 @@ def test_camera_turn_reproduces_a_misaligned_camera_in_every_frame():
     import equinox as eqx
 
     from brdfjax.detector import Detector
-    from brdfjax.diagnose._extensions import camera_axes, turn_scatter
+    from brdfjax.diagnose.effects.terms import camera_axes, turn_scatter
     from brdfjax.render import Frame, sample_directions
 
     det = Detector.seed()
@@ -248,7 +252,7 @@ def test_pixel_nonlinearity_frees_the_response_level():
     rng = np.random.default_rng(31)
     sc = E.inject("pixel_nonlinearity", rng, E.base_scenario(rng, n_frames=2))
     blocks, res, ctx = _base(sc, 31)
-    eff = E.EFFECTS["pixel_nonlinearity"]
+    eff = E.EFFECT_LIBRARY["pixel_nonlinearity"]
     ext = eff.extend(ctx)
     # the weights are fixed (calibration), so a global scale is identifiable: it comes with gamma
     assert ext.n_new == 2 and {"instrument.gamma", "instrument.flux_scale"} <= set(ext.params)
@@ -282,7 +286,7 @@ def test_offset_peak_start_inside_a_blended_base_lobe():
     blocks = E.synthesize(sc, seed)[:1]
     res = fit(sc.base_model, blocks, sc.params)
     ctx = build_context(sc.base_model, sc.params, res, blocks)
-    ext = E.EFFECTS["offset_normal_peak"].extend(ctx)
+    ext = E.EFFECT_LIBRARY["offset_normal_peak"].extend(ctx)
     p = {k: v.value for k, v in ext.params.items()}
     assert abs(p["offset.dtheta"] / sc.truth["offset.dtheta"] - 1) < 0.25, ext.note
     assert abs(np.angle(np.exp(1j * (p["offset.dphi0"] - sc.truth["offset.dphi0"])))) < np.deg2rad(15), ext.note

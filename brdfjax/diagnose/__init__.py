@@ -1,43 +1,79 @@
 """Sim-to-real gap diagnosis: where a model misses the data, which unmodelled effect causes it, how far it shrinks.
 
-``diagnose(base_model, blocks, params)`` (:mod:`brdfjax.diagnose.engine`) fits
-the base model, finds the significant residual structures and their zones
-(:mod:`brdfjax.diagnose.zones`), refits with every candidate effect of the
-library (:mod:`brdfjax.diagnose.effects`), ranks them by BIC and builds the
-explanation path by greedy forward selection; :meth:`Diagnosis.write` writes
-``diagnosis.json``, ``report.md`` and ``report.html``.  ``brdfjax diagnose
-CONFIG --out DIR`` (:mod:`brdfjax.diagnose.cli`) runs it from a fit config
-with a ``[diagnose]`` table.
+``diagnose(base_model, blocks, params)`` fits the base model, finds the
+significant residual structures and their zones, refits with every candidate
+effect of the library, ranks them by BIC and builds the explanation path by
+greedy forward selection; :meth:`Diagnosis.write` writes ``diagnosis.json``,
+``report.md`` and ``report.html``.  ``brdfjax diagnose CONFIG --out DIR``
+runs it from a fit config with a ``[diagnose]`` table.
 
-The effect library's names (``EFFECTS``, ``Effect``, ``Context``, ...) are
-re-exported lazily, so that the engine imports without it.
+Where to find what (each module imports only those above it):
+
+- :mod:`~brdfjax.diagnose.zones`: WHERE: significant residual regions and their zones;
+- :mod:`~brdfjax.diagnose.context`: the base fit as the effects see it
+  (:class:`Context`, :func:`build_context`, :func:`warm_params`,
+  :func:`gap_measures`);
+- :mod:`~brdfjax.diagnose.effects`: WHICH: the effect library
+  (:data:`EFFECT_LIBRARY`); the interface and the score-test engine in
+  ``effects/base.py``, an effect in ``effects/model.py`` (surface side) or
+  ``effects/instrument.py`` (measurement side), the terms they add in
+  ``effects/terms.py``, a generator of synthetic truth with an effect in
+  ``effects/generators.py`` (:class:`Scenario`, :func:`inject`,
+  :func:`base_scenario`, :func:`synthesize`);
+- :mod:`~brdfjax.diagnose.report` and :mod:`~brdfjax.diagnose.results`: the
+  results (:class:`Diagnosis`, :class:`Candidate`, :class:`Step`) and their
+  Markdown/HTML reports;
+- :mod:`~brdfjax.diagnose.engine`: :func:`diagnose` itself (the base fit,
+  the candidates' refits, the explanation path);
+- :mod:`~brdfjax.diagnose.cli`: the ``brdfjax diagnose`` command.
 """
 
 from __future__ import annotations
 
-from typing import Any
-
-from .engine import (
-    Candidate as Candidate,
-    DiagnoseInputError as DiagnoseInputError,
-    Diagnosis as Diagnosis,
-    Step as Step,
+from .context import (
+    Context as Context,
+)
+from .context import (
     build_context as build_context,
-    diagnose as diagnose,
+)
+from .context import (
     gap_measures as gap_measures,
+)
+from .context import (
     residual_maps as residual_maps,
+)
+from .context import (
     warm_params as warm_params,
 )
-from .zones import Region as Region, find_regions as find_regions, specular_coordinates as specular_coordinates
-
-_EFFECTS_NAMES = (
-    "EFFECTS", "Effect", "Extension", "Context", "Signature", "Scenario", "inject", "base_scenario", "synthesize",
+from .effects import (
+    EFFECT_LIBRARY as EFFECT_LIBRARY,
 )
-
-
-def __getattr__(name: str) -> Any:
-    if name in _EFFECTS_NAMES:
-        from . import effects
-
-        return getattr(effects, name)
-    raise AttributeError(f"module 'brdfjax.diagnose' has no attribute '{name}'")
+from .effects import (
+    Effect as Effect,
+)
+from .effects import (
+    Extension as Extension,
+)
+from .effects import (
+    Scenario as Scenario,
+)
+from .effects import (
+    Signature as Signature,
+)
+from .effects import (
+    base_scenario as base_scenario,
+)
+from .effects import (
+    inject as inject,
+)
+from .effects import (
+    synthesize as synthesize,
+)
+from .engine import DiagnoseInputError as DiagnoseInputError
+from .engine import diagnose as diagnose
+from .results import Candidate as Candidate
+from .results import Diagnosis as Diagnosis
+from .results import Step as Step
+from .zones import Region as Region
+from .zones import find_regions as find_regions
+from .zones import specular_coordinates as specular_coordinates

@@ -31,20 +31,22 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+from rich.console import Console
 
-from ..config import ModelConfig
+from ..config import ConfigError, ModelConfig, StrictModel
 from ..errors import InputError
+from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
+from .effects import EFFECT_LIBRARY
+from .engine import DiagnoseInputError, diagnose
 
 __all__ = ["DiagnoseSection", "add_arguments", "run", "run_diagnose"]
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 
 
-class DiagnoseSection(BaseModel):
+class DiagnoseSection(StrictModel):
     """The ``[diagnose]`` table of a diagnose config (see the module docstring)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False)
 
     effects: list[str] | None = None
     heldout: list[str] = Field(default_factory=list)
@@ -76,20 +78,14 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
     :class:`~brdfjax.diagnose.DiagnoseInputError` or
     :class:`~brdfjax.fit.FitInputError` (bad input).
     """
-    from ..config import ConfigError
-    from ..fit.config import build_fit_job, load_fit_config
-    from .engine import DiagnoseInputError, diagnose
-
     cfg = load_fit_config(config, sections={"diagnose": DiagnoseSection})
     sec: DiagnoseSection = cfg.sections.get("diagnose") or DiagnoseSection()
     out = Path(out)
     names_asked = effects if effects is not None else sec.effects
     if names_asked is not None:  # before generating or reducing any data
-        from .effects import EFFECTS
-
-        unknown = [n for n in names_asked if n not in EFFECTS]
+        unknown = [n for n in names_asked if n not in EFFECT_LIBRARY]
         if unknown:
-            raise DiagnoseInputError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+            raise DiagnoseInputError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECT_LIBRARY)}")
     job = build_fit_job(cfg, work_dir=out) if sec.truth is None else _truth_job(cfg, sec.truth, out)
     names = [b.name for b in job.blocks]
     missing = [h for h in sec.heldout if h not in names]
@@ -124,9 +120,6 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
 
 def _truth_job(cfg: Any, truth: ModelConfig, out: Path):
     """The fit job of ``cfg`` whose synthetic frames are generated from ``truth`` instead of ``[model]``."""
-    from ..config import ConfigError
-    from ..fit.config import build_fit_job
-
     if cfg.data.synthetic is None:
         raise ConfigError(str(cfg.source), [("diagnose.truth", "applies only to generated data: add [data.synthetic]")])
     truth_cfg = cfg.model_copy(update={"model": truth})
@@ -138,24 +131,12 @@ def _truth_job(cfg: Any, truth: ModelConfig, out: Path):
     return job
 
 
-def _enable_x64_if_asked(config: str | Path) -> None:
-    """The command line (not the library) turns 64-bit JAX on when the config asks for float64, as ``brdfjax fit`` does."""
-    import jax
-
-    from ..fit.config import load_fit_config
-
-    if load_fit_config(config, sections={"diagnose": DiagnoseSection}).precision == "float64":
-        jax.config.update("jax_enable_x64", True)
-
-
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
     console = Console(stderr=True, highlight=False, soft_wrap=True)
     effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
     t0 = time.perf_counter()
     try:
-        _enable_x64_if_asked(args.config)
+        enable_config_precision(args.config)  # the command line, not the library, turns 64-bit JAX on
         d = run_diagnose(
             args.config, args.out, effects=effects, figures=False if args.no_figures else None,
             progress=lambda msg: console.print(msg, markup=False),

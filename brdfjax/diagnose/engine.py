@@ -5,14 +5,14 @@
 (:class:`~brdfjax.fit.TableData`):
 
 1. the base fit (:func:`brdfjax.fit.fit`);
-2. the :class:`~brdfjax.diagnose.effects.Context` of the fit: per block the
+2. the :class:`~brdfjax.diagnose.context.Context` of the fit (:func:`~brdfjax.diagnose.context.build_context`): per block the
    normalised residual ``r = (ln d - ln f) / sigma_ln`` on the block's grid
    (NaN where unused), the fitted model's values and the scatter geometry with
    the specular-relative coordinates ``sx, sy`` (degrees,
    :func:`~brdfjax.diagnose.zones.specular_coordinates`);
 3. WHERE: significant residual regions and their zones
    (:mod:`brdfjax.diagnose.zones`);
-4. WHICH: every candidate effect of :data:`~brdfjax.diagnose.effects.EFFECTS`
+4. WHICH: every candidate effect of :data:`~brdfjax.diagnose.effects.EFFECT_LIBRARY`
    (or the named ones) is checked (applicable? identifiable?), its
    refit-independent signature computed, and the model refitted with the
    effect added (``Effect.extend``: warm start at the base's optimum).
@@ -35,78 +35,30 @@ The engine never sees a generator's truth: only the blocks and the library.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
-import jax
 import numpy as np
 
 from ..errors import InputError
-from ..fit import FitInputError, FitResult, FrameData, Param, TableData, fit
-from ..fit.internal import as_param
-from ..geometry import Directions
-from ..render import render, render_geometry
+from ..fit import FitInputError, FitResult, FrameData, TableData, fit
 from ..terms import Model
-from .zones import Region, find_regions, specular_coordinates, zone_label, zone_masks
-from ._extensions import camera_params, response_features
+from .context import build_context, gap_measures, residual_maps
+from .effects import EFFECT_LIBRARY, camera_params, response_features
+from .results import Candidate, Diagnosis, Step, finite_or_none
+from .zones import find_regions, zone_masks
 
-__all__ = [
-    "DiagnoseInputError",
-    "Candidate",
-    "Step",
-    "Diagnosis",
-    "diagnose",
-    "build_context",
-    "residual_maps",
-    "gap_measures",
-    "warm_params",
-]
-
-LN10 = math.log(10.0)
+__all__ = ["DiagnoseInputError", "diagnose"]
 
 
 class DiagnoseInputError(InputError):
     """Bad diagnosis input (no usable pixels, unknown effect, effect already in the base); says what to change."""
 
 
-# --- measures --------------------------------------------------------------------------------
-
-
-def _precision_name() -> str:
-    return "float64" if jax.config.jax_enable_x64 else "float32"
-
-
-def residual_maps(result: FitResult, blocks: Sequence[FrameData | TableData]) -> list[np.ndarray]:
-    """Per block ``r = (ln d - ln f) / sigma_ln`` on the block's grid (frames) or rows (tables); NaN where unused."""
-    out = []
-    for b, r in zip(blocks, result.residuals):
-        u = b.usable()
-        m = np.full(u.shape, np.nan)
-        m[u] = -np.asarray(r, float)  # the fit's residuals are (ln f - ln d) / sigma
-        out.append(m)
-    return out
-
-
-def gap_measures(result: FitResult) -> dict[str, float]:
-    """The global gap of a fit: chi2, dof, chi2_reduced, rms_log10 (rms of log10 f - log10 d), BIC."""
-    n = sum(b.n_points for b in result.blocks)
-    ms = sum(b.n_points * b.log_rms**2 for b in result.blocks) / max(n, 1)
-    k = len(result.free_names)
-    return {
-        "chi2": float(result.chi2),
-        "n_points": int(result.n_points),
-        "n_free": k,
-        "dof": int(result.dof),
-        "chi2_reduced": float(result.chi2_reduced),
-        "rms_log10": float(math.sqrt(ms) / LN10),
-        "bic": float(result.chi2 + k * math.log(max(result.n_points, 2))),
-    }
+# --- measures ------------------------------------------------------------------------------
 
 
 def _zone_stats(maps: list[np.ndarray], zones: Mapping[str, list[np.ndarray]]) -> dict[str, dict[str, float]]:
@@ -122,179 +74,6 @@ def _zone_stats(maps: list[np.ndarray], zones: Mapping[str, list[np.ndarray]]) -
     return out
 
 
-def warm_params(params: Mapping[str, Any], result: FitResult, block_names: Sequence[str] | None = None) -> dict[str, Any]:
-    """``params`` with every free parameter's start moved to its fitted value (kept strictly inside its bounds).
-
-    Per-frame parameters (``name[block]`` in the result) become per-block lists.
-    """
-    names = [b.name for b in result.blocks] if block_names is None else list(block_names)
-    out: dict[str, Any] = {}
-    for name, spec in params.items():
-        p = as_param(name, spec)
-        if not p.free:
-            out[name] = p
-            continue
-        if name in result.parameters:
-            value: Any = _inside(result.value(name), p)
-        else:
-            keys = [f"{name}[{bn}]" for bn in names]
-            if all(k in result.parameters for k in keys):
-                value = [_inside(result.value(k), p) for k in keys]
-            else:
-                out[name] = p
-                continue
-        out[name] = dataclasses.replace(p, value=value)
-    return out
-
-
-def _inside(x: float, p: Param) -> float:
-    lo = -math.inf if p.lower is None else float(p.lower)
-    hi = math.inf if p.upper is None else float(p.upper)
-    if math.isfinite(lo) and math.isfinite(hi):
-        eps = 1e-6 * (hi - lo)
-        return float(min(max(x, lo + eps), hi - eps))
-    if math.isfinite(lo) and x <= lo:
-        return lo + max(1e-9, 1e-6 * abs(lo))
-    if math.isfinite(hi) and x >= hi:
-        return hi - max(1e-9, 1e-6 * abs(hi))
-    return float(x)
-
-
-# --- context ---------------------------------------------------------------------------------
-
-
-def _block_geometry(b: FrameData | TableData, frame: Any) -> dict[str, np.ndarray]:
-    if isinstance(b, FrameData):
-        g = render_geometry(frame, b.arm_detector(), grid=b.grid, precision=_precision_name())
-        ts, ps = np.asarray(g["theta_s"], float), np.asarray(g["phi_s"], float)
-        sx, sy = specular_coordinates(ts, ps, float(frame.theta_i), 0.0)
-        return {"theta_s": ts, "phi_s": ps, "sx": sx, "sy": sy}
-    ts, ps = np.asarray(b.theta_s, float), np.asarray(b.phi_s, float)
-    sx, sy = specular_coordinates(ts, ps, np.asarray(b.theta_i, float), np.asarray(b.phi_i, float))
-    return {"theta_s": ts, "phi_s": ps, "sx": sx, "sy": sy, "theta_i": np.asarray(b.theta_i, float)}
-
-
-def _block_model(b: FrameData | TableData, model: Model, frame: Any) -> np.ndarray:
-    if isinstance(b, FrameData):
-        return np.asarray(render(model, frame, b.arm_detector(), grid=b.grid, precision=_precision_name()), float)
-    dirs = Directions.from_angles(*(np.asarray(getattr(b, f), float) for f in ("theta_i", "phi_i", "theta_s", "phi_s")))
-    wl = np.broadcast_to(np.asarray(b.wavelength, float), np.shape(b.brdf))
-    return np.asarray(model(dirs, wl), float)
-
-
-def build_context(model_spec: Model, params: Mapping[str, Any], result: FitResult, blocks: Sequence[Any],
-                  fit_kwargs: Mapping[str, Any] | None = None):
-    """The :class:`~brdfjax.diagnose.effects.Context` of a fit (the fitted model, residual maps, model values, geometry)."""
-    from .effects import Context
-
-    fitted = result.models[0] if result.models else model_spec
-    geometry = [_block_geometry(b, f) for b, f in zip(blocks, result.frames)]
-    values = [_block_model(b, m, f) for b, m, f in zip(blocks, result.models, result.frames)]
-    return Context(
-        model=fitted,
-        params=warm_params(params, result),
-        result=result,
-        blocks=list(blocks),
-        residuals=residual_maps(result, blocks),
-        model_values=values,
-        geometry=geometry,
-        fit_kwargs=dict(fit_kwargs or {}),
-    )
-
-
-# --- results ---------------------------------------------------------------------------------
-
-
-def _num(x: Any) -> Any:
-    if x is None:
-        return None
-    try:
-        x = float(x)
-    except (TypeError, ValueError):
-        return None
-    return x if math.isfinite(x) else None
-
-
-def _clean(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, bool | str) or obj is None:
-        return obj
-    if isinstance(obj, int | np.integer):
-        return int(obj)
-    if isinstance(obj, float | np.floating):
-        return _num(obj)
-    return str(obj)
-
-
-@dataclass
-class Candidate:
-    """One candidate effect at one step: applicability, signature and the refit with it."""
-
-    effect: str
-    title: str
-    status: str  # "ranked", "skipped", "not identifiable", "failed"
-    note: str = ""
-    signature: dict[str, Any] = field(default_factory=dict)  # value, score, detail
-    n_new: int = 0
-    delta_chi2: float = math.nan
-    delta_bic: float = math.nan
-    gap_after: dict[str, float] = field(default_factory=dict)
-    zones_after: dict[str, dict[str, float]] = field(default_factory=dict)
-    wall_s: float = 0.0
-    # not serialised: the refit's state, to continue the path from it
-    state: Any = field(default=None, repr=False)
-
-    def to_dict(self) -> dict[str, Any]:
-        return _clean(
-            {
-                "effect": self.effect,
-                "title": self.title,
-                "status": self.status,
-                "note": self.note,
-                "delta_chi2": self.delta_chi2,
-                "delta_bic": self.delta_bic,
-                "signature": self.signature,
-                "n_new": self.n_new,
-                "chi2_reduced_after": self.gap_after.get("chi2_reduced"),
-                "rms_log10_after": self.gap_after.get("rms_log10"),
-                "zones_after": {k: v["chi2_reduced"] for k, v in self.zones_after.items()},
-                "wall_s": self.wall_s,
-            }
-        )
-
-
-@dataclass
-class Step:
-    """One step of the explanation path (the base, then each accepted effect)."""
-
-    effect: str
-    gap: dict[str, float]
-    zones: dict[str, dict[str, float]]
-    heldout: dict[str, float] | None
-    delta_bic: float = math.nan
-    parameters: dict[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        return _clean(
-            {
-                "effect": self.effect,
-                "chi2": self.gap["chi2"],
-                "chi2_reduced": self.gap["chi2_reduced"],
-                "rms_log10": self.gap["rms_log10"],
-                "bic": self.gap["bic"],
-                "n_free": self.gap["n_free"],
-                "delta_bic": self.delta_bic,
-                "heldout_rms_log10": None if self.heldout is None else self.heldout["rms_log10"],
-                "heldout_chi2_reduced": None if self.heldout is None else self.heldout["chi2_reduced"],
-                "zones": {k: v["chi2_reduced"] for k, v in self.zones.items()},
-                "parameters": self.parameters,
-            }
-        )
-
-
 @dataclass
 class _State:
     model: Model
@@ -305,93 +84,9 @@ class _State:
     effects: tuple[str, ...]
 
 
-@dataclass
-class Diagnosis:
-    """Everything a diagnosis found; :meth:`to_dict` is the ``diagnosis.json`` contract, :meth:`write` the reports."""
 
-    gap: dict[str, Any]
-    regions: list[Region]
-    block_names: list[str]
-    ranking: list[Candidate]  # ranked candidates at the first step, best first
-    skipped: list[Candidate]  # not applicable / not identifiable / failed, with the reason
-    path: list[Step]
-    significant: bool
-    bic_threshold: float
-    notes: list[str]
-    timings: dict[str, float]
-    settings: dict[str, Any]
-    context: Any = field(default=None, repr=False)  # the base fit's Context
-    final_context: Any = field(default=None, repr=False)
-    path_rankings: list[list[Candidate]] = field(default_factory=list, repr=False)
-    base_result: FitResult | None = field(default=None, repr=False)
-    final_result: FitResult | None = field(default=None, repr=False)
+# --- the engine ----------------------------------------------------------------------------
 
-    @property
-    def zones(self) -> list[dict[str, Any]]:
-        return [r.to_dict(self.block_names[r.block]) | {"label": zone_label(r, k)} for k, r in enumerate(self.regions)]
-
-    @property
-    def explained_by(self) -> list[str]:
-        return [s.effect for s in self.path[1:]]
-
-    def to_dict(self) -> dict[str, Any]:
-        return _clean(
-            {
-                "gap": self.gap,
-                "zones": self.zones,
-                "ranking": [c.to_dict() for c in self.ranking],
-                "skipped": [c.to_dict() for c in self.skipped],
-                "path": [s.to_dict() for s in self.path],
-                "path_rankings": [[c.to_dict() for c in r] for r in self.path_rankings],
-                "significant": self.significant,
-                "explained_by": self.explained_by,
-                "bic_threshold": self.bic_threshold,
-                "blocks": self.block_names,
-                "notes": self.notes,
-                "timings_s": self.timings,
-                "settings": self.settings,
-            }
-        )
-
-    def to_json(self, path: str | os.PathLike | None = None, indent: int = 2) -> str:
-        text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
-        if path is not None:
-            _atomic_write(Path(path), text + "\n")
-        return text
-
-    def summary(self) -> str:
-        lines = [
-            f"base: chi2_reduced {self.gap['chi2_reduced']:.4g}, rms_log10 {self.gap['rms_log10']:.4g}"
-            + ("" if self.gap.get("heldout_rms_log10") is None else f", held-out rms_log10 {self.gap['heldout_rms_log10']:.4g}")
-        ]
-        for k, z in enumerate(self.zones[:6]):
-            lines.append(f"  zone {z['label']}: share {z['share']:.1%}, centre {z['center_deg'][0]:+.3g}/{z['center_deg'][1]:+.3g} deg, {z['sign']}")
-        for c in self.ranking[:6]:
-            lines.append(f"  {c.effect:<22s} dBIC {c.delta_bic:12.1f}  dchi2 {c.delta_chi2:12.1f}  signature {c.signature.get('score', math.nan):.3g}")
-        lines.append("path: " + " -> ".join(f"{s.effect} ({s.gap['chi2_reduced']:.3g})" for s in self.path))
-        lines.append(f"significant: {self.significant}")
-        return "\n".join(lines)
-
-    def write(self, out_dir: str | os.PathLike, *, figures: bool = True) -> dict[str, Path]:
-        """Write ``diagnosis.json``, ``report.md`` and ``report.html`` (figures embedded) into ``out_dir``, atomically."""
-        from .report import html_report, markdown_report
-
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        paths = {"json": out / "diagnosis.json", "md": out / "report.md", "html": out / "report.html"}
-        self.to_json(paths["json"])
-        _atomic_write(paths["md"], markdown_report(self))
-        _atomic_write(paths["html"], html_report(self, figures=figures))
-        return paths
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-# --- the engine ------------------------------------------------------------------------------
 
 
 def _check_blocks(blocks: Sequence[Any], what: str) -> list[Any]:
@@ -476,7 +171,7 @@ def _check_effect(name: str, eff: Any, ctx: Any, state: _State, has_tables: bool
         return c
     try:
         sig = eff.signature(ctx)
-        c.signature = {"value": _num(sig.value), "score": _num(sig.score), "detail": sig.detail}
+        c.signature = {"value": finite_or_none(sig.value), "score": finite_or_none(sig.score), "detail": sig.detail}
     except Exception as e:  # noqa: BLE001
         c.signature = {"value": None, "score": None, "detail": f"signature failed: {type(e).__name__}: {e}"}
     return c
@@ -558,7 +253,7 @@ def diagnose(
     benchmark ``refit_top=3`` left the withheld effect unrefitted in 2 of 3
     trials); ``threshold``/``smooth``: the region detection (smoothed ``|z|`` and
     box size); ``library``: the effect library (default
-    :data:`brdfjax.diagnose.effects.EFFECTS`); ``progress``: a callable taking
+    :data:`brdfjax.diagnose.effects.EFFECT_LIBRARY`); ``progress``: a callable taking
     a message string.
     """
     t_start = time.perf_counter()
@@ -566,7 +261,7 @@ def diagnose(
     if not isinstance(base_model, Model):
         raise DiagnoseInputError(f"base_model must be a brdfjax Model, got {type(base_model).__name__}")
     if library is None:
-        from .effects import EFFECTS as library
+        library = EFFECT_LIBRARY
     blocks = _check_blocks(blocks, "data")
     heldout = _check_blocks(heldout_blocks, "heldout_blocks") if heldout_blocks else None
     names, skipped = _select_effects(library, effects, base_model)

@@ -14,12 +14,15 @@ import base64
 import html
 import io
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:  # pragma: no cover
-    from .engine import Diagnosis
+from ..fit import FrameData
+
+# ``d`` below is a :class:`~brdfjax.diagnose.results.Diagnosis`; not imported: results imports this module to
+# write the reports (Any keeps the two out of a cycle)
+Diagnosis = Any
 
 __all__ = ["markdown_report", "html_report", "figures"]
 
@@ -34,7 +37,7 @@ def _f(x: Any, fmt: str = ".4g") -> str:
     return "-" if not math.isfinite(x) else format(x, fmt)
 
 
-def _tables(d: "Diagnosis") -> list[tuple[str, list[str], list[list[str]]]]:
+def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
     g = d.gap
     out = []
     out.append(
@@ -83,14 +86,14 @@ def _tables(d: "Diagnosis") -> list[tuple[str, list[str], list[list[str]]]]:
     return out
 
 
-def _headline(d: "Diagnosis") -> str:
+def _headline(d: Diagnosis) -> str:
     p = " -> ".join(f"{s.effect} ({_f(s.gap['chi2_reduced'], '.3g')})" for s in d.path)
     if d.significant:
         return f"The gap is most likely caused by **{d.path[1].effect}**. Explanation path (reduced chi^2): {p}."
     return f"No candidate effect is significant (BIC gain > {d.bic_threshold:g}). Path: {p}."
 
 
-def markdown_report(d: "Diagnosis") -> str:
+def markdown_report(d: Diagnosis) -> str:
     lines = ["# Sim-to-real gap diagnosis", "", _headline(d).replace("**", "**"), ""]
     for title, head, rows in _tables(d):
         lines += [f"## {title}", "", "| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
@@ -98,7 +101,7 @@ def markdown_report(d: "Diagnosis") -> str:
         lines.append("")
     if d.notes:
         lines += ["## Notes", ""] + [f"- {n}" for n in d.notes] + [""]
-    lines += [f"Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in d.timings.items()), ""]
+    lines += ["Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in d.timings.items()), ""]
     lines += ["Figures: see report.html; every number: diagnosis.json.", ""]
     return "\n".join(lines)
 
@@ -106,20 +109,18 @@ def markdown_report(d: "Diagnosis") -> str:
 def _png(fig) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # optional and heavy: only the figures need it
 
     plt.close(fig)
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def figures(d: "Diagnosis") -> list[tuple[str, str]]:
+def figures(d: Diagnosis) -> list[tuple[str, str]]:
     """``[(caption, base64 PNG)]`` of the diagnosis (see the module docstring)."""
-    import matplotlib
+    import matplotlib  # optional and heavy: only the figures need it (and the Agg backend set first)
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
-
-    from ..fit import FrameData
 
     ctx, fin = d.context, d.final_context
     out = []
@@ -190,9 +191,10 @@ def figures(d: "Diagnosis") -> list[tuple[str, str]]:
     return out
 
 
-def html_report(d: "Diagnosis", *, figures: bool = True) -> str:
-    from . import report as _self
+_figures = figures  # html_report's keyword ``figures`` (a flag) hides the function
 
+
+def html_report(d: Diagnosis, *, figures: bool = True) -> str:
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>brdfjax diagnosis</title>",
         "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:collapse;font-size:12px}"
@@ -206,7 +208,7 @@ def html_report(d: "Diagnosis", *, figures: bool = True) -> str:
         parts.append("</table>")
     if figures:
         parts.append("<h2>Figures</h2>")
-        for caption, b64 in _self.figures(d):
+        for caption, b64 in _figures(d):
             parts.append(f"<figure><img alt='{html.escape(caption)}' src='data:image/png;base64,{b64}'><figcaption>{html.escape(caption)}</figcaption></figure>")
     if d.notes:
         parts.append("<h2>Notes</h2><ul>" + "".join(f"<li>{html.escape(n)}</li>" for n in d.notes) + "</ul>")

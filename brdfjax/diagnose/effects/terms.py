@@ -1,4 +1,4 @@
-"""Model-side pieces the effect library adds to a base model (pure JAX, differentiable).
+"""The terms and model wrappers the effects add to a base model (pure JAX, differentiable).
 
 - :class:`Oriented`: any term turned about the sample normal by its own angle
   ``psi`` (the orientation of diffraction bars or of an anisotropic lobe
@@ -53,11 +53,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..fields import check_param, param
-from ..geometry import Directions, Rx, Ry, Rz, rotate
-from ..terms import AbstractTerm, Diffraction, Model, Oriented, param_fields
+from ...fields import check_param, param
+from ...fit import Param
+from ...geometry import Directions, Rx, Ry, Rz, rotate
+from ...terms import AbstractTerm, Diffraction, Model, Oriented, param_fields
 
-__all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter", "camera_axes", "block_camera", "camera_params"]
+__all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter", "camera_axes", "block_camera", "camera_params", "response_features"]
 
 
 def _gauss_hermite(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -67,18 +68,18 @@ def _gauss_hermite(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
 
 
 class SpectralDiffraction(AbstractTerm):
-    """:class:`~brdfjax.terms.Diffraction` averaged over a spectrum: ``sum_k w_k Diffraction(lambda (1 + width x_k))``."""
+    """:class:`~brdfjax.terms.Diffraction` averaged over a spectrum: ``sum_k w_k Diffraction(lambda (1 + width x_k))``.
+
+    It wraps the diffraction term (``diffraction``; its parameters keep their
+    names: ``<bars>.rho``, ``.a``, ``.b``, ``.c``, then ``.width``) and
+    evaluates it at each node's wavelength.
+    """
 
     kind: ClassVar[str] = "spectral_diffraction"
-    rho: Array = param("sr^-1", "peak magnitude")
-    a: Array = param("m", "bar spacing")
-    b: Array = param("m", "bar width")
-    c: Array = param("m", "Gaussian half-width of the band along the bars")
+    diffraction: Diffraction
     width: Array = param("1", "relative rms spectral width sigma_lambda / lambda")
     nodes: tuple[float, ...] = eqx.field(static=True, default=_gauss_hermite(15)[0])
     weights: tuple[float, ...] = eqx.field(static=True, default=_gauss_hermite(15)[1])
-    distance: float = eqx.field(static=True, default=0.325)
-    grating_factor: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         check_param("spectral_diffraction", "width", self.width, lambda v: v >= 0, "width >= 0 (relative)")
@@ -89,7 +90,7 @@ class SpectralDiffraction(AbstractTerm):
     def from_diffraction(cls, d: Diffraction, width: float, n_nodes: int = 15) -> "SpectralDiffraction":
         """A Gaussian line of relative rms width ``width`` about the frame's wavelength."""
         x, w = _gauss_hermite(n_nodes)
-        return cls(d.rho, d.a, d.b, d.c, width, x, w, d.distance, d.grating_factor)
+        return cls(d, width, x, w)
 
     @classmethod
     def from_spectrum(cls, d: Diffraction, sd: Any, max_samples: int = 41) -> "SpectralDiffraction":
@@ -116,21 +117,15 @@ class SpectralDiffraction(AbstractTerm):
         centre = float(np.sum(w * lam))
         sigma = float(np.sqrt(np.sum(w * (lam - centre) ** 2)))
         if sigma <= 0:
-            return cls(d.rho, d.a, d.b, d.c, 0.0, (0.0,), (1.0,), d.distance, d.grating_factor)
+            return cls(d, 0.0, (0.0,), (1.0,))
         x = (lam / centre - 1.0) / (sigma / centre)
-        return cls(d.rho, d.a, d.b, d.c, sigma / centre, tuple(map(float, x)), tuple(map(float, w)), d.distance, d.grating_factor)
+        return cls(d, sigma / centre, tuple(map(float, x)), tuple(map(float, w)))
 
     def __call__(self, dirs, wavelength):
-        h = dirs.half_vector()
-        hx, hy = h[..., 0], h[..., 1]
-        scale = 2.0 * dirs.cos_theta_i if self.grating_factor else 1.0
-        band = jnp.exp(-jnp.square(self.distance * hx / self.c))
         total = 0.0
         for x, w in zip(self.nodes, self.weights):
-            u = hy * scale / (wavelength * (1.0 + self.width * x))
-            total = total + w * jnp.square(jnp.cos(np.pi * self.a * u)) * jnp.square(jnp.sinc(self.b * u))
-        f = self.rho * total * band
-        return jnp.where((dirs.cos_theta_i > 0) & (dirs.cos_theta_s > 0), f, 0.0)
+            total = total + w * self.diffraction(dirs, wavelength * (1.0 + self.width * x))
+        return total
 
 
 def turn_scatter(dirs: Directions, ax: Any, ay: Any, az: Any = 0.0, camera: Any = None) -> Directions:
@@ -169,8 +164,6 @@ def block_camera(block: Any) -> tuple[float, float]:
 
 def camera_params(blocks: Sequence[Any]) -> dict[str, Any]:
     """The fixed per-frame ``instrument.arm`` / ``instrument.arm_phi`` parameter specs of ``blocks``."""
-    from ..fit import Param
-
     cams = [block_camera(b) for b in blocks]
     return {
         "instrument.arm": Param.fixed([c[0] for c in cams], per_frame=True),
@@ -278,4 +271,5 @@ class InstrumentResponse(Model):
 
 
 def response_features(model: Model) -> Sequence[str]:
+    """The instrument-response features switched on in ``model`` (none for a plain model)."""
     return model.features if isinstance(model, InstrumentResponse) else ()

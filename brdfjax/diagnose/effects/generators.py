@@ -1,4 +1,4 @@
-"""Generator side of the effect library: synthetic truth with any effect (re-exported by ``effects``).
+"""The generators: synthetic truth with any effect of the library (re-exported by :mod:`brdfjax.diagnose.effects`).
 
 A :class:`Scenario` holds what is needed to synthesise measured data: the
 true model (surface) and the base model (the same family without the
@@ -33,7 +33,6 @@ specification for the base, and the truth.
 from __future__ import annotations
 
 import dataclasses
-import math
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,13 +41,29 @@ from typing import Any
 import equinox as eqx
 import numpy as np
 
-from ..detector import Detector
-from ..distributions import Beckmann, BeckmannAniso
-from ..fit import FrameData, Param, TableData
-from ..instrument.synthetic import InstrumentConfig, StrayLight, shift_add, convolve_footprint, footprint_kernel
-from ..render import Frame, render
-from ..terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
-from ._extensions import InstrumentResponse, Oriented, SpectralDiffraction
+from ...detector import Detector
+from ...distributions import Beckmann, BeckmannAniso
+from ...fit import FrameData, Param, TableData, read_frame_data
+from ...geometry import Directions
+from ...instrument import SyntheticInstrument, reduce_measurement_set
+from ...instrument.synthetic import (
+    SEED_BEAM_FILTERS,
+    InstrumentConfig,
+    StrayLight,
+    convolve_footprint,
+    footprint_kernel,
+    shift_add,
+)
+from ...render import Frame, render
+from ...terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
+from .base import weight_names
+from .model import (
+    inner_specular,
+    matched_distribution,
+    specular_terms,
+    swap_distribution,
+)
+from .terms import InstrumentResponse, Oriented, SpectralDiffraction
 
 __all__ = ["Scenario", "base_scenario", "table_scenario", "inject", "synthesize", "GENERATORS", "EXCLUSIVE"]
 
@@ -199,10 +214,8 @@ def _inj_footprint(rng, sc: Scenario) -> Scenario:
 
 
 def _weights_fixed(sc: Scenario) -> dict:
-    from .effects import _weight_names
-
     params = dict(sc.params)
-    for _, name in _weight_names(sc.base_model):
+    for _, name in weight_names(sc.base_model):
         if name is not None:
             params[name] = Param.fixed()
     return params
@@ -233,15 +246,12 @@ def _inj_nonlinearity(rng, sc: Scenario) -> Scenario:
 
 
 def _inj_shape(rng, sc: Scenario) -> Scenario:
-    from ..distributions import GGX, HyperCauchy, StudentT
-    from .effects import _inner_specular, _matched, _specular_terms, _swap_dist
-
     fam = str(rng.choice(["ggx", "student_t", "hyper_cauchy"]))
     gamma = float(rng.uniform(1.6, 3.0)) if fam == "student_t" else float(rng.uniform(1.5, 2.5))
     model = sc.truth_model
-    for n in _specular_terms(model):
-        d = _inner_specular(model.terms[n]).distribution
-        model = _set_term(model, n, _swap_dist(model.terms[n], _matched(d, fam, gamma)))
+    for n in specular_terms(model):
+        d = inner_specular(model.terms[n]).distribution
+        model = _set_term(model, n, swap_distribution(model.terms[n], matched_distribution(d, fam, gamma)))
     return sc.replace(truth_model=model, truth={**sc.truth, "distribution": fam, "gamma_shape": gamma if fam != "ggx" else None})
 
 
@@ -264,7 +274,7 @@ def _inj_misalignment(rng, sc: Scenario) -> Scenario:
 
 
 def _inj_spectral(rng, sc: Scenario) -> Scenario:
-    import colour
+    import colour  # heavy (seconds to import): only this generator needs it
 
     bars = [n for n, t in sc.base_model.terms.items() if isinstance(t, Diffraction)]
     base = sc.base_model
@@ -360,8 +370,6 @@ def _apply_instrument(img: np.ndarray, sc: Scenario) -> np.ndarray:
 
 def _synth_tables(sc: Scenario, rng: np.random.Generator) -> list[TableData]:
     half, dstep = sc.truth.get("half_range_deg", 4.0), sc.truth.get("step_deg", 0.25)
-    from ..geometry import Directions
-
     ti_all, ts_all, ps_all = [], [], []
     for ti, _, _ in sc.frames:
         d = np.deg2rad(np.arange(-half, half + 1e-9, dstep))
@@ -417,10 +425,6 @@ def synthesize(scenario: Scenario, seed: int = 0, out_dir: str | Path | None = N
 
 
 def _synth_instrument(sc: Scenario, seed: int, out_dir: str | Path | None) -> list[FrameData]:
-    from ..fit import read_frame_data
-    from ..instrument import SyntheticInstrument, reduce_measurement_set
-    from ..instrument.synthetic import SEED_BEAM_FILTERS
-
     folder = Path(tempfile.mkdtemp(prefix="brdfjax_fx_")) if out_dir is None else Path(out_dir)
     ins = SyntheticInstrument(sc.detector, sc.instrument, seed=seed, nominal_detector=sc.nominal_detector)
     frames = {f"f{i}": Frame(np.float64(ti), np.float64(phi), np.float64(wl)) for i, (ti, phi, wl) in enumerate(sc.frames)}

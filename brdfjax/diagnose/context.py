@@ -1,0 +1,184 @@
+"""The base fit as the effects see it: :class:`Context` and the measures of a fit.
+
+:func:`build_context` turns a fit (:class:`~brdfjax.fit.FitResult`) into a
+:class:`Context`: the fitted model, the parameter spec warm-started at the
+optimum (:func:`warm_params`), per block the normalised residual
+``r = (ln d - ln f) / sigma_ln`` (:func:`residual_maps`), the fitted model's
+values and the scatter geometry with the specular-relative coordinates
+``sx, sy``.  :func:`gap_measures` is the global gap of a fit (chi^2, reduced
+chi^2, rms of log10, BIC).  The engine and every effect build on this module;
+it imports neither.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import jax
+import numpy as np
+
+from ..fit import FitResult, FrameData, Param, TableData
+from ..fit.internal import as_param
+from ..geometry import Directions
+from ..render import Frame, render, render_geometry
+from ..terms import Model
+from .zones import specular_coordinates
+
+__all__ = ["Context", "build_context", "warm_params", "residual_maps", "gap_measures", "precision_name", "LN10"]
+
+LN10 = math.log(10.0)
+
+
+def precision_name() -> str:
+    """The precision of the fits and renders (``"float64"`` when 64-bit JAX is on)."""
+    return "float64" if jax.config.jax_enable_x64 else "float32"
+
+
+# --- the context ---------------------------------------------------------------------------
+
+
+@dataclass
+class Context:
+    """The base fit as the effects see it (built by :func:`build_context`)."""
+
+    model: Model
+    params: dict
+    result: FitResult
+    blocks: list
+    residuals: list
+    model_values: list
+    geometry: list
+    fit_kwargs: dict = field(default_factory=dict)  # the options of the diagnosis' fits (loss, floor, ...)
+
+    def block_model(self, k: int) -> Model:
+        return self.result.models[k] if self.result.models else self.model
+
+    def block_frame(self, k: int) -> Frame:
+        b = self.blocks[k]
+        if self.result.frames and self.result.frames[k] is not None:
+            return self.result.frames[k]
+        return Frame(b.theta_i, b.phi_ref, b.wavelength)
+
+    def frames(self) -> list[int]:
+        return [k for k, b in enumerate(self.blocks) if isinstance(b, FrameData)]
+
+    def sigma(self, k: int) -> np.ndarray:
+        b = self.blocks[k]
+        if isinstance(b, TableData) and b.sigma_rel is None:
+            return np.ones(np.shape(b.brdf))
+        return np.broadcast_to(np.asarray(b.sigma_rel, float), np.shape(b.brdf))
+
+
+
+# --- measures ------------------------------------------------------------------------------
+
+
+
+def residual_maps(result: FitResult, blocks: Sequence[FrameData | TableData]) -> list[np.ndarray]:
+    """Per block ``r = (ln d - ln f) / sigma_ln`` on the block's grid (frames) or rows (tables); NaN where unused."""
+    out = []
+    for b, r in zip(blocks, result.residuals):
+        u = b.usable()
+        m = np.full(u.shape, np.nan)
+        m[u] = -np.asarray(r, float)  # the fit's residuals are (ln f - ln d) / sigma
+        out.append(m)
+    return out
+
+
+def gap_measures(result: FitResult) -> dict[str, float]:
+    """The global gap of a fit: chi2, dof, chi2_reduced, rms_log10 (rms of log10 f - log10 d), BIC."""
+    n = sum(b.n_points for b in result.blocks)
+    ms = sum(b.n_points * b.log_rms**2 for b in result.blocks) / max(n, 1)
+    k = len(result.free_names)
+    return {
+        "chi2": float(result.chi2),
+        "n_points": int(result.n_points),
+        "n_free": k,
+        "dof": int(result.dof),
+        "chi2_reduced": float(result.chi2_reduced),
+        "rms_log10": float(math.sqrt(ms) / LN10),
+        "bic": float(result.chi2 + k * math.log(max(result.n_points, 2))),
+    }
+
+
+def warm_params(params: Mapping[str, Any], result: FitResult, block_names: Sequence[str] | None = None) -> dict[str, Any]:
+    """``params`` with every free parameter's start moved to its fitted value (kept strictly inside its bounds).
+
+    Per-frame parameters (``name[block]`` in the result) become per-block lists.
+    """
+    names = [b.name for b in result.blocks] if block_names is None else list(block_names)
+    out: dict[str, Any] = {}
+    for name, spec in params.items():
+        p = as_param(name, spec)
+        if not p.free:
+            out[name] = p
+            continue
+        if name in result.parameters:
+            value: Any = _inside(result.value(name), p)
+        else:
+            keys = [f"{name}[{bn}]" for bn in names]
+            if all(k in result.parameters for k in keys):
+                value = [_inside(result.value(k), p) for k in keys]
+            else:
+                out[name] = p
+                continue
+        out[name] = dataclasses.replace(p, value=value)
+    return out
+
+
+def _inside(x: float, p: Param) -> float:
+    lo = -math.inf if p.lower is None else float(p.lower)
+    hi = math.inf if p.upper is None else float(p.upper)
+    if math.isfinite(lo) and math.isfinite(hi):
+        eps = 1e-6 * (hi - lo)
+        return float(min(max(x, lo + eps), hi - eps))
+    if math.isfinite(lo) and x <= lo:
+        return lo + max(1e-9, 1e-6 * abs(lo))
+    if math.isfinite(hi) and x >= hi:
+        return hi - max(1e-9, 1e-6 * abs(hi))
+    return float(x)
+
+
+# --- context of a fit ----------------------------------------------------------------------
+
+
+
+def _block_geometry(b: FrameData | TableData, frame: Any) -> dict[str, np.ndarray]:
+    if isinstance(b, FrameData):
+        g = render_geometry(frame, b.arm_detector(), grid=b.grid, precision=precision_name())
+        ts, ps = np.asarray(g["theta_s"], float), np.asarray(g["phi_s"], float)
+        sx, sy = specular_coordinates(ts, ps, float(frame.theta_i), 0.0)
+        return {"theta_s": ts, "phi_s": ps, "sx": sx, "sy": sy}
+    ts, ps = np.asarray(b.theta_s, float), np.asarray(b.phi_s, float)
+    sx, sy = specular_coordinates(ts, ps, np.asarray(b.theta_i, float), np.asarray(b.phi_i, float))
+    return {"theta_s": ts, "phi_s": ps, "sx": sx, "sy": sy, "theta_i": np.asarray(b.theta_i, float)}
+
+
+def _block_model(b: FrameData | TableData, model: Model, frame: Any) -> np.ndarray:
+    if isinstance(b, FrameData):
+        return np.asarray(render(model, frame, b.arm_detector(), grid=b.grid, precision=precision_name()), float)
+    dirs = Directions.from_angles(*(np.asarray(getattr(b, f), float) for f in ("theta_i", "phi_i", "theta_s", "phi_s")))
+    wl = np.broadcast_to(np.asarray(b.wavelength, float), np.shape(b.brdf))
+    return np.asarray(model(dirs, wl), float)
+
+
+def build_context(model_spec: Model, params: Mapping[str, Any], result: FitResult, blocks: Sequence[Any],
+                  fit_kwargs: Mapping[str, Any] | None = None) -> Context:
+    """The :class:`Context` of a fit (the fitted model, residual maps, model values, geometry)."""
+    fitted = result.models[0] if result.models else model_spec
+    geometry = [_block_geometry(b, f) for b, f in zip(blocks, result.frames)]
+    values = [_block_model(b, m, f) for b, m, f in zip(blocks, result.models, result.frames)]
+    return Context(
+        model=fitted,
+        params=warm_params(params, result),
+        result=result,
+        blocks=list(blocks),
+        residuals=residual_maps(result, blocks),
+        model_values=values,
+        geometry=geometry,
+        fit_kwargs=dict(fit_kwargs or {}),
+    )

@@ -1,0 +1,200 @@
+"""The results of a diagnosis: :class:`Diagnosis` (the ``diagnosis.json`` contract and the reports),
+:class:`Candidate` (one effect at one step) and :class:`Step` (one step of the explanation path).
+
+The engine (:mod:`brdfjax.diagnose.engine`) builds them; :mod:`brdfjax.diagnose.report`
+renders them (it imports this module only for type names).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..fit import FitResult
+from .report import html_report, markdown_report
+from .zones import Region, zone_label
+
+__all__ = ["Candidate", "Step", "Diagnosis", "json_ready", "finite_or_none"]
+
+
+
+def finite_or_none(x: Any) -> Any:
+    """``x`` as a float, or None when it is missing, not a number or not finite (JSON has no NaN)."""
+    if x is None:
+        return None
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def json_ready(obj: Any) -> Any:
+    """``obj`` with every value JSON can hold (numbers finite or None, keys strings, tuples lists)."""
+    if isinstance(obj, dict):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, bool | str) or obj is None:
+        return obj
+    if isinstance(obj, int | np.integer):
+        return int(obj)
+    if isinstance(obj, float | np.floating):
+        return finite_or_none(obj)
+    return str(obj)
+
+
+@dataclass
+class Candidate:
+    """One candidate effect at one step: applicability, signature and the refit with it."""
+
+    effect: str
+    title: str
+    status: str  # "ranked", "skipped", "not identifiable", "failed"
+    note: str = ""
+    signature: dict[str, Any] = field(default_factory=dict)  # value, score, detail
+    n_new: int = 0
+    delta_chi2: float = math.nan
+    delta_bic: float = math.nan
+    gap_after: dict[str, float] = field(default_factory=dict)
+    zones_after: dict[str, dict[str, float]] = field(default_factory=dict)
+    wall_s: float = 0.0
+    # not serialised: the refit's state, to continue the path from it
+    state: Any = field(default=None, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        return json_ready(
+            {
+                "effect": self.effect,
+                "title": self.title,
+                "status": self.status,
+                "note": self.note,
+                "delta_chi2": self.delta_chi2,
+                "delta_bic": self.delta_bic,
+                "signature": self.signature,
+                "n_new": self.n_new,
+                "chi2_reduced_after": self.gap_after.get("chi2_reduced"),
+                "rms_log10_after": self.gap_after.get("rms_log10"),
+                "zones_after": {k: v["chi2_reduced"] for k, v in self.zones_after.items()},
+                "wall_s": self.wall_s,
+            }
+        )
+
+
+@dataclass
+class Step:
+    """One step of the explanation path (the base, then each accepted effect)."""
+
+    effect: str
+    gap: dict[str, float]
+    zones: dict[str, dict[str, float]]
+    heldout: dict[str, float] | None
+    delta_bic: float = math.nan
+    parameters: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return json_ready(
+            {
+                "effect": self.effect,
+                "chi2": self.gap["chi2"],
+                "chi2_reduced": self.gap["chi2_reduced"],
+                "rms_log10": self.gap["rms_log10"],
+                "bic": self.gap["bic"],
+                "n_free": self.gap["n_free"],
+                "delta_bic": self.delta_bic,
+                "heldout_rms_log10": None if self.heldout is None else self.heldout["rms_log10"],
+                "heldout_chi2_reduced": None if self.heldout is None else self.heldout["chi2_reduced"],
+                "zones": {k: v["chi2_reduced"] for k, v in self.zones.items()},
+                "parameters": self.parameters,
+            }
+        )
+
+
+@dataclass
+class Diagnosis:
+    """Everything a diagnosis found; :meth:`to_dict` is the ``diagnosis.json`` contract, :meth:`write` the reports."""
+
+    gap: dict[str, Any]
+    regions: list[Region]
+    block_names: list[str]
+    ranking: list[Candidate]  # ranked candidates at the first step, best first
+    skipped: list[Candidate]  # not applicable / not identifiable / failed, with the reason
+    path: list[Step]
+    significant: bool
+    bic_threshold: float
+    notes: list[str]
+    timings: dict[str, float]
+    settings: dict[str, Any]
+    context: Any = field(default=None, repr=False)  # the base fit's Context
+    final_context: Any = field(default=None, repr=False)
+    path_rankings: list[list[Candidate]] = field(default_factory=list, repr=False)
+    base_result: FitResult | None = field(default=None, repr=False)
+    final_result: FitResult | None = field(default=None, repr=False)
+
+    @property
+    def zones(self) -> list[dict[str, Any]]:
+        return [r.to_dict(self.block_names[r.block]) | {"label": zone_label(r, k)} for k, r in enumerate(self.regions)]
+
+    @property
+    def explained_by(self) -> list[str]:
+        return [s.effect for s in self.path[1:]]
+
+    def to_dict(self) -> dict[str, Any]:
+        return json_ready(
+            {
+                "gap": self.gap,
+                "zones": self.zones,
+                "ranking": [c.to_dict() for c in self.ranking],
+                "skipped": [c.to_dict() for c in self.skipped],
+                "path": [s.to_dict() for s in self.path],
+                "path_rankings": [[c.to_dict() for c in r] for r in self.path_rankings],
+                "significant": self.significant,
+                "explained_by": self.explained_by,
+                "bic_threshold": self.bic_threshold,
+                "blocks": self.block_names,
+                "notes": self.notes,
+                "timings_s": self.timings,
+                "settings": self.settings,
+            }
+        )
+
+    def to_json(self, path: str | os.PathLike | None = None, indent: int = 2) -> str:
+        text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        if path is not None:
+            _atomic_write(Path(path), text + "\n")
+        return text
+
+    def summary(self) -> str:
+        lines = [
+            f"base: chi2_reduced {self.gap['chi2_reduced']:.4g}, rms_log10 {self.gap['rms_log10']:.4g}"
+            + ("" if self.gap.get("heldout_rms_log10") is None else f", held-out rms_log10 {self.gap['heldout_rms_log10']:.4g}")
+        ]
+        for k, z in enumerate(self.zones[:6]):
+            lines.append(f"  zone {z['label']}: share {z['share']:.1%}, centre {z['center_deg'][0]:+.3g}/{z['center_deg'][1]:+.3g} deg, {z['sign']}")
+        for c in self.ranking[:6]:
+            lines.append(f"  {c.effect:<22s} dBIC {c.delta_bic:12.1f}  dchi2 {c.delta_chi2:12.1f}  signature {c.signature.get('score', math.nan):.3g}")
+        lines.append("path: " + " -> ".join(f"{s.effect} ({s.gap['chi2_reduced']:.3g})" for s in self.path))
+        lines.append(f"significant: {self.significant}")
+        return "\n".join(lines)
+
+    def write(self, out_dir: str | os.PathLike, *, figures: bool = True) -> dict[str, Path]:
+        """Write ``diagnosis.json``, ``report.md`` and ``report.html`` (figures embedded) into ``out_dir``, atomically."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = {"json": out / "diagnosis.json", "md": out / "report.md", "html": out / "report.html"}
+        self.to_json(paths["json"])
+        _atomic_write(paths["md"], markdown_report(self))
+        _atomic_write(paths["html"], html_report(self, figures=figures))
+        return paths
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
