@@ -81,17 +81,21 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from ..config import ConfigError, ModelConfig, StrictModel, build_model, read_toml, validate
 from ..detector import Detector
 from ..errors import InputError
 from ..instrument.nd import stack_od
-from ..instrument.synthetic import EFFECTS, load_instrument_config
 from ..instrument.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
+from ..instrument.synthetic import EFFECTS, load_instrument_config
 from ..io import atomic_output, geometry_attrs
 from ..render import Frame
 from .alignment import AlignmentResult, run_alignment
 from .interfaces import Bench, DeviceError, bench_detector, check_bench
+from .lab import open_lab_bench
+from .liveview import LiveView
 from .plans import (
     DEFAULT_EXPOSURES_S,
     Interlock,
@@ -100,6 +104,7 @@ from .plans import (
     peak_above_black,
     probe_stack,
 )
+from .simulated import SimulatedBench
 
 __all__ = [
     "CaptureConfig",
@@ -286,11 +291,7 @@ def build_bench(cfg: CaptureConfig, *, config_dir: Path | None = None):
     """The bench of a config: ``(Bench, simulator or None)``."""
     ins = cfg.instrument
     if ins.kind == "lab":
-        from .lab import open_lab_bench
-
         return open_lab_bench(ins.lab, wavelength=cfg.wavelength_nm * 1e-9), None
-    from .simulated import SimulatedBench
-
     shape = tuple(ins.shape) if ins.shape else (2472 // ins.bin, 3296 // ins.bin)
     pitch = 5.5e-6 * ins.bin
     det = Detector.seed(
@@ -782,16 +783,6 @@ class _Progress:
     def __init__(self, total: int, done: int, *, enabled: bool):
         self._p = None
         if enabled:
-            from rich.console import Console
-            from rich.progress import (
-                BarColumn,
-                MofNCompleteColumn,
-                Progress,
-                TextColumn,
-                TimeElapsedColumn,
-                TimeRemainingColumn,
-            )
-
             self._p = Progress(
                 TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                 TextColumn("left"), TimeRemainingColumn(), console=Console(stderr=True), transient=False,
@@ -848,14 +839,10 @@ def run_capture_command(args: argparse.Namespace) -> int:
         src = cfg.source
         cfg = cfg.model_copy(update=updates)
         cfg._source = src
-    from rich.console import Console
-
     console = Console(stderr=True, highlight=False, soft_wrap=True)
     log = lambda s: console.print(s, markup=False)  # noqa: E731
     live = None
     if cfg.capture.live != "off":
-        from .liveview import LiveView
-
         live = LiveView(Path(args.out) / "live", mode=cfg.capture.live, min_interval_s=cfg.capture.live_interval_s)
     t0 = time.perf_counter()
     try:

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..fit import FrameData
+from ..plotting import agg_pyplot
 
 # ``d`` below is a :class:`~brdfjax.diagnose.results.Diagnosis`; not imported: results imports this module to
 # write the reports (Any keeps the two out of a cycle)
@@ -109,19 +110,13 @@ def markdown_report(d: Diagnosis) -> str:
 def _png(fig) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    import matplotlib.pyplot as plt  # optional and heavy: only the figures need it
-
-    plt.close(fig)
+    agg_pyplot().close(fig)
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
 def figures(d: Diagnosis) -> list[tuple[str, str]]:
     """``[(caption, base64 PNG)]`` of the diagnosis (see the module docstring)."""
-    import matplotlib  # optional and heavy: only the figures need it (and the Agg backend set first)
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
+    plt = agg_pyplot()
     ctx, fin = d.context, d.final_context
     out = []
     if ctx is None:
