@@ -6,15 +6,15 @@ Public names are re-exported here from their modules; see the README for a tour.
 from . import distributions as distributions
 from .detector import Detector as Detector, PixelGrid as PixelGrid, incident_direction as incident_direction
 from .distributions import (
+    GGX as GGX,
+    GTR as GTR,
     AbstractDistribution as AbstractDistribution,
     AshikhminShirley as AshikhminShirley,
     BeardMaxwell as BeardMaxwell,
     Beckmann as Beckmann,
     BeckmannAniso as BeckmannAniso,
     CosineLobe as CosineLobe,
-    GGX as GGX,
     GGXAniso as GGXAniso,
-    GTR as GTR,
     HyperCauchy as HyperCauchy,
     Ribardiere as Ribardiere,
     StudentT as StudentT,

@@ -12,8 +12,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from . import distributions as _d
-from . import presets as _presets
+from . import distributions as _d, presets as _presets
 from .terms import AbstractTerm, Diffraction, Lambertian, Model, OffsetNormal, Specular, solar_cell
 
 __all__ = ["DISTRIBUTIONS", "TERMS", "PRESETS", "lookup", "parameter_names", "build_term", "build_model"]

@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from .fields import check_param, param
 from .distributions import AbstractDistribution, Beckmann
+from .fields import check_param, param
 from .fresnel import q_factor
 from .geometry import Directions, Ry, Rz
 

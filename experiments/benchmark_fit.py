@@ -46,7 +46,6 @@ def _child(step: int, theta_i: float, noise: float) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import numpy as np
 
     import brdfjax as bj
     import brdfjax.fit._problem as P

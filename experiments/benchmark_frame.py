@@ -396,7 +396,7 @@ def _parse_chunks(text: str) -> list[int]:
         try:
             value = int(base) ** int(exp) if exp else int(base)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"chunk_pixels must be integers or powers like 2**20, got {item!r}")
+            raise argparse.ArgumentTypeError(f"chunk_pixels must be integers or powers like 2**20, got {item!r}") from None
         if value < 1:
             raise argparse.ArgumentTypeError(f"chunk_pixels must be positive, got {item!r}")
         out.append(value)

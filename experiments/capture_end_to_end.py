@@ -25,7 +25,6 @@ import time
 import tomllib
 from pathlib import Path
 
-
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -112,12 +111,12 @@ def main(argv: list[str] | None = None) -> int:
     }
     (out / "end_to_end.json").write_text(json.dumps(report, indent=2) + "\n")
     print(res.summary())
-    print(f"\nalignment error (measured - injected), deg: " + ", ".join(f"{k} {v:+.4f}" for k, v in align.items()))
+    print("\nalignment error (measured - injected), deg: " + ", ".join(f"{k} {v:+.4f}" for k, v in align.items()))
     for k in ("a", "m1", "m2"):
         print(f"{k}: {rows[k]['value']:.6g} (truth {truth[k]:.6g}), relative error {rows[k]['rel_err']:+.2e}")
     for k, v in ang.items():
         print(f"{k}: {v:+.4f} deg" if "phi_ref" in k else f"{k}: {v:+.5f}")
-    print(f"timings: " + ", ".join(f"{k} {v:.1f}" for k, v in times.items()))
+    print("timings: " + ", ".join(f"{k} {v:.1f}" for k, v in times.items()))
     print(f"acceptance (a 1 %, m1/m2 5 %, angles 0.05 deg): {report['acceptance']}")
     return 0 if ok else 1
 

@@ -99,8 +99,7 @@ def _atomic_json(path: Path, obj) -> None:
 
 
 def instrument(bin_: int, seed: int):
-    from brdfjax.instrument.synthetic import load_instrument_config
-    from brdfjax.instrument.synthetic import SyntheticInstrument
+    from brdfjax.instrument.synthetic import SyntheticInstrument, load_instrument_config
 
     det = bj.Detector.seed(shape=(2472 // bin_, 3296 // bin_), pixel_pitch=5.5e-6 * bin_, pixel_pitch_v=5.5e-6 * bin_)
     cfg = load_instrument_config(INSTRUMENT_TOML)

@@ -32,8 +32,8 @@ import equinox as eqx
 import numpy as np
 
 import brdfjax as bj
-from brdfjax.simulate import FrameResult, run_simulate
 from brdfjax.config import load_simulate_config
+from brdfjax.simulate import FrameResult, run_simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = {name: ROOT / "configs" / f"seed_{name}.toml" for name in ("fig33", "fig34", "fig35")}

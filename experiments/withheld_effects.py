@@ -56,8 +56,10 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from brdfjax.diagnose import diagnose  # noqa: E402
-from brdfjax.diagnose import effects as fx  # noqa: E402
+from brdfjax.diagnose import (
+    diagnose,  # noqa: E402
+    effects as fx,  # noqa: E402
+)
 from brdfjax.fit import Param  # noqa: E402
 
 

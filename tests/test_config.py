@@ -6,6 +6,7 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import pydantic
 import pytest
 
 import brdfjax as bj
@@ -77,7 +78,7 @@ def test_good_config_builds_core_objects(tmp_path):
 
 def test_config_is_frozen(tmp_path):
     cfg = load_simulate_config(write(tmp_path, GOOD))
-    with pytest.raises(Exception):
+    with pytest.raises(pydantic.ValidationError, match="frozen"):
         cfg.precision = "float64"  # type: ignore[misc]
 
 

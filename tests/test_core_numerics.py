@@ -152,7 +152,7 @@ def test_gradients_are_finite_and_match_finite_differences(case):
         g = float(_get(grads, path))
         assert np.isfinite(g), name
         x0 = float(_get(args, path))
-        at = lambda x: float(f(_set(args, path, _f64(x))))  # noqa: E731
+        at = lambda x, path=path: float(f(_set(args, path, _f64(x))))  # noqa: E731
         # Step that changes the loss by ~1e-7 of itself (roundoff ~1e-9 relative), capped well
         # below each parameter's scale of variation; fourth-order stencil so truncation is negligible.
         f0 = abs(at(x0))

@@ -1,14 +1,13 @@
 """Physics properties of the BRDF building blocks (Eq 54, 69-70, 112-115)."""
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import brdfjax as bj
 from brdfjax import distributions as D
-from brdfjax.geometry import Directions, Rz, direction, rotate
+from brdfjax.geometry import Directions, direction
 
 
 def _normalisation(dist: D.AbstractDistribution) -> float:

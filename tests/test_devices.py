@@ -22,8 +22,7 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax.devices import Bench, SimulatedBench, check_bench
-from brdfjax.devices import interfaces as itf
+from brdfjax.devices import Bench, SimulatedBench, check_bench, interfaces as itf
 from brdfjax.devices.alignment import run_alignment, solve_alignment, spot_pixel
 from brdfjax.devices.capture import CaptureError, load_capture_config, run_capture
 from brdfjax.devices.liveview import LiveView
@@ -334,6 +333,7 @@ def test_killed_capture_resumes_bit_identical(tmp_path):
     ref = run_capture(load_capture_config(_config(tmp_path, "ref.toml")), tmp_path / "ref")
     m_res, m_ref = read_manifest(resumed), read_manifest(ref)
     assert [s.name for s in m_res.samples] == ["ti20", "ti40", "ti60"]  # each exactly once
+    assert [s.name for s in m_ref.samples] == [s.name for s in m_res.samples]
     assert tomllib.loads(resumed.read_text())["capture"]["done"] == ["beam", "ti20", "ti40", "ti60"]
     files = sorted(p.name for p in out.glob("*.exr"))
     assert files == sorted(p.name for p in (tmp_path / "ref").glob("*.exr")) and len(files) == 8

@@ -1,11 +1,9 @@
 """Frames with a footprint: the stacked, support-restricted evaluation equals the plain one (performance path)."""
 
 import numpy as np
-import pytest
 
 import brdfjax as bj
-from brdfjax.fit import FrameData, LevenbergMarquardt, prepare
-from brdfjax.fit import _fit as fitmod
+from brdfjax.fit import FrameData, LevenbergMarquardt, _fit as fitmod, prepare
 from brdfjax.instrument.synthetic import footprint_kernel
 from brdfjax.presets import mirror
 

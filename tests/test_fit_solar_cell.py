@@ -73,7 +73,7 @@ def test_joint_fit_recovers_the_seed_parameters(reference, frames):
         v, s = res.value(k), res.sigma(k)
         pulls[k] = (v - TRUTH[k]) / s
         assert abs(pulls[k]) < 3.0, f"{k}: {v} +- {s} vs truth {TRUTH[k]}"
-    for i, f in enumerate(frames):
+    for f in frames:
         name = f"phi_ref[{f.name}]"
         pulls[name] = res.value(name) / res.sigma(name)
         assert abs(pulls[name]) < 3.0

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax.fit import Param, fit, get_solver, prepare, render_noisy_frames
+from brdfjax.fit import fit, get_solver, prepare, render_noisy_frames
 from brdfjax.sample import Prior, SampleError, build_log_posterior, sample
 from brdfjax.sample._chain import diagnose, run_chain
 from brdfjax.sample._posterior import start_ball

@@ -20,7 +20,6 @@ from brdfjax.detector import Detector, PixelGrid
 from brdfjax.instrument.uncertainty import (
     SEED_ARM_ANGLE_UNCERTAINTY,
     SEED_DISTANCE_UNCERTAINTY,
-    SEED_ND_TOLERANCES,
     SEED_PITCH_UNCERTAINTY,
     brdf_eq45,
     brdf_uncertainty,

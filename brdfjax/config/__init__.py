@@ -39,71 +39,31 @@ from __future__ import annotations
 
 from .base import (
     ConfigError as ConfigError,
-)
-from .base import (
     StrictModel as StrictModel,
-)
-from .base import (
     check_choice as check_choice,
-)
-from .base import (
     describe_validation_error as describe_validation_error,
-)
-from .base import (
     quoted_choices as quoted_choices,
-)
-from .base import (
     read_toml as read_toml,
-)
-from .base import (
     unknown_key_message as unknown_key_message,
-)
-from .base import (
     validate as validate,
 )
 from .model import (
     ModelConfig as ModelConfig,
-)
-from .model import (
     TermConfig as TermConfig,
-)
-from .model import (
     build_model as build_model,
-)
-from .model import (
     build_preset as build_preset,
-)
-from .model import (
     build_term as build_term,
-)
-from .model import (
     describe_model as describe_model,
-)
-from .model import (
     parameter_keys as parameter_keys,
 )
 from .simulate import (
     DETECTOR_PRESETS as DETECTOR_PRESETS,
-)
-from .simulate import (
     DetectorConfig as DetectorConfig,
-)
-from .simulate import (
     FrameConfig as FrameConfig,
-)
-from .simulate import (
     GridConfig as GridConfig,
-)
-from .simulate import (
     SimulateConfig as SimulateConfig,
-)
-from .simulate import (
     default_config_path as default_config_path,
-)
-from .simulate import (
     load_simulate_config as load_simulate_config,
-)
-from .simulate import (
     parse_simulate_config as parse_simulate_config,
 )
 

@@ -242,7 +242,7 @@ def build_term(source: str, loc: str, t: TermConfig) -> AbstractTerm:
         (f"{loc}.params.{k}", unknown_key_message(k, keys, what)) for k in t.params if k not in keys
     ]
     given = {keys[k][0] for k in t.params if k in keys}
-    for key, (name, _, unit) in keys.items():
+    for key, (name, _, _unit) in keys.items():
         if name in required and name not in given:
             needs = ", ".join(k for k, (n, _, _) in keys.items() if n in required)
             problems.append((f"{loc}.params", f"missing parameter '{key}' for {what}; needs: {needs}"))

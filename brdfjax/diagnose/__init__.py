@@ -32,48 +32,21 @@ from __future__ import annotations
 
 from .context import (
     Context as Context,
-)
-from .context import (
     build_context as build_context,
-)
-from .context import (
     gap_measures as gap_measures,
-)
-from .context import (
     residual_maps as residual_maps,
-)
-from .context import (
     warm_params as warm_params,
 )
 from .effects import (
     EFFECT_LIBRARY as EFFECT_LIBRARY,
-)
-from .effects import (
     Effect as Effect,
-)
-from .effects import (
     Extension as Extension,
-)
-from .effects import (
     Scenario as Scenario,
-)
-from .effects import (
     Signature as Signature,
-)
-from .effects import (
     base_scenario as base_scenario,
-)
-from .effects import (
     inject as inject,
-)
-from .effects import (
     synthesize as synthesize,
 )
-from .engine import DiagnoseInputError as DiagnoseInputError
-from .engine import diagnose as diagnose
-from .results import Candidate as Candidate
-from .results import Diagnosis as Diagnosis
-from .results import Step as Step
-from .zones import Region as Region
-from .zones import find_regions as find_regions
-from .zones import specular_coordinates as specular_coordinates
+from .engine import DiagnoseInputError as DiagnoseInputError, diagnose as diagnose
+from .results import Candidate as Candidate, Diagnosis as Diagnosis, Step as Step
+from .zones import Region as Region, find_regions as find_regions, specular_coordinates as specular_coordinates

@@ -131,7 +131,7 @@ def figures(d: Diagnosis) -> list[tuple[str, str]]:
             fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
             ext = [b.grid.n_h[0], b.grid.n_h[-1], b.grid.n_v[-1], b.grid.n_v[0]]
             im = axes[0].imshow(r, cmap="RdBu_r", vmin=-lim, vmax=lim, extent=ext, aspect="auto")
-            for k, reg in regs:
+            for _k, reg in regs:
                 axes[0].contour(b.grid.n_h, b.grid.n_v, reg.mask.astype(float), levels=[0.5], colors=colors.get(reg.name, "k"), linewidths=1)
             axes[0].set_xlabel("n_h (px)")
             axes[0].set_ylabel("n_v (px)")
@@ -165,7 +165,7 @@ def figures(d: Diagnosis) -> list[tuple[str, str]]:
             fig, ax = plt.subplots(figsize=(7, 4))
             ok = np.isfinite(r)
             ax.scatter(geo["sx"][ok], r[ok], s=6, c="0.3")
-            for k, reg in regs:
+            for _k, reg in regs:
                 ax.axvspan(float(geo["sx"][reg.mask].min()), float(geo["sx"][reg.mask].max()), alpha=0.2, color=colors.get(reg.name, "k"))
             ax.set_xlabel("angle from specular (deg)")
             ax.set_ylabel("r = (ln d - ln f)/sigma")

@@ -25,13 +25,12 @@ from ._auto_init import (
 from ._common import FitInputError as FitInputError
 from ._covariance import Covariance as Covariance, covariance as covariance
 from ._data import FrameData as FrameData, TableData as TableData
+from ._fit import FIRST_STAGES as FIRST_STAGES, fit as fit, prepare as prepare, versions as versions
 from ._frames_io import (
     detector_from_attrs as detector_from_attrs,
     frame_data_from_reduced as frame_data_from_reduced,
     read_frame_data as read_frame_data,
 )
-from ._synthetic import render_noisy_frames as render_noisy_frames
-from ._fit import FIRST_STAGES as FIRST_STAGES, fit as fit, prepare as prepare, versions as versions
 from ._params import TRANSFORMS as TRANSFORMS, Param as Param
 from ._residuals import (
     LOSSES as LOSSES,
@@ -40,14 +39,15 @@ from ._residuals import (
 )
 from ._result import BlockSummary as BlockSummary, FitResult as FitResult, ParameterEstimate as ParameterEstimate
 from ._solvers import (
-    SOLVERS as SOLVERS,
     LBFGSB as LBFGSB,
+    SOLVERS as SOLVERS,
     AbstractSolver as AbstractSolver,
     LevenbergMarquardt as LevenbergMarquardt,
     SolveOutcome as SolveOutcome,
     SolveStatus as SolveStatus,
     get_solver as get_solver,
 )
+from ._synthetic import render_noisy_frames as render_noisy_frames
 from ._tables import (
     CANONICAL_COLUMNS as CANONICAL_COLUMNS,
     export_table as export_table,

@@ -59,8 +59,8 @@ import numpy as np
 
 from ..distributions import GGX, Beckmann, BeckmannAniso, GGXAniso
 from ..geometry import Directions
-from ..render import Frame, sample_directions
 from ..instrument.synthetic import convolve_footprint
+from ..render import Frame, sample_directions
 from ..terms import Diffraction, Lambertian, Model, OffsetNormal, Oriented, Specular
 from ._common import FitInputError
 from ._data import FrameData, TableData

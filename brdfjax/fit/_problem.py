@@ -264,7 +264,7 @@ class Problem(eqx.Module):
         for k in range(self.n_blocks):
             mv, fv = self._block_values(x, k)
             if self.stack is not None:
-                block = jax.tree_util.tree_map(lambda a: a[k], self.stack.blocks)
+                block = jax.tree_util.tree_map(lambda a, k=k: a[k], self.stack.blocks)
             else:
                 block = self.blocks[k]
             out.append(_apply(block.template, block.frame, mv, fv))
@@ -274,7 +274,7 @@ class Problem(eqx.Module):
         """The blocks one by one (unstacked views when stacked; padding included)."""
         if self.stack is None:
             return list(self.blocks)
-        return [jax.tree_util.tree_map(lambda a: a[k], self.stack.blocks) for k in range(self.n_blocks)]
+        return [jax.tree_util.tree_map(lambda a, k=k: a[k], self.stack.blocks) for k in range(self.n_blocks)]
 
     def weighted_residuals(self, v: Array) -> Array:
         """``(log(f + floor) - log d) / sigma_rel`` at every usable point (softened in a first stage), blocks in order."""

@@ -1,10 +1,5 @@
 """Instrument layer: raw exposure stacks, synthetic CCD frames, reduction and uncertainty (seed Ch. III-IV)."""
 
-from .uncertainty import (
-    brdf_uncertainty as brdf_uncertainty,
-    geometry_uncertainty as geometry_uncertainty,
-    optical_density_uncertainty as optical_density_uncertainty,
-)
 from .raw import (
     Exposure as Exposure,
     Manifest as Manifest,
@@ -22,3 +17,8 @@ from .reduce import (
     reduce_measurement_set as reduce_measurement_set,
 )
 from .synthetic import InstrumentConfig as InstrumentConfig, SyntheticInstrument as SyntheticInstrument
+from .uncertainty import (
+    brdf_uncertainty as brdf_uncertainty,
+    geometry_uncertainty as geometry_uncertainty,
+    optical_density_uncertainty as optical_density_uncertainty,
+)

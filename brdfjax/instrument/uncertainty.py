@@ -72,7 +72,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ..detector import Detector, PixelGrid
-from ..render import map_rows, resolve_dtype, cast
+from ..render import cast, map_rows, resolve_dtype
 from .nd import SEED_ND_TOLERANCES, NDSpec, parse_nd_filters
 
 __all__ = [

@@ -18,8 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..io import atomic_output
-from ..io import write_json_atomic as _write_json
+from ..io import atomic_output, write_json_atomic as _write_json
 from ..plotting import agg_pyplot
 
 __all__ = ["summarise", "write_json_atomic", "plot_corner", "plot_trace", "plot_predictive", "model_at_points", "QUANTILES"]

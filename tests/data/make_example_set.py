@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-
 import brdfjax as bj
 from brdfjax.instrument.raw import Calibration
 from brdfjax.instrument.synthetic import InstrumentConfig, StrayLight, SyntheticInstrument

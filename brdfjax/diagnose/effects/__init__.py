@@ -40,80 +40,37 @@ generator in ``generators.GENERATORS``.
 
 from __future__ import annotations
 
-from .base import Context as Context
-from .base import Effect as Effect
-from .base import Extension as Extension
-from .base import Signature as Signature
+from .base import Context as Context, Effect as Effect, Extension as Extension, Signature as Signature
 from .generators import (
     EXCLUSIVE as EXCLUSIVE,
-)
-from .generators import (
     GENERATORS as GENERATORS,
-)
-from .generators import (
     Scenario as Scenario,
-)
-from .generators import (
     base_scenario as base_scenario,
-)
-from .generators import (
     inject as inject,
-)
-from .generators import (
     synthesize as synthesize,
-)
-from .generators import (
     table_scenario as table_scenario,
 )
 from .instrument import (
     AngularSamplingEffect as AngularSamplingEffect,
-)
-from .instrument import (
     FluxScaleEffect as FluxScaleEffect,
-)
-from .instrument import (
     InstrumentFunctionEffect as InstrumentFunctionEffect,
-)
-from .instrument import (
     MisalignmentEffect as MisalignmentEffect,
-)
-from .instrument import (
     PixelNonlinearityEffect as PixelNonlinearityEffect,
-)
-from .instrument import (
     SpectralBandwidthEffect as SpectralBandwidthEffect,
-)
-from .instrument import (
     StrayLightEffect as StrayLightEffect,
 )
 from .model import (
     AnisotropicRoughnessEffect as AnisotropicRoughnessEffect,
-)
-from .model import (
     DiffractionEffect as DiffractionEffect,
-)
-from .model import (
     DistributionShapeEffect as DistributionShapeEffect,
-)
-from .model import (
     LambertianEffect as LambertianEffect,
-)
-from .model import (
     OffsetNormalPeakEffect as OffsetNormalPeakEffect,
 )
 from .terms import (
     InstrumentResponse as InstrumentResponse,
-)
-from .terms import (
     Oriented as Oriented,
-)
-from .terms import (
     SpectralDiffraction as SpectralDiffraction,
-)
-from .terms import (
     camera_params as camera_params,
-)
-from .terms import (
     response_features as response_features,
 )
 
