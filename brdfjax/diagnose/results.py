@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..fit import FitResult
+from ..io import atomic_output
 from .report import html_report, markdown_report
 from .zones import Region, zone_label
 
@@ -195,6 +196,5 @@ class Diagnosis:
 
 
 def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    with atomic_output(path) as tmp:
+        tmp.write_text(text)

@@ -361,7 +361,8 @@ def _along_band_step(p: dict[str, Any]) -> float:
 
 # --- specular + Lambertian ----------------------------------------------------------------
 
-_WIDTH_FIELD = {Beckmann: "m", GGX: "alpha"}
+#: Distributions whose width this initializer estimates (their ``width_field`` says which field).
+_WIDTH_ESTIMATED = (Beckmann, GGX)
 
 
 def _specular_lambertian_terms(model: Model) -> tuple[str, Specular, str, str]:
@@ -373,13 +374,13 @@ def _specular_lambertian_terms(model: Model) -> tuple[str, Specular, str, str]:
             + ", ".join(f"{k}: {type(t).__name__}" for k, t in model.terms.items())
         )
     name, term = spec[0]
-    width = _WIDTH_FIELD.get(type(term.distribution))
-    if width is None:
+    dist = type(term.distribution)
+    if dist not in _WIDTH_ESTIMATED:
         raise FitInputError(
             f"initializer 'specular_lambertian': no width estimate for the {type(term.distribution).__name__} "
-            f"distribution (known: {', '.join(c.__name__ for c in _WIDTH_FIELD)}); give its start value"
+            f"distribution (known: {', '.join(c.__name__ for c in _WIDTH_ESTIMATED)}); give its start value"
         )
-    return name, term, lamb[0], width
+    return name, term, lamb[0], dist.width_field
 
 
 def _public(model: Model, flat: str) -> str:
@@ -463,14 +464,10 @@ def _peak_terms(model: Model) -> tuple[str, Specular, Any, str | None] | None:
     return name, term, wrapper, (lamb[0] if lamb else None)
 
 
-#: Distribution -> (width fields, factor from the Beckmann-equivalent slope width to the field's width).
-#: Near its maximum GGX is ``(1 + t^2/alpha^2)^-2 ~ exp(-2 t^2 / alpha^2)``: alpha = sqrt(2) m.
-_PEAK_WIDTHS = {
-    Beckmann: (("m",), 1.0),
-    GGX: (("alpha",), math.sqrt(2.0)),
-    BeckmannAniso: (("mx", "my"), 1.0),
-    GGXAniso: (("alpha_x", "alpha_y"), math.sqrt(2.0)),
-}
+#: Distributions whose peak widths this initializer estimates: each class's ``width_fields`` and
+#: ``peak_width_factor`` (from the Beckmann-equivalent slope width to the field's width; near its
+#: maximum GGX is ``(1 + t^2/alpha^2)^-2 ~ exp(-2 t^2 / alpha^2)``: alpha = sqrt(2) m).
+_PEAK_WIDTH_ESTIMATED = (Beckmann, GGX, BeckmannAniso, GGXAniso)
 
 
 def _quadratic_peak(sx, sy, L, ok, seed: int, ggx: bool = False, depth: float = 3.0):
@@ -555,12 +552,12 @@ def init_specular_peak(
         )
     sname, sterm, wrapper, lname = found
     dist = type(sterm.distribution)
-    if dist not in _PEAK_WIDTHS:
+    if dist not in _PEAK_WIDTH_ESTIMATED:
         raise FitInputError(
             f"initializer 'specular_peak': no width estimate for the {dist.__name__} distribution "
-            f"(known: {', '.join(c.__name__ for c in _PEAK_WIDTHS)}); give its start values"
+            f"(known: {', '.join(c.__name__ for c in _PEAK_WIDTH_ESTIMATED)}); give its start values"
         )
-    fields, factor = _PEAK_WIDTHS[dist]
+    fields, factor = dist.width_fields, dist.peak_width_factor
     frames = [b for b in blocks if isinstance(b, FrameData)]
     if len(frames) != len(blocks):
         raise FitInputError("initializer 'specular_peak' works on detector frames only; give starts for tables")
