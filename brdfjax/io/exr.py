@@ -43,6 +43,7 @@ import OpenEXR  # the official bindings (3.x API)
 
 from ..errors import InputError
 from .atomic import atomic_output
+from .header import GEOMETRY_ATTRS
 
 __all__ = [
     "CHANNELS",
@@ -60,21 +61,8 @@ __all__ = [
 CHANNEL_UNITS: dict[str, str] = {"brdf": "sr^-1", "theta_s": "rad", "phi_s": "rad", "omega": "sr"}
 CHANNELS: tuple[str, ...] = tuple(CHANNEL_UNITS)
 
-#: Attributes stored as doubles, with their units.
-DOUBLE_ATTRS: dict[str, str] = {
-    "theta_i": "rad",
-    "theta_c": "rad",
-    "phi_ref": "rad",
-    "wavelength": "m",
-    "R": "m",
-    "pixel_pitch": "m",
-    "pixel_pitch_v": "m",
-    "roll": "rad",
-    "yaw": "rad",
-    "pitch": "rad",
-    "m_h": "px",
-    "m_v": "px",
-}
+#: Attributes stored as doubles, with their units: the frame header's geometry (:mod:`brdfjax.io.header`).
+DOUBLE_ATTRS: dict[str, str] = GEOMETRY_ATTRS
 
 #: Attributes every frame file carries.
 REQUIRED_ATTRS: tuple[str, ...] = (
