@@ -181,7 +181,7 @@ def test_synthetic_instrument_source_and_nominal_detector():
     assert broad.min() > mono.min() and np.abs(broad - mono).max() > 0.05 * mono.max()  # dark fringes fill in
     assert sum(w for _, w in Source(rel_width=0.01).samples(632.8e-9)) == pytest.approx(1.0)
     ins = SyntheticInstrument(true, InstrumentConfig().ideal(), seed=0, nominal_detector=det)
-    st = ins.measure_dark(ins._attrs("sample", "4.0", 0.5, 0.5, fr, "x"))
+    st = ins.measure_dark(ins.raw_attrs("sample", "4.0", fr, "x", theta_c=0.5))
     assert st.attrs.m_h == 0.0  # the files carry the nominal geometry, the light the true one
     with pytest.raises(ValueError, match="must describe the same array"):
         SyntheticInstrument(true, nominal_detector=bj.Detector.seed(shape=(8, 8)))
