@@ -5,7 +5,9 @@ columns it needs, a chain that belongs to another problem: each raises a
 subclass of :class:`InputError` whose message names the file, key or value
 and what was expected.  Every ``brdfjax`` subcommand catches
 :class:`InputError` and exits with status 2 and that message; anything else is
-a failure while running (status 1).  ``InputError`` is a :class:`ValueError`,
+a failure while running (status 1), and so are, by choice, an ``ExrError`` while
+``simulate`` writes and a ``ReductionError`` in ``reduce`` (a set that cannot be
+reduced, e.g. a refused overwrite).  ``InputError`` is a :class:`ValueError`,
 so code that caught ``ValueError`` before keeps working.
 """
 

@@ -103,10 +103,13 @@ def agg_pyplot() -> Any:
     return importlib.import_module("matplotlib.pyplot")
 
 
-def save_figure_atomic(fig: Any, path: Path, dpi: int) -> Path:
-    FigureCanvasAgg(fig)
+def save_figure_atomic(fig: Any, path: Path, dpi: int, **savefig_kw: Any) -> Path:
+    """Save ``fig`` to ``path`` through :func:`~brdfjax.io.atomic_output` (Agg canvas; the format from the suffix,
+    since the temporary name has none); ``savefig_kw`` go to ``Figure.savefig`` (e.g. ``bbox_inches``)."""
+    if not isinstance(fig.canvas, FigureCanvasAgg):  # a bare Figure (no pyplot): draw it with Agg
+        FigureCanvasAgg(fig)
     with atomic_output(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=dpi)
+        fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", dpi=dpi, **savefig_kw)
     return path
 
 

@@ -51,8 +51,9 @@ import numpy as np  # noqa: E402
 
 import brdfjax as bj  # noqa: E402
 from brdfjax.fit import Param, fit, render_noisy_frames  # noqa: E402
+from brdfjax.io import write_json_atomic  # noqa: E402
 from brdfjax.sample import Prior, sample  # noqa: E402
-from brdfjax.sample._outputs import plot_corner, write_json_atomic  # noqa: E402
+from brdfjax.sample._outputs import plot_corner  # noqa: E402
 
 MODEL = bj.solar_cell()
 TRUTH = {k: float(np.asarray(v)) for k, v in MODEL.params().items()}
@@ -186,7 +187,7 @@ def main() -> None:
               f"(log: {deg2['corr_log_rho_s1_n1']:.3f}); n1 68 % interval {deg2['n1_q16_q84'][0]:.2f} .. "
               f"{deg2['n1_q16_q84'][1]:.2f}; figure {deg2['figure']}")
     summary["wall_s"] = time.perf_counter() - t0
-    write_json_atomic(out / "summary.json", summary)
+    write_json_atomic(out / "summary.json", summary, allow_nan=False)
     print(f"wrote {out / 'summary.json'} ({summary['wall_s']:.0f} s)")
 
 

@@ -15,6 +15,7 @@ import numpy as np
 from ..detector import PixelGrid
 from ..fit import FitResult, FrameData, TableData, fit, prepare, versions
 from ..fit.internal import as_param, block_names, get_solver, to_natural
+from ..io import write_json_atomic
 from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
 from ._outputs import (
     model_at_points,
@@ -23,7 +24,6 @@ from ._outputs import (
     plot_trace,
     slice_columns,
     summarise,
-    write_json_atomic,
 )
 from ._posterior import LogPosterior, build_log_posterior, check_walkers, default_walkers, start_ball
 from ._priors import Prior, SampleError
@@ -383,7 +383,7 @@ def sample(
             files.update(_predictive(out, post, blocks, flat, predictive_draws, seed))
         summary["files"] = {k: Path(v).name for k, v in files.items()}
         summary["wall_s"] = time.perf_counter() - t_start
-        write_json_atomic(out / "posterior.json", summary)
+        write_json_atomic(out / "posterior.json", summary, allow_nan=False)  # strict JSON: NaN is not JSON
         files["summary"] = str(out / "posterior.json")
         result.files = files
     else:

@@ -8,7 +8,6 @@ stored), like the fit's result.  Files are written atomically
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -18,10 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..io import atomic_output, write_json_atomic as _write_json
-from ..plotting import agg_pyplot
+from ..plotting import agg_pyplot, save_figure_atomic
 
-__all__ = ["summarise", "write_json_atomic", "plot_corner", "plot_trace", "plot_predictive", "model_at_points", "QUANTILES"]
+__all__ = ["summarise", "plot_corner", "plot_trace", "plot_predictive", "model_at_points", "QUANTILES"]
 
 #: Reported quantiles: key -> percentile.
 QUANTILES = {"q025": 2.5, "q16": 16.0, "median": 50.0, "q84": 84.0, "q975": 97.5}
@@ -32,18 +30,6 @@ def _num(x: Any) -> Any:
         return None
     x = float(x)
     return x if math.isfinite(x) else None
-
-
-def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
-    """Strict JSON (no NaN) through :func:`brdfjax.io.write_json_atomic`; returns the path."""
-    return _write_json(path, data, allow_nan=False)
-
-
-def _savefig_atomic(fig: Any, path: Path, **kw: Any) -> Path:
-    kw.setdefault("format", path.suffix.lstrip(".") or None)  # the temporary name has no image suffix
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, **kw)
-    return path
 
 
 def summarise(
@@ -99,7 +85,7 @@ def plot_corner(path: Path, flat_natural: np.ndarray, names, units, truths=None,
     )
     if title:
         fig.suptitle(title, fontsize=10, y=1.01)
-    _savefig_atomic(fig, path, dpi=80, bbox_inches="tight")
+    save_figure_atomic(fig, path, 80, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -117,7 +103,7 @@ def plot_trace(path: Path, chain_natural: np.ndarray, names, units, burn: int, m
         ax.tick_params(labelsize=7)
     axes[-1, 0].set_xlabel("step (red: end of burn-in)")
     fig.tight_layout()
-    _savefig_atomic(fig, path, dpi=80)
+    save_figure_atomic(fig, path, 80)
     plt.close(fig)
     return path
 
@@ -179,7 +165,7 @@ def plot_predictive(
         if j == 0:
             ax.legend(fontsize=7)
     fig.tight_layout()
-    _savefig_atomic(fig, path, dpi=80)
+    save_figure_atomic(fig, path, 80)
     plt.close(fig)
     return path
 
