@@ -149,9 +149,24 @@ def test_unknown_parameter_is_named_with_the_known_ones(tmp_path, reduced_exampl
 
 def test_lower_above_upper_is_an_error(tmp_path, reduced_example):
     msg = _error(_config(tmp_path, "[params]\nn1 = { value = 'auto', lower = 6.0, upper = 1.0 }\n", reduced_example))
-    assert "params.n1: lower (6.0) must be below upper (1.0)" in msg
+    assert "params.n1: lower bound 6.0 > upper bound 1.0; swap them" in msg
     msg = _error(_config(tmp_path, "[params]\nn1 = { value = 9.0, lower = 1.0, upper = 6.0 }\n", reduced_example))
-    assert "params.n1.value: 9.0 is outside [1.0, 6.0]" in msg
+    assert "params.n1.value: start value 9.0 is outside its bounds [1.0, 6.0]" in msg
+
+
+def test_param_rules_are_reported_in_the_keys_unit(tmp_path, reduced_example):
+    # the rules of fit._params.param_problems, reported at the config key in degrees, not radians
+    msg = _error(_config(tmp_path, "[params]\ndtheta_deg = { value = 7.5, lower = -5.0, upper = 5.0 }\n", reduced_example))
+    assert "params.dtheta_deg.value: start value 7.5 is outside its bounds [-5.0, 5.0]" in msg
+    msg = _error(_config(tmp_path, "[params]\ndtheta_deg = { value = 0.5, lower = 2.0, upper = 2.0 }\n", reduced_example))
+    assert "params.dtheta_deg: lower == upper == 2.0 leaves nothing to fit; fix it with free=False" in msg
+    msg = _error(_config(tmp_path, "[params]\ndtheta_deg = { value = 0.5, scale = -1.0 }\n", reduced_example))
+    assert "params.dtheta_deg.scale: scale must be a positive number" in msg
+    msg = _error(_config(tmp_path, "[params]\nphi_ref_deg = { value = [0.1, 0.2], per_frame = false }\n", reduced_example))
+    assert "params.phi_ref_deg.value: a list of values needs per_frame = true" in msg
+    # a fixed parameter may sit on equal bounds
+    p = _config(tmp_path, "[params]\nn1 = { value = 2.0, lower = 2.0, upper = 2.0, free = false }\n", reduced_example)
+    assert load_fit_config(p).build_params()["n1"] == Param(2.0, lower=2.0, upper=2.0, free=False)
 
 
 def test_unknown_keys_and_bad_values_name_the_key(tmp_path, reduced_example):

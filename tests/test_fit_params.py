@@ -141,11 +141,15 @@ def test_lower_above_upper_is_an_error():
 @pytest.mark.parametrize(
     "spec, message",
     [
-        (Param(2.0, lower=0.0, upper=1.0), r"start value 2\.0 is outside its bounds"),
+        (Param(2.0, lower=0.0, upper=1.0), r"start value 2\.0 is outside its bounds \[0\.0, 1\.0\]"),
+        (Param(-0.5), r"start value -0\.5 is outside its bounds \[0\.0, inf\]"),  # the unit's default bound
         (Param(0.0), r"lies on a bound .* must start strictly inside its bounds"),
         (Param(0.1, lower=0.5, upper=0.5), r"lower == upper == 0\.5 leaves nothing to fit"),
         (Param([0.1, 0.2]), r"2 values given for a parameter shared by all frames"),
         (Param(0.1, scale=-1.0), r"scale must be a positive number"),
+        (Param(0.1, lower=float("nan")), r"expected a number \(inf allowed\), got nan"),
+        (Param("start"), r"value 'start' is not a number or 'auto'"),
+        (Param(float("inf"), lower=0.0), r"start value inf is not finite"),
         ("loose", r"unknown specification 'loose'"),
         ({"value": 0.1, "bound": 1}, r"unknown key\(s\) \['bound'\]"),
         (Param("auto"), r"'auto' but the automatic initialisation gives no value|need an initializer"),

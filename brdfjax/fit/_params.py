@@ -36,7 +36,7 @@ on ``identity`` parameters instead of the ``logit``.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -59,6 +59,9 @@ __all__ = [
     "FreeEntry",
     "FixedEntry",
     "build_layout",
+    "SPEC_KEYS",
+    "param_problems",
+    "check_param",
 ]
 
 TRANSFORMS = ("identity", "log", "neglog", "logit")
@@ -88,6 +91,69 @@ class Param:
         return cls(value="auto", **kwargs)
 
 
+#: The keys of a specification table: the fields of :class:`Param`.
+SPEC_KEYS = ("value", "lower", "upper", "free", "per_frame", "scale")
+
+
+def _is_nan(x: Any) -> bool:
+    return isinstance(x, float | int | np.floating | np.integer) and math.isnan(x)
+
+
+def param_problems(p: Param, show: Callable[[float], str] = repr) -> list[tuple[str, str]]:
+    """The rules of one specification that need no data, as ``(field, message)`` pairs.
+
+    This is the one place these rules are written: the Python API
+    (:func:`check_param`, from :func:`build_layout`) and the TOML fit config
+    (``brdfjax.fit.config``, which reports them at the config's key in the
+    key's own unit through ``show``) both call it.  ``field`` is ``""`` for
+    the whole specification, else ``"value"``, ``"lower"``, ``"upper"``,
+    ``"scale"`` or ``"per_frame"``.  Rules that need the data (a start from
+    the automatic initialisation or from the model inside the bounds, one
+    value per frame) stay in :func:`build_layout`.
+    """
+    problems: list[tuple[str, str]] = []
+    for field in ("lower", "upper"):
+        if _is_nan(getattr(p, field)):
+            problems.append((field, "expected a number (inf allowed), got nan"))
+    if problems:
+        return problems
+    lo, hi = p.lower, p.upper
+    if lo is not None and hi is not None:
+        if lo > hi:
+            problems.append(("", f"lower bound {show(lo)} > upper bound {show(hi)}; swap them"))
+            return problems
+        if lo == hi and p.free:
+            problems.append(("", f"lower == upper == {show(lo)} leaves nothing to fit; fix it with free=False"))
+            return problems
+    if p.scale is not None and not (p.scale > 0 and math.isfinite(p.scale)):
+        problems.append(("scale", f"scale must be a positive number, got {p.scale!r}"))
+    v = p.value
+    if isinstance(v, str):
+        if v != "auto":
+            problems.append(("value", f"value {v!r} is not a number or 'auto'"))
+        return problems
+    if v is None:
+        return problems
+    values = [float(x) for x in np.asarray(v, dtype=np.float64).ravel()]
+    if np.ndim(v) and p.per_frame is False:
+        problems.append(("value", "a list of values needs per_frame = true"))
+    for x in values:
+        if not math.isfinite(x):
+            problems.append(("value", f"start value {show(x)} is not finite"))
+        elif (lo is not None and x < lo) or (hi is not None and x > hi):
+            bounds = f"[{show(lo) if lo is not None else '-inf'}, {show(hi) if hi is not None else 'inf'}]"
+            problems.append(("value", f"start value {show(x)} is outside its bounds {bounds}"))
+    return problems
+
+
+def check_param(name: str, p: Param) -> Param:
+    """Raise :class:`FitInputError` for the first problem :func:`param_problems` finds in ``p``."""
+    problems = param_problems(p)
+    if problems:
+        raise FitInputError(f"parameter '{name}': {problems[0][1]}")
+    return p
+
+
 def as_param(name: str, spec: Any) -> Param:
     """Normalise the shorthands of a spec entry: a Param, a number, 'auto', 'free' or 'fixed'."""
     if isinstance(spec, Param):
@@ -105,10 +171,10 @@ def as_param(name: str, spec: Any) -> Param:
     if isinstance(spec, int | float | np.floating | np.integer):
         return Param(value=float(spec))
     if isinstance(spec, Mapping):
-        unknown = set(spec) - {"value", "lower", "upper", "free", "per_frame", "scale"}
+        unknown = set(spec) - set(SPEC_KEYS)
         if unknown:
             raise FitInputError(
-                f"parameter '{name}': unknown key(s) {sorted(unknown)}; known: free, lower, per_frame, scale, upper, value"
+                f"parameter '{name}': unknown key(s) {sorted(unknown)}; known: {', '.join(sorted(SPEC_KEYS))}"
             )
         return Param(**spec)
     raise FitInputError(
@@ -348,23 +414,15 @@ def build_layout(
                 continue
         else:
             blocks_with = tuple(range(n_blocks))
-        p = as_param(name, spec.get(name, Param.fixed()))
+        p = check_param(name, as_param(name, spec.get(name, Param.fixed())))
         per_frame = p.per_frame if p.per_frame is not None else (kind == "frame")
         d_lo, d_hi = _default_bounds(unit, name, kind)
         lower = d_lo if p.lower is None else float(p.lower)
         upper = d_hi if p.upper is None else float(p.upper)
-        if math.isnan(lower) or math.isnan(upper):
-            raise FitInputError(f"parameter '{name}': bounds must be numbers, got lower={lower}, upper={upper}")
-        if lower > upper:
+        if lower > upper:  # a given bound against the unit's default one (given ones: param_problems)
             raise FitInputError(f"parameter '{name}': lower bound {lower!r} > upper bound {upper!r}; swap them")
-        if p.free and lower == upper:
-            raise FitInputError(
-                f"parameter '{name}': lower == upper == {lower!r} leaves nothing to fit; fix it with free=False"
-            )
         # start values
         if isinstance(p.value, str):
-            if p.value != "auto":
-                raise FitInputError(f"parameter '{name}': value {p.value!r} is not a number or 'auto'")
             if auto is None or name not in auto:
                 have = ", ".join(sorted(auto)) if auto else "none (no initialiser ran)"
                 raise FitInputError(
@@ -414,8 +472,6 @@ def build_layout(
                     "a free parameter must start strictly inside its bounds (move the start, or fix it with "
                     "free=False)"
                 )
-            if p.scale is not None and not (p.scale > 0 and math.isfinite(p.scale)):
-                raise FitInputError(f"parameter '{pname}': scale must be a positive number, got {p.scale!r}")
             scale_max = 1.0 if transform != "identity" else float(p.scale if p.scale is not None else 1.0)
             if transform == "identity" and math.isfinite(lower) and math.isfinite(upper):
                 scale_max = min(scale_max, upper - lower)

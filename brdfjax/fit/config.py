@@ -75,7 +75,6 @@ writes ``result.json`` and the figures (``brdfjax fit CONFIG --out DIR``).
 
 from __future__ import annotations
 
-import dataclasses
 import difflib
 import hashlib
 import json
@@ -124,7 +123,7 @@ from ._data import FrameData, TableData
 from ._figures import write_figures
 from ._fit import FIRST_STAGES, _check_detectors, _resolve_precision, block_names, fit
 from ._frames_io import SIGMA_CHOICES, read_frame_data
-from ._params import Param
+from ._params import SPEC_KEYS, Param, param_problems
 from ._residuals import LOSSES
 from ._result import FitResult
 from ._solvers import SOLVERS
@@ -145,8 +144,6 @@ __all__ = [
     "run_fit",
 ]
 
-#: The keys of a [params] table: the fields of :class:`~brdfjax.fit.Param`.
-_SPEC_KEYS = tuple(f.name for f in dataclasses.fields(Param))
 #: ``[fit] first_stage``: the fit's first stages, or "none".
 _FIRST_STAGE_CHOICES = (*FIRST_STAGES, "none")
 
@@ -403,7 +400,7 @@ def _flatten_spec(v: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for k, x in v.items():
         name = f"{prefix}{k}"
-        if isinstance(x, Mapping) and x and not set(x) & set(_SPEC_KEYS):
+        if isinstance(x, Mapping) and x and not set(x) & set(SPEC_KEYS):
             out.update(_flatten_spec(x, name + "."))
         else:
             out[name] = x
@@ -449,26 +446,21 @@ def _resolve_params(source: str, raw: Mapping[str, Any], model: Model) -> dict[s
         if not isinstance(spec, Mapping):
             problems.append((loc, f"expected 'auto', 'free', 'fixed', a number or a table, got {spec!r}"))
             continue
-        unknown = sorted(set(spec) - set(_SPEC_KEYS))
+        unknown = sorted(set(spec) - set(SPEC_KEYS))
         if unknown:
-            problems.append((loc, f"unknown key(s) {unknown}; known: {', '.join(_SPEC_KEYS)}"))
+            problems.append((loc, f"unknown key(s) {unknown}; known: {', '.join(SPEC_KEYS)}"))
             continue
         n_before = len(problems)
         kw: dict[str, Any] = {}
         if "value" in spec:
             kw["value"] = _convert_value(f"{loc}.value", spec["value"], scale, True, problems)
-        for b in ("lower", "upper"):
+        for b in ("lower", "upper", "scale"):
             if b in spec:
                 x = spec[b]
                 if isinstance(x, int | float) and not isinstance(x, bool) and not math.isnan(x):
                     kw[b] = float(x) * scale
                 else:
                     problems.append((f"{loc}.{b}", f"expected a number (inf allowed), got {x!r}"))
-        if "scale" in spec:
-            if _number(spec["scale"]) and spec["scale"] > 0:
-                kw["scale"] = float(spec["scale"]) * scale
-            else:
-                problems.append((f"{loc}.scale", f"expected a positive number, got {spec['scale']!r}"))
         for b in ("free", "per_frame"):
             if b in spec:
                 if isinstance(spec[b], bool):
@@ -477,18 +469,12 @@ def _resolve_params(source: str, raw: Mapping[str, Any], model: Model) -> dict[s
                     problems.append((f"{loc}.{b}", f"expected true or false, got {spec[b]!r}"))
         if len(problems) > n_before:
             continue
-        lo, hi = kw.get("lower"), kw.get("upper")
-        if lo is not None and hi is not None and not lo < hi:
-            problems.append((loc, f"lower ({spec['lower']!r}) must be below upper ({spec['upper']!r})"))
-            continue
-        v = kw.get("value")
-        if _number(v) and ((lo is not None and v < lo) or (hi is not None and v > hi)):
-            problems.append((f"{loc}.value", f"{spec['value']!r} is outside [{spec.get('lower', '-inf')}, {spec.get('upper', 'inf')}]"))
-            continue
-        if isinstance(v, list) and kw.get("per_frame") is False:
-            problems.append((f"{loc}.value", "a list of values needs per_frame = true"))
-            continue
-        out[name] = Param(**kw)
+        param = Param(**kw)
+        # the spec's rules, written once in fit._params, reported here in the key's own unit
+        rule_problems = param_problems(param, show=lambda x, scale=scale: repr(float(f"{x / scale:.12g}")))
+        problems.extend((f"{loc}.{field}" if field else loc, msg) for field, msg in rule_problems)
+        if not rule_problems:
+            out[name] = param
     if problems:
         raise ConfigError(source, problems)
     return out

@@ -9,6 +9,8 @@ is documented and stable within brdfjax; the modules it comes from
 
 - :class:`Problem`: the fit problem as one pytree (residuals, Jacobian, losses);
 - :func:`as_param`: a parameter specification (dict, tuple or :class:`~brdfjax.fit.Param`) as a ``Param``;
+- :func:`param_problems`, :func:`check_param`, :data:`SPEC_KEYS`: the data-independent rules of a
+  specification, written once for the Python API and the TOML config;
 - :func:`block_names`: the unique names of a list of data blocks, as the fit reports them;
 - :func:`get_solver`, :data:`LOSSES`: the solver and robust-loss registries;
 - :func:`natural_unit`, :func:`to_natural`: the reported unit of a stored one (rad -> deg) and its factor;
@@ -17,9 +19,21 @@ is documented and stable within brdfjax; the modules it comes from
 
 from ._common import FRAME_PARAMETERS as FRAME_PARAMETERS, natural_unit as natural_unit, to_natural as to_natural
 from ._fit import block_names as block_names
-from ._params import as_param as as_param
+from ._params import SPEC_KEYS as SPEC_KEYS, as_param as as_param, check_param as check_param, param_problems as param_problems
 from ._problem import Problem as Problem
 from ._residuals import LOSSES as LOSSES
 from ._solvers import get_solver as get_solver
 
-__all__ = ["FRAME_PARAMETERS", "LOSSES", "Problem", "as_param", "block_names", "get_solver", "natural_unit", "to_natural"]
+__all__ = [
+    "FRAME_PARAMETERS",
+    "LOSSES",
+    "SPEC_KEYS",
+    "Problem",
+    "as_param",
+    "block_names",
+    "check_param",
+    "get_solver",
+    "natural_unit",
+    "param_problems",
+    "to_natural",
+]
