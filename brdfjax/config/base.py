@@ -126,13 +126,17 @@ def quoted_choices(choices: Iterable[str]) -> str:
     return q[0] if len(q) == 1 else ", ".join(q[:-1]) + " or " + q[-1]
 
 
+def _did_you_mean(name: str, choices: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the closest of ``choices``, or ``""``."""
+    close = difflib.get_close_matches(name, list(choices), n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
 def check_choice(what: str, value: str, choices: Iterable[str]) -> str:
-    """``value`` if it is one of ``choices`` (a registry's names); else a ValueError listing them."""
+    """``value`` if it is one of ``choices`` (a config choice); else a ValueError quoting them."""
     choices = list(choices)
     if value not in choices:
-        close = difflib.get_close_matches(value, choices, n=1)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
-        raise ValueError(f"unknown {what} {value!r}{hint}; expected {quoted_choices(choices)}")
+        raise ValueError(f"unknown {what} {value!r}{_did_you_mean(value, choices)}; expected {quoted_choices(choices)}")
     return value
 
 
@@ -144,17 +148,13 @@ def unknown_key_message(key: str, known: Mapping[str, Any], what: str) -> str:
     if hint:
         msg += f" (did you mean '{hint[0]}'? angles are given in degrees as <name>_deg, lengths in metres as <name>_m)"
     else:
-        close = difflib.get_close_matches(key, list(known), n=1)
-        if close:
-            msg += f" (did you mean '{close[0]}'?)"
+        msg += _did_you_mean(key, known)
     return msg + f"; known: {', '.join(known)}"
 
 
 def raise_unknown(what: str, name: str, table: Mapping[str, Any]) -> typing.NoReturn:
     """A ValueError for a name not in a registry table (sorted names listed, close match suggested)."""
-    close = difflib.get_close_matches(name, list(table), n=1)
-    hint = f" (did you mean '{close[0]}'?)" if close else ""
-    raise ValueError(f"unknown {what} '{name}'{hint}; known: {', '.join(sorted(table))}")
+    raise ValueError(f"unknown {what} '{name}'{_did_you_mean(name, table)}; known: {', '.join(sorted(table))}")
 
 
 # --- pydantic errors as (dotted key, message) -----------------------------------------------------
