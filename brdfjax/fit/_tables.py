@@ -427,7 +427,7 @@ def _check_stated_wavelength(path: Path, where: str, stated_m: np.ndarray, wante
     w = np.asarray(stated_m, float)
     w = w[np.isfinite(w)]
     if w.size and np.any(np.abs(w - wanted_m) > 0.5e-9 + 1e-6 * wanted_m):
-        have = ", ".join(f"{x * 1e9:g}" for x in np.unique(np.round(w * 1e9, 4))[:5])
+        have = ", ".join(f"{x:g}" for x in np.unique(np.round(w * 1e9, 4))[:5])
         raise FitInputError(
             f"{path}: wavelength_nm = {wanted_m * 1e9:g} disagrees with the file ({where} states {have} nm); "
             "drop wavelength_nm or correct it"

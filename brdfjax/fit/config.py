@@ -888,8 +888,14 @@ def run_fit(
     t0 = time.perf_counter()
     cfg = load_fit_config(config_path)
     _resolve_precision(cfg.precision)  # float64 without 64-bit JAX fails now, before anything is written
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    job = build_fit_job(cfg, work_dir=out)
+    try:
+        job = build_fit_job(cfg, work_dir=out)
+    except Exception:
+        if created and not any(out.iterdir()):
+            out.rmdir()  # bad data: leave nothing behind
+        raise
     t_data = time.perf_counter() - t0
     say = (lambda s: console.print(s, markup=False)) if console is not None else (lambda s: None)
     for n in job.notes:
