@@ -15,6 +15,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -323,6 +324,70 @@ def _solve_stage(
     return problem, outcome
 
 
+def _segments(counts: Sequence[int]) -> list[tuple[int, int, int]]:
+    """``(offset, count, block)`` of each block's points in the concatenated residuals."""
+    offs = np.concatenate([[0], np.cumsum(counts)]).astype(int)
+    return [(int(offs[k]), int(c), k) for k, c in enumerate(counts)]
+
+
+def _est_rss(problem: Problem, v: np.ndarray, est: Sequence[int]) -> tuple[float, int]:
+    """Sum of squared ln residuals and their number over the blocks whose noise is estimated."""
+    r = np.asarray(evaluate(jnp.asarray(v), problem)[0], np.float64)
+    rss, n = 0.0, 0
+    for o, c, k in _segments(problem.counts):
+        if k in est:
+            rk = r[o : o + c] / np.asarray(problem.blocks[k].inv_sigma, np.float64)
+            rss += float(np.sum(rk**2))
+            n += c
+    return rss, n
+
+
+def _estimate_noise(
+    problem: Problem, layout: Layout, solver: AbstractSolver, outcome: SolveOutcome, est: Sequence[int],
+    robust: bool, prep: "Prepared",
+) -> tuple[Problem, SolveOutcome, dict[str, Any]]:
+    """The log-normal scatter of tables without uncertainties, profiled out of the likelihood.
+
+    Model: ``ln d = ln f + e``, ``e ~ N(0, s^2)`` with one unknown ``s`` shared by the blocks ``est``.
+    Profiling ``s`` out gives ``-2 ln L = chi2_rest + N ln(RSS/N) + N`` at ``s^2 = RSS/N``; its optimum
+    is a fixed point of "weight those blocks by 1/s, solve, re-estimate s", which is iterated here when
+    it matters (other blocks with their own sigma, or a robust loss whose scale is in sigma); with the
+    linear loss and only such blocks the unweighted solve is already the optimum.  The blocks'
+    weights are left at ``1/s``, so residuals, zones and the covariance are in units of the estimate.
+    """
+    dtype = problem.u0.dtype
+    base = {k: np.asarray(prep.inv_sigma[k], np.float64) for k in est}
+    iterate = robust or len(est) < problem.n_blocks
+    s, extra, n_iter = 1.0, 0, 0
+    while n_iter < 8:
+        n_iter += 1
+        rss, n = _est_rss(problem, outcome.v, est)
+        s_new = math.sqrt(rss / max(n, 1)) if rss > 0 else 1.0
+        problem = eqx.tree_at(
+            lambda p: tuple(p.blocks[k].inv_sigma for k in est), problem,
+            tuple(jnp.asarray(base[k] / s_new, dtype) for k in est),
+        )
+        done = abs(s_new / s - 1.0) < 1e-3
+        s = s_new
+        if not iterate or done or not len(layout.free) or not np.all(np.isfinite(outcome.v)):
+            break
+        u_start = np.asarray(problem.u0, np.float64) + np.asarray(problem.scale, np.float64) * np.asarray(outcome.v)
+        problem, new = _solve_stage(problem, layout, solver, u_start, [])
+        extra += new.n_steps
+        outcome = SolveOutcome(new.v, new.converged, new.status, new.message, outcome.n_steps + new.n_steps)
+    rss, n = _est_rss(problem, outcome.v, est)
+    return problem, outcome, {
+        "estimated": True,
+        "sigma_ln": s,
+        "n_points": n,
+        "rss_ln": rss,
+        "blocks": [prep.names[k] for k in est],
+        "iterations": n_iter,
+        "method": "profile likelihood: -2 ln L = chi2_other + N ln(RSS/N) + N, s^2 = RSS/N (log-normal scatter of ln BRDF)",
+        "extra_steps": extra,
+    }
+
+
 def _group_stats(b: TableData, usable: np.ndarray, r: np.ndarray, log_res: np.ndarray) -> tuple[dict[str, Any], ...]:
     ti = np.asarray(b.theta_i, float)[usable]
     key = np.round(np.degrees(ti), 4)
@@ -424,6 +489,14 @@ def fit(
             outcome = SolveOutcome(
                 outcome.v, outcome.converged, outcome.status, f"{outcome.message} [{'; '.join(notes)}]", total_steps
             )
+    est = [k for k, b in enumerate(blocks) if isinstance(b, TableData) and b.sigma_rel is None]
+    noise: dict[str, Any] = {"estimated": False}
+    inv_eff = list(prep.inv_sigma)
+    if est:
+        problem, outcome, noise = _estimate_noise(problem, layout, solver_obj, outcome, est, loss != "linear", prep)
+        total_steps += noise.pop("extra_steps")
+        for kk in est:
+            inv_eff[kk] = prep.inv_sigma[kk] / noise["sigma_ln"]
     u0 = np.asarray(problem.u0, np.float64)
     scale = np.asarray(problem.scale, np.float64)
     t_solve = time.perf_counter()
@@ -442,8 +515,20 @@ def fit(
     chi2_red = chi2 / dof if dof > 0 else math.nan
     if dof <= 0:
         warnings.append(f"{n_points} points for {n_free} free parameters: no degrees of freedom left")
-    has_sigma = all(not (isinstance(b, TableData) and b.sigma_rel is None) for b in blocks)
-    absolute = has_sigma if absolute_sigma is None else bool(absolute_sigma)
+    # With estimated noise the residuals are already in units of the estimate: the covariance takes them at
+    # face value (the profile likelihood's curvature), which is the old "scale by the residual variance" with
+    # RSS / N in place of RSS / dof.
+    absolute = True if absolute_sigma is None else bool(absolute_sigma)
+    neg2_ll = chi2
+    if noise["estimated"]:
+        n_e = noise["n_points"]
+        chi2_e = float(sum(np.sum(r[o : o + c] ** 2) for o, c, kk in _segments(problem.counts) if kk in est))
+        neg2_ll = chi2 - chi2_e + n_e * math.log(noise["rss_ln"] / n_e) + n_e
+        warnings.append(
+            f"the noise was estimated from the residuals (sigma of ln BRDF = {noise['sigma_ln']:.4g}, the data give "
+            "none): chi2_reduced is ~1 by construction and says nothing about the goodness of fit; set sigma_rel "
+            "for a known uncertainty"
+        )
     u = u0 + scale * v
     if n_free:
         J = np.asarray(jacobian(jnp.asarray(v), problem), np.float64)
@@ -483,7 +568,7 @@ def fit(
     res_blocks, w_blocks = [], []
     offset = 0
     k = float(np.asarray(problem.loss_scale))
-    for name, b, n, inv_sigma, conv in zip(prep.names, blocks, problem.counts, prep.inv_sigma, prep.convolved):
+    for name, b, n, inv_sigma, conv in zip(prep.names, blocks, problem.counts, inv_eff, prep.convolved):
         rb = r[offset : offset + n]
         offset += n
         log_res = rb / inv_sigma
@@ -517,7 +602,9 @@ def fit(
         loss_scale=k,
         cost=float(np.sum(rt**2)),
         n_downweighted=n_down,
-        covariance_absolute=absolute,
+        covariance_absolute=absolute and not (noise["estimated"] and absolute_sigma is None),
+        noise=noise,
+        neg2_log_likelihood=neg2_ll,
         precision=precision_name,
         blocks=tuple(summaries),
         warnings=tuple(warnings),
