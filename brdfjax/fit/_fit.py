@@ -7,6 +7,7 @@ it up from NumPy inputs, runs the solver and turns the solution into a
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.metadata
 import math
 import platform
@@ -25,7 +26,7 @@ from ..geometry import Directions
 from ..render import Frame, cast, resolve_dtype
 from ..terms import Model
 from ._auto_init import get_initializer
-from ._common import FRAME_PARAMETERS, FitInputError
+from ._common import FRAME_PARAMETERS, FitInputError, natural_unit, to_natural
 from ._covariance import covariance
 from ._data import FrameData, TableData
 from ._params import Layout, as_param, build_layout
@@ -44,6 +45,7 @@ from ._problem import (
     with_scale,
 )
 from ._residuals import DEFAULT_LOSS_SCALE, LOSSES, irls_weights, loss_id
+from ._resolution import check_resolution
 from ._result import BlockSummary, FitResult, ParameterEstimate
 from ._solvers import AbstractSolver, SolveOutcome, SolveStatus, get_solver
 
@@ -422,6 +424,7 @@ def fit(
     absolute_sigma: bool | None = None,
     allow_different_detectors: bool = False,
     use_footprint: bool = True,
+    resolution_check: bool = True,
 ) -> FitResult:
     """Fit ``model`` to one or several data blocks (detector frames and/or goniometer tables).
 
@@ -584,7 +587,7 @@ def fit(
     n_down = int(np.sum(np.abs(r) > k)) if loss != "linear" else 0
     fitted = problem.block_inputs(jnp.asarray(v))
     t_end = time.perf_counter()
-    return FitResult(
+    result = FitResult(
         parameters=estimates,
         free_names=layout.free_names,
         covariance=cov.matrix,
@@ -622,3 +625,38 @@ def fit(
         weights=tuple(w_blocks),
         auto_init={kk: (np.asarray(vv).tolist()) for kk, vv in auto.items()},
     )
+    if resolution_check and converged and any(isinstance(b, TableData) for b in blocks):
+        kwargs = dict(
+            solver=solver, solver_options=solver_options, loss=loss, loss_scale=loss_scale, first_stage=first_stage,
+            floor=floor, precision=precision, absolute_sigma=absolute_sigma,
+            allow_different_detectors=allow_different_detectors, use_footprint=use_footprint, resolution_check=False,
+        )
+        result = _mark_unresolved(result, model, blocks, dict(params or {}), kwargs)
+    return result
+
+
+def _mark_unresolved(result: FitResult, model: Model, blocks: list[Data], params: dict[str, Any], kwargs: dict) -> FitResult:
+    """The result with an unresolved lobe's width and weight reported as not determined (:mod:`._resolution`)."""
+    found = check_resolution(model, blocks, params, result, lambda m, spec: fit(m, blocks, spec, **kwargs))
+    notes = found.pop("_notes", [])
+    if notes:
+        result = dataclasses.replace(result, warnings=tuple(result.warnings) + tuple(notes))
+    if not found:
+        return result
+    estimates = dict(result.parameters)
+    undetermined = {}
+    for name, rec in found.items():
+        p = estimates[name]
+        f = to_natural(p.unit)
+        lo, hi = rec["range"]
+        rec = {**rec, "range": [lo * f, hi * f], "unit": natural_unit(p.unit)}
+        rec["range_text"] = (f"< {hi * f:.3g}" if rec.get("open_below") else f"{lo * f:.3g} .. {hi * f:.3g}") + (
+            f" {rec['unit']}" if rec["unit"] not in ("1", "") else ""
+        )
+        undetermined[name] = rec
+        estimates[name] = dataclasses.replace(p, sigma=math.nan)
+    warns = list(result.warnings) + [
+        f"{name} is NOT determined: {rec['reason']}; the data allow {rec['range_text']} "
+        "(profile -2 ln L within 1 of the best); its sigma is not given" for name, rec in undetermined.items()
+    ]
+    return dataclasses.replace(result, parameters=estimates, undetermined=undetermined, warnings=tuple(warns))

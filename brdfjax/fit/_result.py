@@ -32,6 +32,16 @@ def _num(x: Any) -> Any:
     return x if math.isfinite(x) else None
 
 
+def _clean(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    if isinstance(x, float | np.floating):
+        return _num(x)
+    return x
+
+
 @dataclass(frozen=True)
 class ParameterEstimate:
     """One parameter in stored units (rad, m, 1, sr^-1); :meth:`natural` converts for reports."""
@@ -178,7 +188,7 @@ class FitResult:
                 "not available: the noise was estimated from the residuals, so chi2_reduced is ~1 by construction"
                 if self.sigma_estimated else "chi2_reduced (the data's own uncertainties)"
             ),
-            "undetermined": self.undetermined,
+            "undetermined": _clean(self.undetermined),
             "correlation": {
                 "names": list(self.free_names),
                 "matrix": [[_num(x) for x in row] for row in np.asarray(self.correlation)],
