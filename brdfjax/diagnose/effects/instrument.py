@@ -546,7 +546,13 @@ class AngularSamplingEffect(Effect):
 
     def extend(self, ctx):
         un = self.unresolved(ctx)
-        z, a = self._scan(ctx)
+        if un is not None:
+            # an unresolved peak: every aperture fits the one sample alike (the scan would find nothing to
+            # gain); start at the table's step
+            steps = [st[0] for b in ctx.blocks if isinstance(b, TableData) and (st := table_step(b)) is not None]
+            a = float(np.degrees(min(steps)))
+        else:
+            _, a = self._scan(ctx)
         a = float(np.deg2rad(a))
         model = InstrumentResponse.wrap(ctx.model, "aperture", aperture=a)
         params = dict(ctx.params)
