@@ -18,8 +18,8 @@ from brdfjax.fit import (
     read_table,
 )
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real is not present")
+REAL = Path(__file__).resolve().parent / "data" / "real"
+needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="tests/data/real is not present")
 
 DET = bj.Detector.seed()
 GRID = DET.grid(8, (-40, 40, -24, 24))
