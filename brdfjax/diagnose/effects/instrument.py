@@ -40,6 +40,7 @@ from .base import (
     with_terms,
     ws_turn,
 )
+from .tables import tables_only
 from .terms import (
     InstrumentResponse,
     Oriented,
@@ -126,6 +127,8 @@ class FluxScaleEffect(Effect):
         return "flux_scale" in response_features(model)
 
     def identifiable(self, model, params, blocks):
+        if (why := tables_only(blocks, self.name)) is not None:
+            return why
         w = weight_names(model)
         if w and all(is_free(params, n) for _, n in w):
             names = ", ".join(n for _, n in w)
@@ -187,6 +190,8 @@ class PixelNonlinearityEffect(Effect):
         return "nonlinearity" in response_features(model)
 
     def identifiable(self, model, params, blocks):
+        if (why := tables_only(blocks, self.name)) is not None:
+            return why
         terms = list(model.terms.values())
         if len(terms) == 1 and isinstance(terms[0], Specular) and isinstance(terms[0].distribution, Beckmann):
             (tname, _), = weight_names(model)
