@@ -13,9 +13,21 @@ from collections.abc import Mapping
 from typing import Any
 
 from . import distributions as _d, presets as _presets
-from .terms import AbstractTerm, Diffraction, Lambertian, Model, OffsetNormal, Specular, solar_cell
+from .terms import (
+    ABg,
+    AbstractTerm,
+    Diffraction,
+    Lambertian,
+    Lobe,
+    Model,
+    MultiLobeSpecular,
+    OffsetNormal,
+    Phong,
+    Specular,
+    solar_cell,
+)
 
-__all__ = ["DISTRIBUTIONS", "TERMS", "PRESETS", "lookup", "parameter_names", "build_term", "build_model"]
+__all__ = ["DISTRIBUTIONS", "TERMS", "MICROFACET_KINDS", "PRESETS", "lookup", "parameter_names", "build_term", "build_model"]
 
 DISTRIBUTIONS: dict[str, type[_d.AbstractDistribution]] = {
     cls.name: cls
@@ -38,13 +50,21 @@ DISTRIBUTIONS: dict[str, type[_d.AbstractDistribution]] = {
 DISTRIBUTIONS["trowbridge_reitz"] = _d.GGX
 DISTRIBUTIONS["blinn_phong"] = _d.CosineLobe
 
-#: Term kinds.  ``offset_specular`` is a :class:`Specular` inside :class:`OffsetNormal`.
+#: Term kinds.  ``offset_specular`` is a :class:`Specular` inside :class:`OffsetNormal`;
+#: ``multi_lobe`` several microfacet lobes sharing an index; ``abg`` and ``phong`` empirical lobes.
 TERMS: dict[str, Any] = {
     "specular": Specular,
     "offset_specular": OffsetNormal,
+    "multi_lobe": MultiLobeSpecular,
     "lambertian": Lambertian,
     "diffraction": Diffraction,
+    "abg": ABg,
+    "phong": Phong,
 }
+
+#: Term kinds built around microfacet distributions, which take the ``shadowing`` and
+#: ``normalisation`` options (:data:`brdfjax.shadowing.SHADOWING`, :data:`brdfjax.terms.NORMALISATIONS`).
+MICROFACET_KINDS = ("specular", "offset_specular", "multi_lobe")
 
 #: Model presets: the seed's solar cell and its other materials (``brdfjax.presets``: mirror, polished
 #: aluminium, Kapton; plausible values, see that module).
@@ -82,10 +102,31 @@ def _take(owner: str, cls: type, params: dict[str, Any], required: bool = True) 
     return out
 
 
-def build_term(kind: str, params: Mapping[str, Any], distribution: str | None = None, owner: str = "term") -> AbstractTerm:
-    """Build a term from its kind, a flat parameter dict (stored units) and, for specular kinds, a D name."""
+def build_term(
+    kind: str,
+    params: Mapping[str, Any],
+    distribution: str | None = None,
+    owner: str = "term",
+    *,
+    lobes: Mapping[str, str] | None = None,
+    shadowing: str | None = None,
+    normalisation: str | None = None,
+) -> AbstractTerm:
+    """Build a term from its kind and a flat parameter dict (stored units).
+
+    Specular kinds take a distribution name; ``multi_lobe`` takes ``lobes``
+    (lobe name -> distribution name) and parameters ``<lobe>.<name>`` plus the
+    shared ``n``, ``k``; the microfacet kinds take the ``shadowing`` and
+    ``normalisation`` options (``None``: the seed's defaults).
+    """
     cls = lookup("term", kind)
     p = dict(params)
+    options = {k: v for k, v in (("shadowing", shadowing), ("normalisation", normalisation)) if v is not None}
+    if options and kind not in MICROFACET_KINDS:
+        raise KeyError(f"{owner}: a '{kind}' term takes no {' or '.join(repr(k) for k in options)} "
+                       f"(only {', '.join(MICROFACET_KINDS)} do)")
+    if lobes is not None and kind != "multi_lobe":
+        raise KeyError(f"{owner}: a '{kind}' term takes no 'lobes' (only multi_lobe does)")
     if kind in ("specular", "offset_specular"):
         if distribution is None:
             raise KeyError(f"{owner}: a '{kind}' term needs 'distribution'; known: {', '.join(sorted(DISTRIBUTIONS))}")
@@ -93,9 +134,24 @@ def build_term(kind: str, params: Mapping[str, Any], distribution: str | None = 
         d = dcls(**_take(owner, dcls, p))
         spec_args = _take(owner, Specular, p)
         if kind == "specular":
-            term = Specular(d, **spec_args)
+            term = Specular(d, **spec_args, **options)
         else:
-            term = OffsetNormal(Specular(d, **spec_args), **_take(owner, OffsetNormal, p))
+            term = OffsetNormal(Specular(d, **spec_args, **options), **_take(owner, OffsetNormal, p))
+    elif kind == "multi_lobe":
+        if distribution is not None:
+            raise KeyError(f"{owner}: a 'multi_lobe' term takes 'lobes' (name -> distribution), not 'distribution'")
+        if not lobes:
+            raise KeyError(f"{owner}: a 'multi_lobe' term needs 'lobes' (lobe name -> distribution; known: "
+                           f"{', '.join(sorted(DISTRIBUTIONS))})")
+        built = {}
+        for lname, dname in lobes.items():
+            dcls = lookup("distribution", dname)
+            sub = {k.split(".", 1)[1]: p.pop(k) for k in list(p) if k.startswith(lname + ".")}
+            d = dcls(**_take(f"{owner}.{lname}", dcls, sub))
+            built[lname] = Lobe(d, **_take(f"{owner}.{lname}", Lobe, sub))
+            if sub:
+                raise KeyError(f"{owner}: unknown parameter(s) {sorted(f'{lname}.{k}' for k in sub)} for lobe '{lname}'")
+        term = MultiLobeSpecular(built, **_take(owner, MultiLobeSpecular, p), **options)
     else:
         if distribution is not None:
             raise KeyError(f"{owner}: a '{kind}' term takes no 'distribution'")

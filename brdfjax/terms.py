@@ -30,11 +30,17 @@ from .distributions import AbstractDistribution, Beckmann
 from .fields import check_param, param
 from .fresnel import q_factor
 from .geometry import Directions, Ry, Rz
+from .shadowing import SHADOWING, shadowing_factor
 
 __all__ = [
     "AbstractTerm",
     "Specular",
+    "NORMALISATIONS",
     "Lambertian",
+    "Lobe",
+    "MultiLobeSpecular",
+    "ABg",
+    "Phong",
     "OffsetNormal",
     "Oriented",
     "Diffraction",
@@ -58,10 +64,40 @@ def _both_above(dirs: Directions) -> Array:
     return (dirs.cos_theta_i > 0) & (dirs.cos_theta_s > 0)
 
 
-class Specular(AbstractTerm):
-    """Microfacet specular term of Eq 70 with any distribution D and the Q factor of Eq 69.
+#: Normalisations of the specular term: the seed's Eq 70 form and Torrance-Sparrow's.
+NORMALISATIONS = ("seed", "torrance_sparrow")
 
-    ``f = rho_s D(w_h) Q(n + i k, w_i, w_s) / (2 (cos theta_i + cos theta_s)^2)``.
+
+def _check_options(owner: str, shadowing: str, normalisation: str) -> None:
+    if shadowing not in SHADOWING:
+        raise ValueError(f"{owner}: unknown shadowing '{shadowing}'; known: {', '.join(SHADOWING)}")
+    if normalisation not in NORMALISATIONS:
+        raise ValueError(f"{owner}: unknown normalisation '{normalisation}'; known: {', '.join(NORMALISATIONS)}")
+
+
+def _specular_geometry(dirs: Directions, normalisation: str) -> Array:
+    """The geometric factor multiplying ``rho_s D G Q``: Eq 70's or Torrance-Sparrow's (``Q/2`` as F)."""
+    ci, cs = dirs.cos_theta_i, dirs.cos_theta_s
+    if normalisation == "seed":
+        return 1.0 / (2.0 * jnp.square(ci + cs))
+    prod = ci * cs
+    return 1.0 / (8.0 * jnp.where(prod > 0, prod, 1.0))
+
+
+class Specular(AbstractTerm):
+    """Microfacet specular term with any distribution D and the Q factor of Eq 69.
+
+    ``normalisation="seed"`` (the default) is the seed's Eq 70,
+    ``f = rho_s D(w_h) G Q(n + i k, w_i, w_s) / (2 (cos theta_i + cos theta_s)^2)``;
+    ``normalisation="torrance_sparrow"`` is the microfacet form of Torrance and
+    Sparrow (1967) / Walter et al. (2007), ``f = rho_s D G (Q / 2) / (4 cos theta_i cos theta_s)``,
+    where ``Q / 2`` is the unpolarised Fresnel reflectance in the specular
+    direction (``Q = F_s + F_p`` there).  In the specular direction the two forms
+    agree; elsewhere ``(cos ti + cos ts)^2 >= 4 cos ti cos ts`` so the seed's
+    form is never larger.  ``G`` is the masking-shadowing factor
+    (:mod:`brdfjax.shadowing`): ``"none"`` (G = 1, the seed), ``"smith"``
+    (height-correlated Smith G2 with the distribution's Lambda) or
+    ``"v_cavity"`` (Cook-Torrance).  The defaults reproduce the seed exactly.
     """
 
     kind: ClassVar[str] = "specular"
@@ -69,19 +105,138 @@ class Specular(AbstractTerm):
     rho_s: Array = param("1", "specular weight")
     n: Array = param("1", "real part of the refractive index")
     k: Array = param("1", "imaginary part of the refractive index", default=0.0)
+    shadowing: str = eqx.field(static=True, default="none")
+    normalisation: str = eqx.field(static=True, default="seed")
 
     def __check_init__(self):
         check_param("specular", "rho_s", self.rho_s, lambda v: v >= 0, "rho_s >= 0")
         check_param("specular", "n", self.n, lambda v: v > 0, "n > 0")
         check_param("specular", "k", self.k, lambda v: v >= 0, "k >= 0")
+        _check_options("specular", self.shadowing, self.normalisation)
 
     def __call__(self, dirs, wavelength):
         tx2, ty2, upper = dirs.half_slopes()
         D = jnp.where(upper, self.distribution(tx2, ty2), 0.0)
         Q = q_factor(self.n, dirs, self.k)
-        ci, cs = dirs.cos_theta_i, dirs.cos_theta_s
-        f = self.rho_s * D * Q / (2.0 * jnp.square(ci + cs))
+        G = shadowing_factor(self.shadowing, self.distribution, dirs)
+        f = self.rho_s * D * G * Q * _specular_geometry(dirs, self.normalisation)
         return jnp.where(_both_above(dirs), f, 0.0)
+
+
+class Lobe(eqx.Module):
+    """One lobe of a :class:`MultiLobeSpecular`: a distribution and its weight."""
+
+    distribution: AbstractDistribution
+    rho_s: Array = param("1", "weight of this lobe")
+
+    def __check_init__(self):
+        check_param("lobe", "rho_s", self.rho_s, lambda v: v >= 0, "rho_s >= 0")
+
+
+class MultiLobeSpecular(AbstractTerm):
+    """Several microfacet lobes (e.g. a narrow spike and a wide halo) sharing one index ``n + i k``.
+
+    ``f = sum_l rho_l D_l(w_h) G_l Q(n + i k) N(theta_i, theta_s)`` with the
+    normalisation ``N`` and shadowing ``G`` of :class:`Specular` (each lobe's G
+    uses its own distribution).  Each lobe is normalised (Eq 54), so the
+    weights ``rho_l`` play the role of :class:`Specular`'s ``rho_s``.  Parameter
+    names are ``<lobe>.<name>``: ``spike.m``, ``spike.rho_s``, ``halo.alpha``, ...
+    and the shared ``n``, ``k``.
+    """
+
+    kind: ClassVar[str] = "multi_lobe"
+    lobes: dict[str, Lobe]
+    n: Array = param("1", "real part of the refractive index (shared by every lobe)")
+    k: Array = param("1", "imaginary part of the refractive index", default=0.0)
+    shadowing: str = eqx.field(static=True, default="none")
+    normalisation: str = eqx.field(static=True, default="seed")
+
+    def __check_init__(self):
+        if not self.lobes:
+            raise ValueError("multi_lobe: needs at least one lobe")
+        for name, lobe in self.lobes.items():
+            if not isinstance(lobe, Lobe):
+                raise TypeError(f"multi_lobe: lobe '{name}' is a {type(lobe).__name__}, not a Lobe")
+            if "." in name:
+                raise ValueError(f"multi_lobe: lobe name '{name}' must not contain '.'")
+        check_param("multi_lobe", "n", self.n, lambda v: v > 0, "n > 0")
+        check_param("multi_lobe", "k", self.k, lambda v: v >= 0, "k >= 0")
+        _check_options("multi_lobe", self.shadowing, self.normalisation)
+
+    def __call__(self, dirs, wavelength):
+        tx2, ty2, upper = dirs.half_slopes()
+        common = q_factor(self.n, dirs, self.k) * _specular_geometry(dirs, self.normalisation)
+        total = 0.0
+        for lobe in self.lobes.values():
+            D = jnp.where(upper, lobe.distribution(tx2, ty2), 0.0)
+            total = total + lobe.rho_s * D * shadowing_factor(self.shadowing, lobe.distribution, dirs)
+        return jnp.where(_both_above(dirs), total * common, 0.0)
+
+
+def _sq_distance_from_mirror(dirs: Directions) -> tuple[Array, Array]:
+    """``|beta - beta0|^2`` (projected distance from the mirror direction) and ``|w_r - w_s|^2``.
+
+    With the mirror direction ``w_r = (-w_ix, -w_iy, w_iz)``, ``beta - beta0``
+    is the in-plane part of ``w_i + w_s`` (no cancellation: ``w_sum``).
+    """
+    sx, sy = dirs.w_sum[..., 0], dirs.w_sum[..., 1]
+    b2 = jnp.square(sx) + jnp.square(sy)
+    return b2, b2 + jnp.square(dirs.cos_theta_i - dirs.cos_theta_s)
+
+
+class ABg(AbstractTerm):
+    """Harvey-Shack ABg scatter model, the stray-light standard (Harvey 1976; Pfisterer 2011).
+
+    ``f = A / (B + |beta - beta0|^g)`` with ``beta - beta0`` the difference of the
+    projections of the scattered and mirror directions on the surface
+    (``|beta - beta0| = |(w_i + w_s)_xy|``, in the plane of incidence
+    ``|sin theta_s - sin theta_i|``).  Empirical and not normalised: ``A / B``
+    is the BRDF in the mirror direction (sr^-1); the total integrated scatter
+    depends on A, B, g and the incidence.  Reciprocal: symmetric in w_i, w_s.
+    """
+
+    kind: ClassVar[str] = "abg"
+    A: Array = param("sr^-1", "scale (sr^-1)")
+    B: Array = param("1", "roll-off shoulder, in units of |beta - beta0|^g")
+    g: Array = param("1", "fall-off exponent")
+
+    def __check_init__(self):
+        check_param("abg", "A", self.A, lambda v: v >= 0, "A >= 0 (sr^-1)")
+        check_param("abg", "B", self.B, lambda v: v > 0, "B > 0")
+        check_param("abg", "g", self.g, lambda v: v >= 0, "g >= 0")
+
+    def __call__(self, dirs, wavelength):
+        b2, _ = _sq_distance_from_mirror(dirs)
+        pos = b2 > 0
+        # |beta - beta0|^g = exp(g/2 ln b2), 0 at the mirror direction (finite gradients there)
+        power = jnp.where(pos, jnp.exp(0.5 * self.g * jnp.log(jnp.where(pos, b2, 1.0))), 0.0)
+        return jnp.where(_both_above(dirs), self.A / (self.B + power), 0.0)
+
+
+class Phong(AbstractTerm):
+    """Normalised (modified) Phong lobe, the lumos-sat PHONG family's specular part (Lafortune 1994).
+
+    ``f = rho (k + 2) / (2 pi) max(cos alpha, 0)^k`` with ``alpha`` the angle
+    between the scattered and the mirror direction
+    (``cos alpha = 1 - |w_r - w_s|^2 / 2``).  Reciprocal.  Normalised at normal
+    incidence: the directional albedo there is ``rho`` exactly (it falls below
+    ``rho`` at oblique incidence, where part of the lobe is below the horizon).
+    """
+
+    kind: ClassVar[str] = "phong"
+    rho: Array = param("1", "lobe weight (albedo at normal incidence)")
+    k: Array = param("1", "exponent, k >= 0")
+
+    def __check_init__(self):
+        check_param("phong", "rho", self.rho, lambda v: v >= 0, "rho >= 0")
+        check_param("phong", "k", self.k, lambda v: v >= 0, "k >= 0")
+
+    def __call__(self, dirs, wavelength):
+        _, d2 = _sq_distance_from_mirror(dirs)
+        cos_a = 1.0 - 0.5 * d2
+        pos = cos_a > 0
+        lobe = jnp.where(pos, jnp.exp(self.k * jnp.log(jnp.where(pos, cos_a, 1.0))), 0.0)
+        return jnp.where(_both_above(dirs), self.rho * (self.k + 2.0) / (2.0 * np.pi) * lobe, 0.0)
 
 
 class Lambertian(AbstractTerm):
@@ -196,12 +351,32 @@ def _child_fields(module: eqx.Module) -> list[dataclasses.Field]:
     ]
 
 
+def _module_dicts(module: eqx.Module) -> list[dataclasses.Field]:
+    """Fields holding a dict of named modules (the lobes of a multi-lobe term)."""
+    out = []
+    for f in dataclasses.fields(module):
+        v = getattr(module, f.name)
+        if not f.metadata.get("static", False) and isinstance(v, Mapping) and v and all(
+            isinstance(x, eqx.Module) for x in v.values()
+        ):
+            out.append(f)
+    return out
+
+
 def _term_paths(module: eqx.Module, prefix: tuple[str, ...] = ()) -> dict[str, tuple[tuple[str, ...], str]]:
-    """Flat parameter name -> (attribute path, unit), lifting nested modules' parameters."""
+    """Flat parameter name -> (attribute path, unit), lifting nested modules' parameters.
+
+    A dict of named modules (``MultiLobeSpecular.lobes``) lifts each entry's
+    parameters as ``<key>.<name>``.
+    """
     out: dict[str, tuple[tuple[str, ...], str]] = {}
     for child in _child_fields(module):
         for name, entry in _term_paths(getattr(module, child.name), prefix + (child.name,)).items():
             out[name] = entry
+    for field in _module_dicts(module):
+        for key, sub in getattr(module, field.name).items():
+            for name, entry in _term_paths(sub, prefix + (field.name, key)).items():
+                out[f"{key}.{name}"] = entry
     for f in param_fields(module):
         out[f.name] = (prefix + (f.name,), f.metadata["unit"])
     return out

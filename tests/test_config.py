@@ -281,7 +281,7 @@ def test_unknown_distribution_lists_known(tmp_path):
 
 
 def test_unknown_term_kind_lists_known(tmp_path):
-    msg = error_of(tmp_path, with_frames('[model.terms.x]\nkind = "phong"\nparams = {}\n'))
+    msg = error_of(tmp_path, with_frames('[model.terms.x]\nkind = "torrance"\nparams = {}\n'))
     assert "model.terms.x.kind" in msg and "known: " + ", ".join(sorted(registry.TERMS)) in msg
 
 

@@ -120,8 +120,15 @@ def test_null_signatures_low(null_ctx):
     assert max(scores.values()) < 3.0, scores
 
 
+#: Table effects whose synthetic round trip is not run here: the table scenario's glossy lobes (m 0.001-0.002,
+#: +-4 deg scans) show neither shadowing nor a halo; they are checked on the real tables (test_tables_diagnosis.py).
+NO_ROUND_TRIP = ("second_lobe", "shadowing")
+
+
 @pytest.mark.parametrize(
-    "name", [n if n in QUICK else pytest.param(n, marks=pytest.mark.skipif(not SLOW, reason="BRDFJAX_SLOW=1")) for n in E.EFFECT_LIBRARY]
+    "name",
+    [n if n in QUICK else pytest.param(n, marks=pytest.mark.skipif(not SLOW, reason="BRDFJAX_SLOW=1"))
+     for n in E.EFFECT_LIBRARY if n not in NO_ROUND_TRIP],
 )
 def test_round_trip(name):
     seed = SEEDS[name]

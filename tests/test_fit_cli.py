@@ -19,7 +19,7 @@ from brdfjax.instrument.reduce import reduce_measurement_set
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).parent / "data"
 CONFIGS = ROOT / "configs"
-REAL = ROOT.parent / "shared" / "data" / "real"
+REAL = ROOT / "tests" / "data" / "real"
 TRUTH = dict(bj.SOLAR_CELL_SEED)
 slow = [pytest.mark.slow, pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1")]
 CONTRACT = ("parameters", "chi2", "chi2_reduced", "dof", "converged", "message", "n_iterations", "wall_s")
@@ -208,7 +208,6 @@ REAL_CASES = [
 ]
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real is not present")
 @pytest.mark.parametrize("config, width, overall, per_angle", REAL_CASES)
 def test_real_data_configs_fit_through_the_cli(tmp_path, config, width, overall, per_angle):
     out = tmp_path / "out"

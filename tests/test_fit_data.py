@@ -18,8 +18,8 @@ from brdfjax.fit import (
     read_table,
 )
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real is not present")
+REAL = Path(__file__).resolve().parent / "data" / "real"
+needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="tests/data/real is not present")
 
 DET = bj.Detector.seed()
 GRID = DET.grid(8, (-40, 40, -24, 24))
@@ -236,7 +236,10 @@ def test_read_cornell_wavelength_choice():
     f = REAL / "cornell_krylon_blue.brdf"
     mean = read_cornell_brdf(f)
     one = read_cornell_brdf(f, wavelength_nm=450)
-    assert len(mean) == len(one) == 1439
+    # 1439 records; the reader drops (and counts) those whose BRDF is <= 0 at that wavelength
+    assert mean.screening["n_rows"] == one.screening["n_rows"] == 1439
+    assert (len(mean), len(one)) == (1437, 1436)
+    assert mean.screening["dropped"] == {"non_positive": {"count": 2, "records": [1437, 1438]}}
     assert float(np.asarray(mean.wavelength)) == pytest.approx(550e-9)
     assert float(np.asarray(one.wavelength)) == pytest.approx(450e-9)
     assert np.all(np.asarray(mean.phi_i) == 0)

@@ -97,14 +97,17 @@ def test_float32_precision():
     assert res.value("diffuse.rho_d") == pytest.approx(rho_hat, rel=1e-5)
 
 
-def test_table_without_uncertainty_scales_covariance_by_residual_variance():
+def test_table_without_uncertainty_scales_covariance_by_the_estimated_noise():
     tab = _lambertian_table(sigma=False)
     res = fit(LAMB, tab, {"diffuse.rho_d": 0.1})
     d = np.asarray(tab.brdf)
     rho_hat = np.pi * np.exp(np.mean(np.log(d)))
     resid = np.log(rho_hat / np.pi) - np.log(d)
-    s2 = np.sum(resid**2) / (d.size - 1)
-    assert not res.covariance_absolute
+    s2 = np.sum(resid**2) / d.size  # the profile likelihood's estimate RSS / N
+    assert not res.covariance_absolute and res.sigma_estimated
+    assert res.noise["sigma_ln"] == pytest.approx(np.sqrt(s2), rel=1e-6)
+    assert res.chi2 == pytest.approx(d.size, rel=1e-6)  # residuals in units of the estimate
+    assert res.m2ll == pytest.approx(d.size * np.log(s2) + d.size, rel=1e-6)
     assert res.sigma("diffuse.rho_d") == pytest.approx(rho_hat * np.sqrt(s2 / d.size), rel=1e-4)
     grp = res.blocks[0]
     assert grp.log_rms == pytest.approx(np.sqrt(np.mean(resid**2)), rel=1e-8)

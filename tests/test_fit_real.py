@@ -1,4 +1,4 @@
-"""Fits of real measurements by others (../shared/data/real): specular microfacet + Lambertian models.
+"""Fits of real measurements by others (tests/data/real, copied from ../shared/data/real with their licences): specular microfacet + Lambertian models.
 
 The tables carry no uncertainties, so every point is weighted 1 and the
 quality measure is the log-RMS, the rms of ``ln(f_model / f_data)`` per
@@ -17,8 +17,7 @@ import pytest
 import brdfjax as bj
 from brdfjax.fit import fit, read_cornell_brdf, read_merl_inplane
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-pytestmark = pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real is not present")
+REAL = Path(__file__).resolve().parent / "data" / "real"
 
 #: Aluminium near 550 nm (Rakic 1995): n + i k = 0.96 + 6.69 i; paints: a dielectric binder, n = 1.5.
 ALUMINIUM = dict(n=0.96, k=6.69)

@@ -20,7 +20,8 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from .. import registry
-from ..terms import AbstractTerm, Diffraction, Model, OffsetNormal, Specular
+from ..shadowing import SHADOWING
+from ..terms import NORMALISATIONS, AbstractTerm, Diffraction, Lobe, Model, MultiLobeSpecular, OffsetNormal, Specular
 from .base import ConfigError, StrictModel, raise_unknown, unknown_key_message
 
 __all__ = [
@@ -74,11 +75,49 @@ class TermConfig(StrictModel):
     distance_m: float | None = Field(
         None, gt=0, description="diffraction only: nominal distance in the Gaussian, metres (default 0.325)"
     )
+    lobes: dict[str, str] | None = Field(
+        None, description="multi_lobe only: lobe name -> distribution, e.g. {spike = 'beckmann', halo = 'ggx'}"
+    )
+    shadowing: str | None = Field(
+        None, description=f"microfacet kinds only: masking-shadowing, one of {', '.join(SHADOWING)} (default none)"
+    )
+    normalisation: str | None = Field(
+        None,
+        description=f"microfacet kinds only: one of {', '.join(NORMALISATIONS)} (default seed: the seed's Eq 70)",
+    )
 
     @field_validator("params", mode="before")
     @classmethod
     def _dotted_keys(cls, v: Any) -> Any:
         return _flatten_params(v)
+
+    @field_validator("shadowing")
+    @classmethod
+    def _known_shadowing(cls, v: str | None) -> str | None:
+        if v is not None and v not in SHADOWING:
+            raise_unknown("shadowing", v, SHADOWING)
+        return v
+
+    @field_validator("normalisation")
+    @classmethod
+    def _known_normalisation(cls, v: str | None) -> str | None:
+        if v is not None and v not in NORMALISATIONS:
+            raise_unknown("normalisation", v, NORMALISATIONS)
+        return v
+
+    @field_validator("lobes")
+    @classmethod
+    def _known_lobes(cls, v: dict[str, str] | None) -> dict[str, str] | None:
+        if v is not None:
+            if not v:
+                raise ValueError("'lobes' needs at least one lobe (name -> distribution)")
+            bad = [k for k in v if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", k)]
+            if bad:
+                raise ValueError(f"lobe names must be identifiers (letters, digits, '_'), got {bad}")
+            for d in v.values():
+                if d not in registry.DISTRIBUTIONS:
+                    raise_unknown("distribution", d, registry.DISTRIBUTIONS)
+        return v
 
     @field_validator("kind")
     @classmethod
@@ -96,6 +135,17 @@ class TermConfig(StrictModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> "TermConfig":
+        if self.kind != "multi_lobe" and self.lobes is not None:
+            raise ValueError("'lobes' applies only to a 'multi_lobe' term")
+        if self.kind == "multi_lobe" and self.lobes is None:
+            raise ValueError(
+                "a 'multi_lobe' term needs 'lobes' (lobe name -> distribution; known: "
+                f"{', '.join(sorted(registry.DISTRIBUTIONS))})"
+            )
+        if self.kind not in registry.MICROFACET_KINDS and (self.shadowing is not None or self.normalisation is not None):
+            raise ValueError(
+                f"'shadowing' and 'normalisation' apply only to microfacet terms ({', '.join(registry.MICROFACET_KINDS)})"
+            )
         specular = self.kind in ("specular", "offset_specular")
         if specular and self.distribution is None:
             raise ValueError(
@@ -213,8 +263,29 @@ def _given_in(unit: str) -> str:
     return " (the value shown is in radians; the config gives degrees)" if unit == "rad" else ""
 
 
-def _term_units(kind: str, distribution: str | None) -> tuple[dict[str, str], set[str]]:
-    """Parameter units of a term kind (and its distribution), and the required ones."""
+def _class_units(cls: type, prefix: str = "") -> tuple[dict[str, str], set[str]]:
+    units: dict[str, str] = {}
+    required: set[str] = set()
+    for f in dataclasses.fields(cls):
+        if "unit" in f.metadata:
+            units[prefix + f.name] = f.metadata["unit"]
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                required.add(prefix + f.name)
+    return units, required
+
+
+def _term_units(
+    kind: str, distribution: str | None, lobes: Mapping[str, str] | None = None
+) -> tuple[dict[str, str], set[str]]:
+    """Parameter units of a term kind (and its distribution or lobes), and the required ones."""
+    if kind == "multi_lobe":
+        units, required = _class_units(MultiLobeSpecular)
+        for lname, dname in (lobes or {}).items():
+            for cls in (registry.lookup("distribution", dname), Lobe):
+                u, r = _class_units(cls, f"{lname}.")
+                units.update(u)
+                required |= r
+        return units, required
     classes: list[type] = []
     if kind in ("specular", "offset_specular"):
         classes.append(registry.lookup("distribution", distribution or ""))
@@ -235,7 +306,7 @@ def _term_units(kind: str, distribution: str | None) -> tuple[dict[str, str], se
 
 
 def build_term(source: str, loc: str, t: TermConfig) -> AbstractTerm:
-    units, required = _term_units(t.kind, t.distribution)
+    units, required = _term_units(t.kind, t.distribution, t.lobes)
     keys = parameter_keys(units)
     what = f"a '{t.kind}' term" + (f" with distribution '{t.distribution}'" if t.distribution else "")
     problems = [
@@ -250,7 +321,9 @@ def build_term(source: str, loc: str, t: TermConfig) -> AbstractTerm:
         raise ConfigError(source, problems)
     stored = {keys[k][0]: v * keys[k][1] for k, v in t.params.items()}
     try:
-        term = registry.build_term(t.kind, stored, t.distribution, owner=loc)
+        term = registry.build_term(
+            t.kind, stored, t.distribution, owner=loc, lobes=t.lobes, shadowing=t.shadowing, normalisation=t.normalisation
+        )
         if isinstance(term, Diffraction) and (t.grating_factor is not None or t.distance_m is not None):
             opts: dict[str, Any] = {}
             if t.grating_factor is not None:
@@ -292,7 +365,9 @@ def describe_model(m: ModelConfig) -> str:
         ps = ", ".join(f"{k}={v:g}" for k, v in t.params.items())
         dist = f"/{t.distribution}" if t.distribution else ""
         opts = "".join(
-            f", {k}={getattr(t, k)}" for k in ("grating_factor", "distance_m") if getattr(t, k) is not None
+            f", {k}={getattr(t, k)}"
+            for k in ("grating_factor", "distance_m", "lobes", "shadowing", "normalisation")
+            if getattr(t, k) is not None
         )
         parts.append(f"{name}: {t.kind}{dist}({ps}{opts})")
     return "; ".join(parts)

@@ -67,9 +67,11 @@ class Context:
         return [k for k, b in enumerate(self.blocks) if isinstance(b, FrameData)]
 
     def sigma(self, k: int) -> np.ndarray:
+        """The sigma of ln BRDF the residuals are in units of: the data's, or the fit's estimate for a table
+        without uncertainties."""
         b = self.blocks[k]
         if isinstance(b, TableData) and b.sigma_rel is None:
-            return np.ones(np.shape(b.brdf))
+            return np.full(np.shape(b.brdf), float(self.result.noise.get("sigma_ln", 1.0)))
         return np.broadcast_to(np.asarray(b.sigma_rel, float), np.shape(b.brdf))
 
 
@@ -90,18 +92,23 @@ def residual_maps(result: FitResult, blocks: Sequence[FrameData | TableData]) ->
 
 
 def gap_measures(result: FitResult) -> dict[str, float]:
-    """The global gap of a fit: chi2, dof, chi2_reduced, rms_log10 (rms of log10 f - log10 d), BIC."""
+    """The global gap of a fit: chi2 (-2 ln L), dof, chi2_reduced, rms_log10 (rms of log10 f - log10 d), BIC,
+    and whether the noise was estimated (``sigma_estimated``, ``sigma_ln``)."""
     n = sum(b.n_points for b in result.blocks)
     ms = sum(b.n_points * b.log_rms**2 for b in result.blocks) / max(n, 1)
     k = len(result.free_names)
+    # With estimated noise chi2 is ~N by construction: the misfit of the information criteria (and the
+    # "chi2" whose differences the diagnosis reports) is -2 ln L of the profile likelihood instead.
     return {
-        "chi2": float(result.chi2),
+        "chi2": float(result.m2ll),
+        "sigma_estimated": bool(result.sigma_estimated),
+        "sigma_ln": float(result.noise["sigma_ln"]) if result.sigma_estimated else None,
         "n_points": int(result.n_points),
         "n_free": k,
         "dof": int(result.dof),
         "chi2_reduced": float(result.chi2_reduced),
         "rms_log10": float(math.sqrt(ms) / LN10),
-        "bic": float(result.chi2 + k * math.log(max(result.n_points, 2))),
+        "bic": float(result.m2ll + k * math.log(max(result.n_points, 2))),
     }
 
 

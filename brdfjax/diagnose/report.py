@@ -90,8 +90,19 @@ def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
 def _headline(d: Diagnosis) -> str:
     p = " -> ".join(f"{s.effect} ({_f(s.gap['chi2_reduced'], '.3g')})" for s in d.path)
     if d.significant:
-        return f"The gap is most likely caused by **{d.path[1].effect}**. Explanation path (reduced chi^2): {p}."
-    return f"No candidate effect is significant (BIC gain > {d.bic_threshold:g}). Path: {p}."
+        return f"The gap is most likely caused by **{d.path[1].effect}**. Explanation path (reduced chi^2): {p}. {noise_line(d.gap)}."
+    return f"No candidate effect is significant (BIC gain > {d.bic_threshold:g}). Path: {p}. {noise_line(d.gap)}."
+
+
+def noise_line(gap: dict[str, Any]) -> str:
+    """Whether sigma was estimated, in words (every diagnosis report states it)."""
+    if gap.get("sigma_estimated"):
+        return (
+            f"noise: sigma ESTIMATED from the residuals (the data give none): sigma of ln BRDF = {gap['sigma_ln']:.4g}; "
+            "chi2 and BIC are -2 ln L of the profile likelihood, chi2_reduced is not a goodness of fit"
+        )
+    return "noise: the data's own uncertainties (sigma not estimated)"
+
 
 
 def markdown_report(d: Diagnosis) -> str:

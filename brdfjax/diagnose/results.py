@@ -18,7 +18,7 @@ import numpy as np
 
 from ..fit import FitResult
 from ..io import atomic_output
-from .report import html_report, markdown_report
+from .report import html_report, markdown_report, noise_line
 from .zones import Region, zone_label
 
 __all__ = ["Candidate", "Step", "Diagnosis", "json_ready", "finite_or_none"]
@@ -150,6 +150,8 @@ class Diagnosis:
         return json_ready(
             {
                 "gap": self.gap,
+                "sigma_estimated": bool(self.gap.get("sigma_estimated")),
+                "noise": noise_line(self.gap),
                 "zones": self.zones,
                 "ranking": [c.to_dict() for c in self.ranking],
                 "skipped": [c.to_dict() for c in self.skipped],
@@ -176,6 +178,7 @@ class Diagnosis:
             f"base: chi2_reduced {self.gap['chi2_reduced']:.4g}, rms_log10 {self.gap['rms_log10']:.4g}"
             + ("" if self.gap.get("heldout_rms_log10") is None else f", held-out rms_log10 {self.gap['heldout_rms_log10']:.4g}")
         ]
+        lines.append(noise_line(self.gap))
         for _k, z in enumerate(self.zones[:6]):
             lines.append(f"  zone {z['label']}: share {z['share']:.1%}, centre {z['center_deg'][0]:+.3g}/{z['center_deg'][1]:+.3g} deg, {z['sign']}")
         for c in self.ranking[:6]:

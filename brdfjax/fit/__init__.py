@@ -50,7 +50,10 @@ from ._solvers import (
 from ._synthetic import render_noisy_frames as render_noisy_frames
 from ._tables import (
     CANONICAL_COLUMNS as CANONICAL_COLUMNS,
+    Screen as Screen,
+    check_mirror as check_mirror,
     export_table as export_table,
+    make_table as make_table,
     read_astm_e1392 as read_astm_e1392,
     read_cornell_brdf as read_cornell_brdf,
     read_merl_inplane as read_merl_inplane,

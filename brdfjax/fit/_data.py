@@ -142,7 +142,8 @@ class TableData:
     uncertainty (``None``: unknown, every point weighted 1 and the covariance
     scaled by the residual variance); ``wavelength`` in metres (a scalar or
     per row); ``mask`` True where a row is used.  ``source`` names the file it
-    came from, for messages.
+    came from, for messages; ``lines`` the file's line number of each row
+    (``None``: not read from a line-oriented file).
     """
 
     theta_i: Any
@@ -155,6 +156,8 @@ class TableData:
     mask: Any = None
     name: str = "table"
     source: str = ""
+    lines: Any = None  # the file's line number of each row (for messages), or None
+    screening: Any = None  # the reader's record of the rows it dropped and of its checks (a dict), or None
 
     def __post_init__(self):
         owner = f"table '{self.name}'" + (f" ({self.source})" if self.source else "")
@@ -220,6 +223,7 @@ class TableData:
             take(self.theta_i), take(self.phi_i), take(self.theta_s), take(self.phi_s), take(self.brdf),
             None if self.sigma_rel is None else take(self.sigma_rel), take(self.wavelength),
             None if self.mask is None else take(self.mask), name or self.name, self.source,
+            None if self.lines is None else take(self.lines), self.screening,
         )
 
     def incident_angles(self, decimals: int = 6) -> np.ndarray:

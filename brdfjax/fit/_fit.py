@@ -7,6 +7,7 @@ it up from NumPy inputs, runs the solver and turns the solution into a
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.metadata
 import math
 import platform
@@ -15,6 +16,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -24,7 +26,7 @@ from ..geometry import Directions
 from ..render import Frame, cast, resolve_dtype
 from ..terms import Model
 from ._auto_init import get_initializer
-from ._common import FRAME_PARAMETERS, FitInputError
+from ._common import FRAME_PARAMETERS, FitInputError, natural_unit, to_natural
 from ._covariance import covariance
 from ._data import FrameData, TableData
 from ._params import Layout, as_param, build_layout
@@ -43,6 +45,7 @@ from ._problem import (
     with_scale,
 )
 from ._residuals import DEFAULT_LOSS_SCALE, LOSSES, irls_weights, loss_id
+from ._resolution import check_resolution
 from ._result import BlockSummary, FitResult, ParameterEstimate
 from ._solvers import AbstractSolver, SolveOutcome, SolveStatus, get_solver
 
@@ -323,6 +326,70 @@ def _solve_stage(
     return problem, outcome
 
 
+def _segments(counts: Sequence[int]) -> list[tuple[int, int, int]]:
+    """``(offset, count, block)`` of each block's points in the concatenated residuals."""
+    offs = np.concatenate([[0], np.cumsum(counts)]).astype(int)
+    return [(int(offs[k]), int(c), k) for k, c in enumerate(counts)]
+
+
+def _est_rss(problem: Problem, v: np.ndarray, est: Sequence[int]) -> tuple[float, int]:
+    """Sum of squared ln residuals and their number over the blocks whose noise is estimated."""
+    r = np.asarray(evaluate(jnp.asarray(v), problem)[0], np.float64)
+    rss, n = 0.0, 0
+    for o, c, k in _segments(problem.counts):
+        if k in est:
+            rk = r[o : o + c] / np.asarray(problem.blocks[k].inv_sigma, np.float64)
+            rss += float(np.sum(rk**2))
+            n += c
+    return rss, n
+
+
+def _estimate_noise(
+    problem: Problem, layout: Layout, solver: AbstractSolver, outcome: SolveOutcome, est: Sequence[int],
+    robust: bool, prep: "Prepared",
+) -> tuple[Problem, SolveOutcome, dict[str, Any]]:
+    """The log-normal scatter of tables without uncertainties, profiled out of the likelihood.
+
+    Model: ``ln d = ln f + e``, ``e ~ N(0, s^2)`` with one unknown ``s`` shared by the blocks ``est``.
+    Profiling ``s`` out gives ``-2 ln L = chi2_rest + N ln(RSS/N) + N`` at ``s^2 = RSS/N``; its optimum
+    is a fixed point of "weight those blocks by 1/s, solve, re-estimate s", which is iterated here when
+    it matters (other blocks with their own sigma, or a robust loss whose scale is in sigma); with the
+    linear loss and only such blocks the unweighted solve is already the optimum.  The blocks'
+    weights are left at ``1/s``, so residuals, zones and the covariance are in units of the estimate.
+    """
+    dtype = problem.u0.dtype
+    base = {k: np.asarray(prep.inv_sigma[k], np.float64) for k in est}
+    iterate = robust or len(est) < problem.n_blocks
+    s, extra, n_iter = 1.0, 0, 0
+    while n_iter < 8:
+        n_iter += 1
+        rss, n = _est_rss(problem, outcome.v, est)
+        s_new = math.sqrt(rss / max(n, 1)) if rss > 0 else 1.0
+        problem = eqx.tree_at(
+            lambda p: tuple(p.blocks[k].inv_sigma for k in est), problem,
+            tuple(jnp.asarray(base[k] / s_new, dtype) for k in est),
+        )
+        done = abs(s_new / s - 1.0) < 1e-3
+        s = s_new
+        if not iterate or done or not len(layout.free) or not np.all(np.isfinite(outcome.v)):
+            break
+        u_start = np.asarray(problem.u0, np.float64) + np.asarray(problem.scale, np.float64) * np.asarray(outcome.v)
+        problem, new = _solve_stage(problem, layout, solver, u_start, [])
+        extra += new.n_steps
+        outcome = SolveOutcome(new.v, new.converged, new.status, new.message, outcome.n_steps + new.n_steps)
+    rss, n = _est_rss(problem, outcome.v, est)
+    return problem, outcome, {
+        "estimated": True,
+        "sigma_ln": s,
+        "n_points": n,
+        "rss_ln": rss,
+        "blocks": [prep.names[k] for k in est],
+        "iterations": n_iter,
+        "method": "profile likelihood: -2 ln L = chi2_other + N ln(RSS/N) + N, s^2 = RSS/N (log-normal scatter of ln BRDF)",
+        "extra_steps": extra,
+    }
+
+
 def _group_stats(b: TableData, usable: np.ndarray, r: np.ndarray, log_res: np.ndarray) -> tuple[dict[str, Any], ...]:
     ti = np.asarray(b.theta_i, float)[usable]
     key = np.round(np.degrees(ti), 4)
@@ -357,6 +424,7 @@ def fit(
     absolute_sigma: bool | None = None,
     allow_different_detectors: bool = False,
     use_footprint: bool = True,
+    resolution_check: bool = True,
 ) -> FitResult:
     """Fit ``model`` to one or several data blocks (detector frames and/or goniometer tables).
 
@@ -424,6 +492,14 @@ def fit(
             outcome = SolveOutcome(
                 outcome.v, outcome.converged, outcome.status, f"{outcome.message} [{'; '.join(notes)}]", total_steps
             )
+    est = [k for k, b in enumerate(blocks) if isinstance(b, TableData) and b.sigma_rel is None]
+    noise: dict[str, Any] = {"estimated": False}
+    inv_eff = list(prep.inv_sigma)
+    if est:
+        problem, outcome, noise = _estimate_noise(problem, layout, solver_obj, outcome, est, loss != "linear", prep)
+        total_steps += noise.pop("extra_steps")
+        for kk in est:
+            inv_eff[kk] = prep.inv_sigma[kk] / noise["sigma_ln"]
     u0 = np.asarray(problem.u0, np.float64)
     scale = np.asarray(problem.scale, np.float64)
     t_solve = time.perf_counter()
@@ -442,8 +518,20 @@ def fit(
     chi2_red = chi2 / dof if dof > 0 else math.nan
     if dof <= 0:
         warnings.append(f"{n_points} points for {n_free} free parameters: no degrees of freedom left")
-    has_sigma = all(not (isinstance(b, TableData) and b.sigma_rel is None) for b in blocks)
-    absolute = has_sigma if absolute_sigma is None else bool(absolute_sigma)
+    # With estimated noise the residuals are already in units of the estimate: the covariance takes them at
+    # face value (the profile likelihood's curvature), which is the old "scale by the residual variance" with
+    # RSS / N in place of RSS / dof.
+    absolute = True if absolute_sigma is None else bool(absolute_sigma)
+    neg2_ll = chi2
+    if noise["estimated"]:
+        n_e = noise["n_points"]
+        chi2_e = float(sum(np.sum(r[o : o + c] ** 2) for o, c, kk in _segments(problem.counts) if kk in est))
+        neg2_ll = chi2 - chi2_e + n_e * math.log(noise["rss_ln"] / n_e) + n_e
+        warnings.append(
+            f"the noise was estimated from the residuals (sigma of ln BRDF = {noise['sigma_ln']:.4g}, the data give "
+            "none): chi2_reduced is ~1 by construction and says nothing about the goodness of fit; set sigma_rel "
+            "for a known uncertainty"
+        )
     u = u0 + scale * v
     if n_free:
         J = np.asarray(jacobian(jnp.asarray(v), problem), np.float64)
@@ -483,7 +571,7 @@ def fit(
     res_blocks, w_blocks = [], []
     offset = 0
     k = float(np.asarray(problem.loss_scale))
-    for name, b, n, inv_sigma, conv in zip(prep.names, blocks, problem.counts, prep.inv_sigma, prep.convolved):
+    for name, b, n, inv_sigma, conv in zip(prep.names, blocks, problem.counts, inv_eff, prep.convolved):
         rb = r[offset : offset + n]
         offset += n
         log_res = rb / inv_sigma
@@ -499,7 +587,7 @@ def fit(
     n_down = int(np.sum(np.abs(r) > k)) if loss != "linear" else 0
     fitted = problem.block_inputs(jnp.asarray(v))
     t_end = time.perf_counter()
-    return FitResult(
+    result = FitResult(
         parameters=estimates,
         free_names=layout.free_names,
         covariance=cov.matrix,
@@ -517,7 +605,9 @@ def fit(
         loss_scale=k,
         cost=float(np.sum(rt**2)),
         n_downweighted=n_down,
-        covariance_absolute=absolute,
+        covariance_absolute=absolute and not (noise["estimated"] and absolute_sigma is None),
+        noise=noise,
+        neg2_log_likelihood=neg2_ll,
         precision=precision_name,
         blocks=tuple(summaries),
         warnings=tuple(warnings),
@@ -535,3 +625,38 @@ def fit(
         weights=tuple(w_blocks),
         auto_init={kk: (np.asarray(vv).tolist()) for kk, vv in auto.items()},
     )
+    if resolution_check and converged and any(isinstance(b, TableData) for b in blocks):
+        kwargs = dict(
+            solver=solver, solver_options=solver_options, loss=loss, loss_scale=loss_scale, first_stage=first_stage,
+            floor=floor, precision=precision, absolute_sigma=absolute_sigma,
+            allow_different_detectors=allow_different_detectors, use_footprint=use_footprint, resolution_check=False,
+        )
+        result = _mark_unresolved(result, model, blocks, dict(params or {}), kwargs)
+    return result
+
+
+def _mark_unresolved(result: FitResult, model: Model, blocks: list[Data], params: dict[str, Any], kwargs: dict) -> FitResult:
+    """The result with an unresolved lobe's width and weight reported as not determined (:mod:`._resolution`)."""
+    found = check_resolution(model, blocks, params, result, lambda m, spec: fit(m, blocks, spec, **kwargs))
+    notes = found.pop("_notes", [])
+    if notes:
+        result = dataclasses.replace(result, warnings=tuple(result.warnings) + tuple(notes))
+    if not found:
+        return result
+    estimates = dict(result.parameters)
+    undetermined = {}
+    for name, rec in found.items():
+        p = estimates[name]
+        f = to_natural(p.unit)
+        lo, hi = rec["range"]
+        rec = {**rec, "range": [lo * f, hi * f], "unit": natural_unit(p.unit)}
+        rec["range_text"] = (f"< {hi * f:.3g}" if rec.get("open_below") else f"{lo * f:.3g} .. {hi * f:.3g}") + (
+            f" {rec['unit']}" if rec["unit"] not in ("1", "") else ""
+        )
+        undetermined[name] = rec
+        estimates[name] = dataclasses.replace(p, sigma=math.nan)
+    warns = list(result.warnings) + [
+        f"{name} is NOT determined: {rec['reason']}; the data allow {rec['range_text']} "
+        "(profile -2 ln L within 1 of the best); its sigma is not given" for name, rec in undetermined.items()
+    ]
+    return dataclasses.replace(result, parameters=estimates, undetermined=undetermined, warnings=tuple(warns))

@@ -32,6 +32,16 @@ def _num(x: Any) -> Any:
     return x if math.isfinite(x) else None
 
 
+def _clean(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    if isinstance(x, float | np.floating):
+        return _num(x)
+    return x
+
+
 @dataclass(frozen=True)
 class ParameterEstimate:
     """One parameter in stored units (rad, m, 1, sr^-1); :meth:`natural` converts for reports."""
@@ -109,10 +119,28 @@ class FitResult:
     residuals: tuple[np.ndarray, ...] = ()  # per block, raw (non-robust) weighted residuals
     weights: tuple[np.ndarray, ...] = ()  # per block, IRLS weights rho'(r)/r
     auto_init: dict[str, Any] = field(default_factory=dict)
+    # The noise model: {"estimated": False} when every block has its uncertainties; else the estimated
+    # log-normal scatter of ln BRDF (``sigma_ln``), the blocks and points it covers and how it was found.
+    noise: dict[str, Any] = field(default_factory=lambda: {"estimated": False})
+    # -2 ln L up to a data-only constant: chi2 with known uncertainties; with estimated noise the profile
+    # ``chi2_other + N ln(RSS/N) + N`` (NaN: not computed -- then chi2 stands in).
+    neg2_log_likelihood: float = math.nan
+    # Parameters the data do not determine (an unresolved peak): name -> {"reason", "range", ...}.
+    undetermined: dict[str, Any] = field(default_factory=dict)
 
     @property
     def chi2_reduced(self) -> float:
         return self.chi2 / self.dof if self.dof > 0 else math.nan
+
+    @property
+    def sigma_estimated(self) -> bool:
+        """Whether the noise of some block was estimated from the residuals (no uncertainties given)."""
+        return bool(self.noise.get("estimated"))
+
+    @property
+    def m2ll(self) -> float:
+        """``-2 ln L`` (up to a data-only constant): the information criteria's measure of misfit."""
+        return self.chi2 if not math.isfinite(self.neg2_log_likelihood) else self.neg2_log_likelihood
 
     @property
     def convolved(self) -> bool:
@@ -153,6 +181,14 @@ class FitResult:
                 "n_downweighted": int(self.n_downweighted),
             },
             "covariance_absolute": self.covariance_absolute,
+            "sigma_estimated": self.sigma_estimated,
+            "noise": {k: (_num(v) if isinstance(v, float) else v) for k, v in self.noise.items()},
+            "neg2_log_likelihood": _num(self.m2ll),
+            "goodness_of_fit": (
+                "not available: the noise was estimated from the residuals, so chi2_reduced is ~1 by construction"
+                if self.sigma_estimated else "chi2_reduced (the data's own uncertainties)"
+            ),
+            "undetermined": _clean(self.undetermined),
             "correlation": {
                 "names": list(self.free_names),
                 "matrix": [[_num(x) for x in row] for row in np.asarray(self.correlation)],
@@ -177,14 +213,21 @@ class FitResult:
 
     def summary(self) -> str:
         """A short human-readable table of the parameters in natural units."""
+        if self.sigma_estimated:
+            gof = (f"sigma ESTIMATED from the residuals: sigma_ln = {self.noise['sigma_ln']:.4g} (x{math.exp(self.noise['sigma_ln']):.3g}); "
+                   f"-2 ln L = {self.m2ll:.6g}, dof = {self.dof} (chi2_reduced is 1 by construction, not a goodness of fit)")
+        else:
+            gof = f"chi2 = {self.chi2:.6g}, dof = {self.dof}, chi2_reduced = {self.chi2_reduced:.4g}"
         lines = [
             f"{'converged' if self.converged else 'NOT converged'}: {self.message}",
-            f"chi2 = {self.chi2:.6g}, dof = {self.dof}, chi2_reduced = {self.chi2_reduced:.4g}, "
-            f"{self.n_iterations} iterations, {self.wall_s:.2f} s ({self.solver}, loss {self.loss})",
+            f"{gof}, {self.n_iterations} iterations, {self.wall_s:.2f} s ({self.solver}, loss {self.loss})",
         ]
         for name, p in self.parameters.items():
             d = p.natural()
             sig = "fixed" if d["sigma"] is None and not p.free else f"+- {d['sigma']:.3g}" if d["sigma"] is not None else "+- inf"
+            if name in self.undetermined:
+                u = self.undetermined[name]
+                sig = f"NOT determined: {u.get('range_text', '')}"
             lines.append(f"  {name:<22s} {d['value']:>14.6g} {sig:<14s} {d['unit']}")
         lines.extend(f"warning: {w}" for w in self.warnings)
         return "\n".join(lines)

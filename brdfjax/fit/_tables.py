@@ -24,10 +24,12 @@ Angle conventions differ between sources; the readers take:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +42,9 @@ from ._common import FitInputError
 from ._data import TableData
 
 __all__ = [
+    "Screen",
+    "make_table",
+    "check_mirror",
     "read_table",
     "read_astm_e1392",
     "read_merl_inplane",
@@ -145,6 +150,8 @@ def _columns_to_table(
     wavelength: float | None,
     wavelength_unit: str,
     name: str | None,
+    lines: Sequence[int] | None = None,
+    screen: "Screen | None" = None,
 ) -> TableData:
     unknown = set(columns) - set(CANONICAL_COLUMNS)
     if unknown:
@@ -184,13 +191,13 @@ def _columns_to_table(
         f = _angle_factor(path, f"{columns[role]} ({role})", unit or angle_unit)
         offset = azimuth_offset if role.startswith("phi") else 0.0
         out[role] = (values + offset) * f
-        if not np.all(np.isfinite(out[role])):
-            raise FitInputError(f"{path}: column '{columns[role]}' ({role}) has non-finite angles")
     for role in ("theta_i", "theta_s"):
         th = out[role]
         lim = math.pi / 2 + 1e-9
-        if np.any(np.abs(th) > lim):
-            bad = float(np.degrees(np.max(np.abs(th))))
+        with np.errstate(invalid="ignore"):
+            beyond = np.abs(th) > lim
+        if np.any(beyond):
+            bad = float(np.degrees(np.nanmax(np.abs(th))))
             raise FitInputError(
                 f"{path}: column '{columns[role]}' ({role}) has zenith angles up to {bad:.4g} deg (> 90); "
                 f"check angle_unit ('{angle_unit}') and which column is the zenith"
@@ -210,7 +217,7 @@ def _columns_to_table(
         phi_i = np.where(theta_i < 0, phi_i + math.pi, phi_i)
         phi_s = np.where(theta_s < 0, phi_s + math.pi, phi_s)
         theta_i, theta_s = np.abs(theta_i), np.abs(theta_s)
-    elif np.any(theta_i < 0) or np.any(theta_s < 0):
+    elif np.any(np.nan_to_num(theta_i) < 0) or np.any(np.nan_to_num(theta_s) < 0):
         raise FitInputError(
             f"{path}: negative zenith angles in '{columns['theta_i']}'/'{columns['theta_s']}'; if they are signed "
             "in-plane angles pass signed_inplane=True"
@@ -223,19 +230,20 @@ def _columns_to_table(
         sigma_abs, _ = column("sigma")
         with np.errstate(divide="ignore", invalid="ignore"):
             sigma_rel = sigma_abs / brdf
+    if wavelength_unit not in _WAVELENGTH_UNITS:
+        raise FitInputError(f"{path}: unknown wavelength unit '{wavelength_unit}'; known: {', '.join(_WAVELENGTH_UNITS)}")
     if "wavelength" in columns:
         wl_values, unit = column("wavelength")
         wl = wl_values * _WAVELENGTH_UNITS.get(unit or wavelength_unit, np.nan)
+        if wavelength is not None:
+            stated = float(wavelength) * _WAVELENGTH_UNITS[wavelength_unit]
+            _check_stated_wavelength(path, f"column '{columns['wavelength']}'", wl, stated)
     elif wavelength is not None:
         wl = float(wavelength) * _WAVELENGTH_UNITS.get(wavelength_unit, np.nan)
     else:
         wl = 632.8e-9
-    if wavelength_unit not in _WAVELENGTH_UNITS:
-        raise FitInputError(f"{path}: unknown wavelength unit '{wavelength_unit}'; known: {', '.join(_WAVELENGTH_UNITS)}")
-    wrap = lambda a: np.mod(a, 2 * math.pi)  # noqa: E731
-    return TableData(
-        theta_i=theta_i, phi_i=wrap(phi_i), theta_s=theta_s, phi_s=wrap(phi_s), brdf=brdf, sigma_rel=sigma_rel,
-        wavelength=wl, name=name or path.stem, source=str(path),
+    return make_table(
+        path, theta_i, phi_i, theta_s, phi_s, brdf, sigma_rel, wl, name=name or path.stem, lines=lines, screen=screen,
     )
 
 
@@ -251,42 +259,78 @@ def read_table(
     delimiter: str | None = None,
     comment: str = "#",
     name: str | None = None,
+    screen: "Screen | None" = None,
 ) -> TableData:
     """A whitespace- or comma-separated table with a column mapping (module docstring).
 
     The header is the first non-numeric line, or else the last comment line
     with as many names as the data have columns.  ``wavelength`` (in
     ``wavelength_unit``) applies to every row when there is no wavelength
-    column (default 632.8 nm).
+    column (default 632.8 nm); with a wavelength column it must agree with
+    it.  ``screen``: the checks of the rows and of the mirror direction
+    (:class:`Screen`; default: drop bad rows, check the mirror).
     """
     p = _path(path)
     if angle_unit not in ("deg", "rad"):
         raise FitInputError(f"{p}: angle_unit must be 'deg' or 'rad', got {angle_unit!r}")
-    header, data, _ = _read_numeric(p, comment, delimiter)
-    return _columns_to_table(p, header, data, columns, angle_unit, signed_inplane, azimuth_offset, wavelength, wavelength_unit, name)
+    header, data, lines = _read_numeric(p, comment, delimiter)
+    screen = screen or Screen()
+    if not screen.convention:
+        screen = dataclasses.replace(
+            screen, convention=f"azimuth_offset (now {azimuth_offset:g}) or signed_inplane (now {str(signed_inplane).lower()})"
+        )
+    return _columns_to_table(
+        p, header, data, columns, angle_unit, signed_inplane, azimuth_offset, wavelength, wavelength_unit, name, lines, screen
+    )
 
 
-def read_merl_inplane(path: str | os.PathLike, name: str | None = None) -> TableData:
-    """MERL in-plane slices as published with lumos-sat (``../shared/data/real/merl_aluminium_inplane.txt``).
+MERL_COLUMNS = {"theta_i": "phi_in", "phi_i": "theta_in", "theta_s": "phi_out", "phi_s": "theta_out", "brdf": "brdf"}
+
+
+def read_merl_inplane(
+    path: str | os.PathLike,
+    name: str | None = None,
+    *,
+    columns: Mapping[str, str | int] | None = None,
+    signed_inplane: bool = True,
+    azimuth_offset: float = -180.0,
+    wavelength: float | None = None,
+    screen: "Screen | None" = None,
+) -> TableData:
+    """MERL in-plane slices in the lumos-sat layout (``../shared/data/real/merl_aluminium_inplane.txt``).
 
     Columns ``phi_in theta_in phi_out theta_out brdf`` where ``phi`` is the
     ZENITH (degrees; signed in-plane for the outgoing direction) and
     ``theta`` the azimuth, the source at azimuth 180 and the mirror direction
     at 0 (checked on the file: each slice peaks at ``phi_out = phi_in``,
-    ``theta_out = 0``).  No uncertainties.
+    ``theta_out = 0``).  No uncertainties.  ``columns`` renames any of these
+    (canonical role -> the file's header name or index, e.g.
+    ``{"theta_i": "phi_i", "phi_i": "theta_i", "theta_s": "phi_o", "phi_s":
+    "theta_o"}`` for files of this layout with other names); roles not given
+    keep MERL's names.  ``wavelength`` (nm): the layout states none; default
+    632.8 nm.
     """
+    mapping = dict(MERL_COLUMNS)
+    mapping.update(columns or {})
+    screen = screen or Screen()
+    if not screen.convention:
+        screen = dataclasses.replace(
+            screen, convention=f"azimuth_offset (now {azimuth_offset:g}) or signed_inplane (now {str(signed_inplane).lower()})"
+        )
     return read_table(
         path,
-        {"theta_i": "phi_in", "phi_i": "theta_in", "theta_s": "phi_out", "phi_s": "theta_out", "brdf": "brdf"},
+        mapping,
         angle_unit="deg",
-        signed_inplane=True,
-        azimuth_offset=-180.0,
+        signed_inplane=signed_inplane,
+        azimuth_offset=azimuth_offset,
+        wavelength=wavelength,
         name=name,
+        screen=screen,
     )
 
 
 def read_cornell_brdf(
-    path: str | os.PathLike, wavelength_nm: float | str = "mean", name: str | None = None
+    path: str | os.PathLike, wavelength_nm: float | str = "mean", name: str | None = None, *, screen: "Screen | None" = None
 ) -> TableData:
     """A Cornell gonioreflectometer ``.brdf`` file (pbrt-v2 ``scenes/brdfs``).
 
@@ -338,12 +382,210 @@ def read_cornell_brdf(
         wl = float(wls[idx[0]]) * 1e-9
         suffix = f"{wls[idx[0]]:g}nm"
     theta_i, phi_i, theta_s, phi_s = rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3]
-    if np.any(np.abs(theta_i) > math.pi / 2 + 1e-6) or np.any(np.abs(theta_s) > math.pi / 2 + 1e-6):
+    with np.errstate(invalid="ignore"):
+        beyond = (np.abs(theta_i) > math.pi / 2 + 1e-6) | (np.abs(theta_s) > math.pi / 2 + 1e-6)
+    if np.any(beyond):
         raise FitInputError(f"{p}: zenith angles beyond pi/2: the file's angles should be in radians")
+    screen = screen or Screen()
+    if not screen.convention:
+        screen = dataclasses.replace(screen, convention="the file's azimuths (Cornell: phi_i = 0, mirror at phi_s = pi)")
+    return make_table(
+        p, np.abs(theta_i), phi_i, np.abs(theta_s), phi_s, brdf, None, wl, name=name or f"{p.stem}_{suffix}",
+        lines=None, screen=screen, row_label="record",
+    )
+
+
+# --- row screening and the mirror-angle check -------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Screen:
+    """What a reader checks in the rows of a table (see :func:`make_table`).
+
+    ``on_bad_rows``: ``"drop"`` (report and drop them, the count in the
+    table's ``screening`` record) or ``"error"`` (refuse the file, listing
+    them).  Bad rows: a non-finite angle or BRDF (NaN rows named by line),
+    ``theta_s`` or ``theta_i`` at 90 deg (the model is exactly 0 there),
+    BRDF <= 0, and constant placeholder runs: ``placeholder_run`` or more
+    consecutive rows of one slice with the identical BRDF value (a slice made
+    only of them is always an error).  ``check_mirror``: each slice's peak
+    must lie within ``mirror_tolerance_deg`` (or twice the distance of the
+    slice's nearest sample to the mirror direction, if larger) of the mirror
+    direction, in most slices with a clear peak (max / median >= 3); else the
+    azimuth convention is wrong and the error names ``convention`` (the keys
+    to change).
+    """
+
+    on_bad_rows: str = "drop"
+    placeholder_run: int = 10
+    check_mirror: bool = True
+    mirror_tolerance_deg: float = 10.0
+    convention: str = ""
+
+
+def _check_stated_wavelength(path: Path, where: str, stated_m: np.ndarray, wanted_m: float) -> None:
+    w = np.asarray(stated_m, float)
+    w = w[np.isfinite(w)]
+    if w.size and np.any(np.abs(w - wanted_m) > 0.5e-9 + 1e-6 * wanted_m):
+        have = ", ".join(f"{x:g}" for x in np.unique(np.round(w * 1e9, 4))[:5])
+        raise FitInputError(
+            f"{path}: wavelength_nm = {wanted_m * 1e9:g} disagrees with the file ({where} states {have} nm); "
+            "drop wavelength_nm or correct it"
+        )
+
+
+def _slices(theta_i: np.ndarray, phi_i: np.ndarray) -> list[np.ndarray]:
+    """Row indices of each (theta_i, phi_i) slice, in file order."""
+    key = np.round(np.nan_to_num(theta_i, nan=-1.0), 6) * 1000.0 + np.round(np.nan_to_num(phi_i, nan=-1.0), 6)
+    _, inv = np.unique(key, return_inverse=True)
+    return [np.flatnonzero(inv == k) for k in range(int(inv.max()) + 1)] if inv.size else []
+
+
+def _fmt_lines(label: str, where: np.ndarray, limit: int = 12) -> str:
+    items = ", ".join(str(int(x)) for x in where[:limit])
+    more = f" and {where.size - limit} more" if where.size > limit else ""
+    return f"{label}s {items}{more}"
+
+
+def _placeholder_rows(brdf: np.ndarray, rows: np.ndarray, run: int) -> np.ndarray:
+    """Rows (of ``rows``, in order) inside runs of >= ``run`` identical BRDF values."""
+    b = brdf[rows]
+    out = np.zeros(rows.size, bool)
+    start = 0
+    for i in range(1, rows.size + 1):
+        if i == rows.size or not (b[i] == b[start]):
+            if i - start >= run:
+                out[start:i] = True
+            start = i
+    return out
+
+
+def _angle_between(t1, p1, t2, p2):
+    c = np.cos(t1) * np.cos(t2) + np.sin(t1) * np.sin(t2) * np.cos(p1 - p2)
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def check_mirror(
+    path: Path | str, theta_i, phi_i, theta_s, phi_s, brdf, tolerance_deg: float = 10.0, convention: str = ""
+) -> dict[str, Any]:
+    """The mirror-angle check of :class:`Screen` (radians, brdfjax's convention); returns its record.
+
+    Raises :class:`FitInputError` naming the file and ``convention`` when the
+    clear peaks of most slices are off the mirror direction.
+    """
+    ti, pi_, ts, ps, b = (np.asarray(a, float) for a in (theta_i, phi_i, theta_s, phi_s, brdf))
+    clear, off = 0, []
+    for rows in _slices(ti, pi_):
+        ok = rows[np.isfinite(b[rows]) & (b[rows] > 0)]
+        if ok.size < 5:
+            continue
+        k = ok[int(np.argmax(b[ok]))]
+        if b[k] < 3.0 * float(np.median(b[ok])):
+            continue
+        clear += 1
+        mirror = (ti[k], pi_[k] + math.pi)
+        d_peak = float(_angle_between(ts[k], ps[k], *mirror))
+        d_near = float(np.min(_angle_between(ts[ok], ps[ok], *mirror)))
+        tol = max(math.radians(tolerance_deg), 2.0 * d_near)
+        if d_peak > tol:
+            d_retro = float(_angle_between(ts[k], ps[k], ti[k], pi_[k]))
+            off.append((ti[k], ts[k], ps[k], pi_[k], d_peak, d_retro))
+    record = {"slices_with_a_clear_peak": clear, "off_mirror": len(off)}
+    if clear and len(off) > clear / 2:
+        t0, t1, p1, pi0, d_peak, d_retro = off[0]
+        side = " (on the backscatter side, next to the source)" if d_retro < d_peak else ""
+        raise FitInputError(
+            f"{path}: the BRDF peak of {len(off)} of {clear} slices is not at the mirror direction{side}: e.g. "
+            f"theta_i = {math.degrees(t0):.4g} deg: peak at theta_s = {math.degrees(t1):.4g}, "
+            f"phi_s = {math.degrees(p1) % 360:.4g} deg, {math.degrees(d_peak):.3g} deg from the mirror direction "
+            f"(theta_s = {math.degrees(t0):.4g}, phi_s = {math.degrees(pi0 + math.pi) % 360:.4g} deg in brdfjax's "
+            f"convention); the file's angle convention is probably another: change {convention or 'the azimuths'}"
+            " (or set check_mirror = false for a surface whose peak is off-specular)"
+        )
+    return record
+
+
+def make_table(
+    path: Path | str,
+    theta_i: Any,
+    phi_i: Any,
+    theta_s: Any,
+    phi_s: Any,
+    brdf: Any,
+    sigma_rel: Any,
+    wavelength: Any,
+    *,
+    name: str,
+    lines: Any = None,
+    screen: Screen | None = None,
+    row_label: str = "line",
+) -> TableData:
+    """Screen the rows (:class:`Screen`) and build the :class:`TableData` of the kept rows (angles in radians).
+
+    The table's ``screening`` record: rows read, kept, dropped per reason
+    (with their line numbers), and the mirror check's result.
+    """
+    screen = screen or Screen()
+    if screen.on_bad_rows not in ("drop", "error"):
+        raise FitInputError(f"{path}: on_bad_rows must be 'drop' or 'error', got {screen.on_bad_rows!r}")
+    arrays = [np.asarray(a, np.float64) for a in (theta_i, phi_i, theta_s, phi_s, brdf)]
+    n = arrays[4].shape[0]
+    ti, pi_, ts, ps, b = (np.broadcast_to(a, (n,)).copy() for a in arrays)
+    where = np.arange(1, n + 1) if lines is None else np.asarray(lines, int)
+    label = row_label if lines is not None or row_label != "line" else "row"
+    sig = None if sigma_rel is None else np.broadcast_to(np.asarray(sigma_rel, np.float64), (n,))
+    wl = np.asarray(wavelength, np.float64)
+    finite = np.isfinite(ti) & np.isfinite(pi_) & np.isfinite(ts) & np.isfinite(ps) & np.isfinite(b)
+    if wl.ndim:
+        finite &= np.isfinite(wl)
+    with np.errstate(invalid="ignore"):
+        grazing = finite & ((np.abs(ts) >= math.pi / 2 - 1e-9) | (np.abs(ti) >= math.pi / 2 - 1e-9))
+        non_pos = finite & ~grazing & (b <= 0)
+    placeholder = np.zeros(n, bool)
+    all_placeholder = []
+    for rows in _slices(ti, pi_):
+        cand = rows[finite[rows] & ~grazing[rows] & ~non_pos[rows]]
+        if cand.size == 0:
+            continue
+        ph = _placeholder_rows(b, cand, max(2, int(screen.placeholder_run)))
+        placeholder[cand[ph]] = True
+        if ph.all() and cand.size >= 2:
+            all_placeholder.append((ti[rows[0]], cand))
+    if all_placeholder:
+        t0, rows = all_placeholder[0]
+        raise FitInputError(
+            f"{path}: the slice at theta_i = {math.degrees(t0):.4g} deg holds only a constant placeholder value "
+            f"(BRDF = {b[rows[0]]:.6g} in all its {rows.size} rows, {label}s {where[rows[0]]}-{where[rows[-1]]}); "
+            "remove it from the file or select other incident angles (theta_i_deg)"
+        )
+    reasons = {
+        "non_finite": ~finite,
+        "theta_90deg": grazing,
+        "non_positive": non_pos,
+        "placeholder": placeholder,
+    }
+    texts = {
+        "non_finite": "NaN/non-finite angle or BRDF",
+        "theta_90deg": "at theta = 90 deg (the model is 0 there)",
+        "non_positive": "BRDF <= 0",
+        "placeholder": f"constant placeholder runs (>= {screen.placeholder_run} identical values)",
+    }
+    dropped = {k: {"count": int(m.sum()), f"{label}s": where[m][:50].tolist()} for k, m in reasons.items() if m.any()}
+    bad = ~finite | grazing | non_pos | placeholder
+    if bad.any() and screen.on_bad_rows == "error":
+        parts = [f"{int(m.sum())} {texts[k]} ({_fmt_lines(label, where[m])})" for k, m in reasons.items() if m.any()]
+        raise FitInputError(f"{path}: bad rows: " + "; ".join(parts) + " (on_bad_rows = 'error'; 'drop' drops them)")
+    keep = ~bad
+    if not keep.any():
+        raise FitInputError(f"{path}: no usable rows: all {n} are bad (" + ", ".join(f"{v['count']} {texts[k]}" for k, v in dropped.items()) + ")")
+    mirror = None
+    if screen.check_mirror:
+        mirror = check_mirror(path, ti[keep], pi_[keep], ts[keep], ps[keep], b[keep], screen.mirror_tolerance_deg, screen.convention)
+    record = {"n_rows": n, "n_kept": int(keep.sum()), "dropped": dropped, "mirror_check": mirror}
     return TableData(
-        theta_i=np.abs(theta_i), phi_i=np.mod(phi_i, 2 * math.pi), theta_s=np.abs(theta_s),
-        phi_s=np.mod(phi_s, 2 * math.pi), brdf=brdf, sigma_rel=None, wavelength=wl,
-        name=name or f"{p.stem}_{suffix}", source=str(p),
+        theta_i=ti[keep], phi_i=np.mod(pi_[keep], 2 * math.pi), theta_s=ts[keep], phi_s=np.mod(ps[keep], 2 * math.pi),
+        brdf=b[keep], sigma_rel=None if sig is None else sig[keep], wavelength=wl if wl.ndim == 0 else wl[keep],
+        name=name, source=str(path), lines=where[keep] if lines is not None else None, screening=record,
     )
 
 
@@ -382,7 +624,9 @@ def _value_unit(path: Path, lineno: int, key: str, text: str) -> tuple[float, st
     return v, (parts[1].lower() if len(parts) > 1 else None)
 
 
-def read_astm_e1392(path: str | os.PathLike, name: str | None = None) -> TableData:
+def read_astm_e1392(
+    path: str | os.PathLike, name: str | None = None, *, wavelength: float | None = None, screen: "Screen | None" = None
+) -> TableData:
     """An ASTM E1392-style scatter file: keyword header, then columns; several sections allowed.
 
     ASTM E1392 says what a BRDF report must state (wavelength, incident
@@ -404,6 +648,8 @@ def read_astm_e1392(path: str | os.PathLike, name: str | None = None) -> TableDa
     ``theta_s``/``scatter_angle``, ``phi_s``/``azimuth`` (optional: without it
     ``theta_s`` is a signed in-plane angle, negative on the source side),
     ``brdf``/``bsdf``, ``sigma`` (absolute, sr^-1) or ``sigma_rel``.
+    ``wavelength`` (nm, optional): the wavelength the caller expects; it must
+    agree with the file's ``Wavelength:`` line.
     """
     p = _path(path)
     meta: dict[str, Any] = {"angle_unit": "deg", "phi_i": 0.0}
@@ -463,11 +709,14 @@ def read_astm_e1392(path: str | os.PathLike, name: str | None = None) -> TableDa
             if len(tokens) != len(current["header"]):
                 raise FitInputError(f"{p}:{lineno}: {len(tokens)} values, but the header names {len(current['header'])} columns")
             current["rows"].append([float(t) for t in tokens])
+            current.setdefault("lines", []).append(lineno)
     if "wavelength" not in meta:
         raise FitInputError(f"{p}: no 'Wavelength:' line")
     if not sections or not any(s["rows"] for s in sections):
         raise FitInputError(f"{p}: no data (each section starts with 'Incident angle:' and a column header)")
-    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("theta_i", "phi_i", "theta_s", "phi_s", "brdf", "sigma_rel")}
+    if wavelength is not None:
+        _check_stated_wavelength(p, "its 'Wavelength:' line", np.asarray(meta["wavelength"]), float(wavelength) * 1e-9)
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("theta_i", "phi_i", "theta_s", "phi_s", "brdf", "sigma_rel", "lines")}
     any_sigma = False
     for s in sections:
         if not s["rows"]:
@@ -495,7 +744,9 @@ def read_astm_e1392(path: str | os.PathLike, name: str | None = None) -> TableDa
         else:
             sr = np.full(brdf.shape, np.nan)
         n = brdf.size
-        if np.any(ts < 0) or np.any(ts > math.pi / 2 + 1e-9) or not (0 <= s["theta_i"] <= math.pi / 2):
+        with np.errstate(invalid="ignore"):
+            out_of_range = np.any(ts < 0) or np.any(ts > math.pi / 2 + 1e-9)
+        if out_of_range or not (0 <= s["theta_i"] <= math.pi / 2):
             raise FitInputError(f"{p}:{s['line']}: zenith angles outside [0, 90] deg; check 'Angle unit'")
         cols["theta_i"].append(np.full(n, s["theta_i"]))
         cols["phi_i"].append(np.full(n, s["phi_i"]))
@@ -503,13 +754,16 @@ def read_astm_e1392(path: str | os.PathLike, name: str | None = None) -> TableDa
         cols["phi_s"].append(ps)
         cols["brdf"].append(brdf)
         cols["sigma_rel"].append(sr)
+        cols["lines"].append(np.asarray(s["lines"]))
     cat = {k: np.concatenate(v) for k, v in cols.items()}
     if any_sigma and np.any(np.isnan(cat["sigma_rel"])):
         raise FitInputError(f"{p}: some sections have an uncertainty column and some do not")
-    return TableData(
-        theta_i=cat["theta_i"], phi_i=np.mod(cat["phi_i"], 2 * math.pi), theta_s=cat["theta_s"],
-        phi_s=np.mod(cat["phi_s"], 2 * math.pi), brdf=cat["brdf"], sigma_rel=cat["sigma_rel"] if any_sigma else None,
-        wavelength=meta["wavelength"], name=name or p.stem, source=str(p),
+    screen = screen or Screen()
+    if not screen.convention:
+        screen = dataclasses.replace(screen, convention="the file's azimuth columns (brdfjax: mirror at phi_s = phi_i + 180 deg)")
+    return make_table(
+        p, cat["theta_i"], cat["phi_i"], cat["theta_s"], cat["phi_s"], cat["brdf"],
+        cat["sigma_rel"] if any_sigma else None, meta["wavelength"], name=name or p.stem, lines=cat["lines"], screen=screen,
     )
 
 

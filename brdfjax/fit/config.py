@@ -127,7 +127,7 @@ from ._params import SPEC_KEYS, Param, param_problems
 from ._residuals import LOSSES
 from ._result import FitResult
 from ._solvers import SOLVERS
-from ._tables import read_astm_e1392, read_cornell_brdf, read_merl_inplane, read_table
+from ._tables import Screen, read_astm_e1392, read_cornell_brdf, read_merl_inplane, read_table
 
 __all__ = [
     "FitConfig",
@@ -212,35 +212,54 @@ class SyntheticConfig(StrictModel):
 
 
 class TableConfig(StrictModel):
-    """``[[data.tables]]``: one goniometer table."""
+    """``[[data.tables]]``: one goniometer table (the README's "Goniometer tables" lists every key)."""
 
     path: str = Field(description="the table file, relative to the config")
-    format: Literal["table", "merl", "cornell", "astm"] = Field(
-        "table", description="'table' (columns mapping), 'merl', 'cornell' or 'astm'"
+    format: Literal["table", "merl", "lumos-sat", "cornell", "astm"] = Field(
+        "table", description="'table' (columns mapping), 'merl' (= 'lumos-sat'), 'cornell' or 'astm'"
     )
     name: str | None = Field(None, description="a name for messages and the result (default: the file stem)")
     columns: dict[str, str | int] | None = Field(
-        None, description="format 'table': role -> column name or 0-based index (theta_i, phi_i, theta_s, phi_s, "
-        "brdf, sigma_rel, sigma, wavelength)"
+        None, description="role -> column name or 0-based index (theta_i, phi_i, theta_s, phi_s, brdf, sigma_rel, "
+        "sigma, wavelength); format 'table': required; 'merl': renames MERL's phi_in/theta_in/phi_out/theta_out/brdf"
     )
     angle_unit: Literal["deg", "rad"] = Field("deg", description="'deg' or 'rad' (format 'table')")
-    signed_inplane: bool = Field(False, description="zeniths are signed in-plane angles (format 'table')")
-    azimuth_offset: float = Field(0.0, description="added to both azimuths, in angle_unit (format 'table')")
+    signed_inplane: bool | None = Field(
+        None, description="zeniths are signed in-plane angles (formats 'table', default false, and 'merl', default true)"
+    )
+    azimuth_offset: float | None = Field(
+        None, description="added to both azimuths, in angle_unit (formats 'table', default 0, and 'merl', default -180)"
+    )
     delimiter: str | None = Field(None, description="column delimiter (default: whitespace or comma)")
     wavelength_nm: float | Literal["mean"] | None = Field(
-        None, description="wavelength in nm (a table without a wavelength column; Cornell: one of the file's, or 'mean')"
+        None, description="wavelength in nm: of a table without a wavelength column; Cornell: one of the file's, or "
+        "'mean'; a file that states its own (a wavelength column, ASTM's 'Wavelength:') must agree"
     )
-    sigma_rel: float | None = Field(None, gt=0, description="a relative uncertainty for every row of a table without one")
+    sigma_rel: float | None = Field(
+        None, gt=0, description="a relative uncertainty for every row of a table without one (replaces the estimated noise)"
+    )
     theta_i_deg: list[float] | None = Field(None, description="keep these incident angles only (deg)")
     max_theta_s_deg: float | None = Field(None, gt=0, description="drop rows with theta_s beyond this (deg)")
     min_brdf: float | None = Field(None, ge=0, description="drop rows with BRDF below this (sr^-1)")
+    on_bad_rows: Literal["drop", "error"] = Field(
+        "drop", description="rows with NaN, theta = 90 deg, BRDF <= 0 or placeholder runs: 'drop' (counted) or 'error'"
+    )
+    placeholder_run: int = Field(10, ge=2, description="this many identical consecutive BRDF values in a slice: placeholder rows")
+    check_mirror: bool = Field(True, description="check that each slice's peak sits near the mirror direction")
+    mirror_tolerance_deg: float = Field(10.0, gt=0, description="how far from the mirror direction a peak may sit (deg)")
 
     @model_validator(mode="after")
     def _columns(self) -> "TableConfig":
         if self.format == "table" and not self.columns:
             raise ValueError("format 'table' needs 'columns' (e.g. columns = { theta_i = 0, theta_s = 1, brdf = 2 })")
-        if self.format != "table" and self.columns:
-            raise ValueError(f"'columns' applies to format 'table' only; format '{self.format}' has a fixed layout")
+        if self.format in ("cornell", "astm") and self.columns:
+            raise ValueError(f"'columns' applies to formats 'table' and 'merl' only; format '{self.format}' has a fixed layout")
+        if self.format in ("cornell", "astm"):
+            for k in ("signed_inplane", "azimuth_offset"):
+                if getattr(self, k) is not None:
+                    raise ValueError(f"'{k}' applies to formats 'table' and 'merl' only; format '{self.format}' states its angles")
+        if self.wavelength_nm == "mean" and self.format != "cornell":
+            raise ValueError("wavelength_nm = 'mean' applies to format 'cornell' only")
         return self
 
 
@@ -726,19 +745,34 @@ def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
     key = f"data.tables[{i}]"
     path = cfg.resolve(t.path)
     name = t.name or path.stem
+    wl = None if t.wavelength_nm in (None, "mean") else float(t.wavelength_nm)
+    screen = Screen(
+        on_bad_rows=t.on_bad_rows, placeholder_run=t.placeholder_run, check_mirror=t.check_mirror,
+        mirror_tolerance_deg=t.mirror_tolerance_deg,
+    )
+    conv = []
+    for k, default in (("azimuth_offset", -180.0 if t.format in ("merl", "lumos-sat") else 0.0),
+                       ("signed_inplane", t.format in ("merl", "lumos-sat"))):
+        v = getattr(t, k)
+        conv.append(f"{key}.{k} (now {default if v is None else v!r})")
+    screen = replace(screen, convention=" or ".join(conv))
     try:
-        if t.format == "merl":
-            table = read_merl_inplane(path, name=name)
+        if t.format in ("merl", "lumos-sat"):
+            table = read_merl_inplane(
+                path, name=name, columns=t.columns,
+                signed_inplane=True if t.signed_inplane is None else t.signed_inplane,
+                azimuth_offset=-180.0 if t.azimuth_offset is None else t.azimuth_offset,
+                wavelength=wl, screen=screen,
+            )
         elif t.format == "cornell":
-            table = read_cornell_brdf(path, "mean" if t.wavelength_nm is None else t.wavelength_nm, name=name)
+            table = read_cornell_brdf(path, "mean" if t.wavelength_nm is None else t.wavelength_nm, name=name, screen=screen)
         elif t.format == "astm":
-            table = read_astm_e1392(path, name=name)
+            table = read_astm_e1392(path, name=name, wavelength=wl, screen=screen)
         else:
-            if t.wavelength_nm == "mean":
-                raise FitInputError("wavelength_nm = 'mean' applies to Cornell files only")
             table = read_table(
-                path, t.columns or {}, angle_unit=t.angle_unit, signed_inplane=t.signed_inplane,
-                azimuth_offset=t.azimuth_offset, wavelength=t.wavelength_nm, delimiter=t.delimiter, name=name,
+                path, t.columns or {}, angle_unit=t.angle_unit, signed_inplane=bool(t.signed_inplane),
+                azimuth_offset=t.azimuth_offset or 0.0, wavelength=wl, delimiter=t.delimiter, name=name,
+                screen=screen,
             )
     except FitInputError as e:
         raise ConfigError(str(cfg.source), [(key, str(e))]) from None
@@ -784,6 +818,11 @@ def build_fit_job(cfg: FitConfig, *, work_dir: str | os.PathLike | None = None) 
     notes: list[str] = []
     frames, info = _load_frames(cfg, work, notes, model)
     tables = [_load_table(cfg, i, t) for i, t in enumerate(cfg.data.tables)]
+    for i, t in enumerate(tables):
+        rec = t.screening or {}
+        if rec.get("dropped"):
+            what = ", ".join(f"{v['count']} {k}" for k, v in rec["dropped"].items())
+            notes.append(f"data.tables[{i}] ({t.source}): dropped {rec['n_rows'] - rec['n_kept']} of {rec['n_rows']} rows: {what}")
     blocks: list[FrameData | TableData] = [*frames, *tables]
     names = [b.name for b in blocks]
     if len(set(names)) != len(names):
@@ -835,8 +874,14 @@ def run_fit(
     t0 = time.perf_counter()
     cfg = load_fit_config(config_path)
     _resolve_precision(cfg.precision)  # float64 without 64-bit JAX fails now, before anything is written
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    job = build_fit_job(cfg, work_dir=out)
+    try:
+        job = build_fit_job(cfg, work_dir=out)
+    except Exception:
+        if created and not any(out.iterdir()):
+            out.rmdir()  # bad data: leave nothing behind
+        raise
     t_data = time.perf_counter() - t0
     say = (lambda s: console.print(s, markup=False)) if console is not None else (lambda s: None)
     for n in job.notes:
@@ -867,7 +912,10 @@ def _describe_block(b: FrameData | TableData) -> dict[str, Any]:
             "wavelength_nm": b.wavelength * 1e9, "grid": list(b.grid.shape), "n_usable": int(b.usable().sum()),
             "footprint": None if b.footprint is None else list(np.shape(b.footprint)),
         }
-    return {"name": b.name, "kind": "table", "source": b.source, "n_rows": len(b), "n_usable": int(b.usable().sum())}
+    return {
+        "name": b.name, "kind": "table", "source": b.source, "n_rows": len(b), "n_usable": int(b.usable().sum()),
+        "screening": b.screening,
+    }
 
 
 def _write_json(path: Path, doc: Mapping[str, Any]) -> None:

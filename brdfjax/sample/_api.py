@@ -362,7 +362,14 @@ def sample(
             "chi2": -2.0 * ll_fit,
         },
         "correlation": {"names": list(post.names), "matrix": [[float(v) for v in row] for row in np.atleast_2d(corr)]},
-        "likelihood": {"loss": post.loss, "n_points": post.n_points, "form": "log L = -sum rho(r), r = (log(f + floor) - log d) / sigma_rel"},
+        "likelihood": {
+            "loss": post.loss, "n_points": post.n_points,
+            "form": "log L = -sum rho(r), r = (log(f + floor) - log d) / sigma_rel"
+            + ("; over the points without uncertainties -(N/2) ln sum r^2 (the log-normal noise profiled out)"
+               if post.sigma_estimated else ""),
+            "sigma_estimated": post.sigma_estimated,
+            "noise": None if fit_res is None else dict(fit_res.noise),
+        },
         "sampling": {**sampling_record(blocks, step, roi), **dict(extra_record or {})},
         "seed": int(seed),
         "ball_sigma": float(ball),

@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ..fit import TableData
 from ..fit.internal import LOSSES, Problem, natural_unit, to_natural
 from ._priors import PriorArrays, SampleError, build_prior_arrays, log_prior, log_prior_numpy, resolve_priors
 
@@ -55,35 +56,49 @@ def identity_problem(problem: Problem) -> Problem:
     )
 
 
-def _log_likelihood_one(x: Array, problem: Problem) -> Array:
-    r = problem.residuals(x)
-    ll = -0.5 * jnp.sum(jnp.square(r.astype(jnp.result_type(x))))
+def _log_likelihood_one(x: Array, problem: Problem, est: Array) -> Array:
+    """``-chi2/2`` over the points with uncertainties; ``-(N/2) ln RSS`` over the ``N`` points whose noise is
+    estimated (``est`` = 1): the log-normal scatter profiled out (equal, up to a constant, to marginalising
+    it with the Jeffreys prior ``1/s``), so that no unit of the unknown noise is assumed."""
+    r2 = jnp.square(problem.residuals(x).astype(jnp.result_type(x)))
+    n_est = jnp.sum(est)
+    rss = jnp.sum(r2 * est)
+    ll = -0.5 * jnp.sum(r2 * (1.0 - est)) - 0.5 * jnp.where(n_est > 0, n_est * jnp.log(jnp.maximum(rss, 1e-300)), 0.0)
     return jnp.where(jnp.isfinite(ll), ll, -jnp.inf)
 
 
-def _log_posterior_one(x: Array, problem: Problem, priors: PriorArrays) -> Array:
+def _log_posterior_one(x: Array, problem: Problem, priors: PriorArrays, est: Array) -> Array:
     lp = log_prior(x, priors)
     # The likelihood is evaluated everywhere (vmap has no branches); outside the support the prior wins.
     x_safe = jnp.where(jnp.isfinite(lp), x, jnp.clip(x, priors.lower, priors.upper))
-    ll = _log_likelihood_one(x_safe, problem)
+    ll = _log_likelihood_one(x_safe, problem, est)
     return jnp.where(jnp.isfinite(lp), lp + ll, -jnp.inf)
 
 
 @eqx.filter_jit
-def batch_log_posterior(X: Array, problem: Problem, priors: PriorArrays) -> Array:
+def batch_log_posterior(X: Array, problem: Problem, priors: PriorArrays, est: Array) -> Array:
     """Log-posterior of every walker, ``X``: ``(n_walkers, p)`` stored units."""
-    return jax.vmap(_log_posterior_one, in_axes=(0, None, None))(X, problem, priors)
+    return jax.vmap(_log_posterior_one, in_axes=(0, None, None, None))(X, problem, priors, est)
 
 
 @eqx.filter_jit
-def batch_log_likelihood(X: Array, problem: Problem) -> Array:
-    return jax.vmap(_log_likelihood_one, in_axes=(0, None))(X, problem)
+def batch_log_likelihood(X: Array, problem: Problem, est: Array) -> Array:
+    return jax.vmap(_log_likelihood_one, in_axes=(0, None, None))(X, problem, est)
 
 
 @eqx.filter_jit
-def single_log_posterior(x: Array, problem: Problem, priors: PriorArrays) -> Array:
+def single_log_posterior(x: Array, problem: Problem, priors: PriorArrays, est: Array) -> Array:
     """The same log-posterior for one walker (the non-vectorised baseline of the benchmark)."""
-    return _log_posterior_one(x, problem, priors)
+    return _log_posterior_one(x, problem, priors, est)
+
+
+def estimated_noise_mask(prepared: Any) -> np.ndarray:
+    """1 at the points of blocks without uncertainties (tables with no sigma: noise profiled), else 0."""
+    parts = [
+        np.full(int(c), 1.0 if isinstance(b, TableData) and b.sigma_rel is None else 0.0)
+        for b, c in zip(prepared.blocks, prepared.problem.counts)
+    ]
+    return np.concatenate(parts) if parts else np.zeros(0)
 
 
 @dataclass(eq=False)
@@ -102,6 +117,7 @@ class LogPosterior:
     n_points: int
     loss: str
     dtype: Any = field(default=None)
+    est: Any = None  # (n_points,) 1 where the noise is estimated (profiled), else 0
 
     @property
     def ndim(self) -> int:
@@ -121,15 +137,22 @@ class LogPosterior:
 
     def __call__(self, X: Any) -> np.ndarray:
         """Vectorised log-posterior: ``(n, p)`` -> ``(n,)`` NumPy (emcee ``vectorize=True``)."""
-        return np.asarray(batch_log_posterior(self._as_batch(X), self.problem, self.priors), np.float64)
+        return np.asarray(batch_log_posterior(self._as_batch(X), self.problem, self.priors, self.est), np.float64)
 
     def log_prob_one(self, x: Any) -> float:
         """One walker through a jitted single-walker function (emcee ``vectorize=False``)."""
-        return float(single_log_posterior(jnp.asarray(np.asarray(x, np.float64), self.dtype), self.problem, self.priors))
+        return float(
+            single_log_posterior(jnp.asarray(np.asarray(x, np.float64), self.dtype), self.problem, self.priors, self.est)
+        )
 
     def log_likelihood(self, X: Any) -> np.ndarray:
-        """``-sum rho(r)`` (no prior): ``-2 log L`` is the fit's chi^2 for the linear loss."""
-        return np.asarray(batch_log_likelihood(self._as_batch(X), self.problem), np.float64)
+        """``-sum rho(r)`` (no prior; profiled where the noise is estimated): ``-2 log L`` is the fit's chi^2
+        for the linear loss with known uncertainties."""
+        return np.asarray(batch_log_likelihood(self._as_batch(X), self.problem, self.est), np.float64)
+
+    @property
+    def sigma_estimated(self) -> bool:
+        return bool(np.any(np.asarray(self.est) > 0))
 
     def log_prior(self, X: Any) -> np.ndarray:
         return log_prior_numpy(X, self.priors)
@@ -191,6 +214,7 @@ def build_log_posterior(prepared: Any, priors: Mapping[str, Any] | None = None, 
         n_points=int(sum(prepared.problem.counts)),
         loss=loss or LOSSES[int(np.asarray(prepared.problem.loss_index))],
         dtype=dtype,
+        est=jnp.asarray(estimated_noise_mask(prepared), dtype),
     )
 
 

@@ -24,7 +24,8 @@ to a :class:`Scenario`, and :func:`synthesize` produces the measured frames
 
 Effects (see each class's ``doc``), keyed by name in :data:`EFFECT_LIBRARY`:
 model side (:mod:`.model`) ``offset_normal_peak``, ``diffraction``,
-``lambertian``, ``anisotropic_roughness``, ``distribution_shape``;
+``lambertian``, ``anisotropic_roughness``, ``distribution_shape``; tables (:mod:`.tables`)
+``second_lobe``, ``shadowing``;
 instrument side (:mod:`.instrument`) ``instrument_function``,
 ``misalignment``, ``flux_scale``, ``pixel_nonlinearity``,
 ``spectral_bandwidth``, ``stray_light``, ``angular_sampling``.
@@ -66,6 +67,7 @@ from .model import (
     LambertianEffect as LambertianEffect,
     OffsetNormalPeakEffect as OffsetNormalPeakEffect,
 )
+from .tables import SecondLobeEffect as SecondLobeEffect, ShadowingEffect as ShadowingEffect, tables_only as tables_only
 from .terms import (
     InstrumentResponse as InstrumentResponse,
     Oriented as Oriented,
@@ -99,6 +101,8 @@ EFFECT_LIBRARY: dict[str, Effect] = {
         LambertianEffect(),
         AnisotropicRoughnessEffect(),
         DistributionShapeEffect(),
+        SecondLobeEffect(),
+        ShadowingEffect(),
         MisalignmentEffect(),
         FluxScaleEffect(),
         PixelNonlinearityEffect(),

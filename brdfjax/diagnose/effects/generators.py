@@ -311,7 +311,24 @@ def _inj_aperture(rng, sc: Scenario) -> Scenario:
     return sc.replace(truth_model=InstrumentResponse.wrap(sc.truth_model, "aperture", aperture=a), truth={**sc.truth, "aperture": a})
 
 
+def _inj_second_lobe(rng, sc: Scenario) -> Scenario:
+    name, t = next((n, t) for n, t in sc.truth_model.terms.items() if isinstance(t, Specular))
+    ratio = float(rng.uniform(4.0, 8.0))
+    frac = float(rng.uniform(0.05, 0.15))
+    field = type(t.distribution).width_field
+    halo = dataclasses.replace(t, distribution=dataclasses.replace(t.distribution, **{field: float(getattr(t.distribution, field)) * ratio}),
+                               rho_s=float(t.rho_s) * frac)
+    return sc.replace(truth_model=_add_term(sc.truth_model, "halo", halo), truth={**sc.truth, "halo_ratio": ratio, "halo_frac": frac})
+
+
+def _inj_shadowing(rng, sc: Scenario) -> Scenario:
+    terms = {n: (dataclasses.replace(t, shadowing="smith") if isinstance(t, Specular) else t) for n, t in sc.truth_model.terms.items()}
+    return sc.replace(truth_model=dataclasses.replace(sc.truth_model, terms=terms), truth={**sc.truth, "shadowing": "smith"})
+
+
 GENERATORS = {
+    "second_lobe": _inj_second_lobe,
+    "shadowing": _inj_shadowing,
     "offset_normal_peak": _inj_offset,
     "diffraction": _inj_diffraction,
     "instrument_function": _inj_footprint,

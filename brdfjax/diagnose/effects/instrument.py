@@ -17,6 +17,7 @@ import numpy as np
 
 from ...distributions import Beckmann
 from ...fit import FrameData, Param, TableData
+from ...fit.internal import lobe_fwhm, lobe_parameters, table_step
 from ...instrument.synthetic import footprint_kernel
 from ...terms import Diffraction, Model, Specular
 from .base import (
@@ -39,6 +40,7 @@ from .base import (
     with_terms,
     ws_turn,
 )
+from .tables import tables_only
 from .terms import (
     InstrumentResponse,
     Oriented,
@@ -125,6 +127,8 @@ class FluxScaleEffect(Effect):
         return "flux_scale" in response_features(model)
 
     def identifiable(self, model, params, blocks):
+        if (why := tables_only(blocks, self.name)) is not None:
+            return why
         w = weight_names(model)
         if w and all(is_free(params, n) for _, n in w):
             names = ", ".join(n for _, n in w)
@@ -186,6 +190,8 @@ class PixelNonlinearityEffect(Effect):
         return "nonlinearity" in response_features(model)
 
     def identifiable(self, model, params, blocks):
+        if (why := tables_only(blocks, self.name)) is not None:
+            return why
         terms = list(model.terms.values())
         if len(terms) == 1 and isinstance(terms[0], Specular) and isinstance(terms[0].distribution, Beckmann):
             (tname, _), = weight_names(model)
@@ -485,16 +491,78 @@ class AngularSamplingEffect(Effect):
         chi, a = min(rows)
         return max(none - chi, 0.0), float(a)
 
+    def unresolved(self, ctx) -> tuple[float, str] | None:
+        """A peak the sampling does not resolve: ``(z, text)`` or None.
+
+        The fitted main lobe's FWHM is below the table's angular step at its highest sample, and that
+        sample stands out of its two in-plane neighbours by more than a lobe one step wide allows (a
+        Gaussian of FWHM = step falls to 1/16 one step away): ``z`` is that excess of ln(peak /
+        neighbour) over ln 16 in units of the noise of ln BRDF.  The width and weight of such a lobe are
+        not determined by the data (the fit reports the range they allow).
+        """
+        lobes = lobe_parameters(ctx.model)
+        if not lobes:
+            return None
+        best = None
+        for k, b in enumerate(ctx.blocks):
+            if not isinstance(b, TableData):
+                continue
+            st = table_step(b)
+            if st is None:
+                continue
+            step, ti = st
+            term = ctx.block_model(k).terms[lobes[0][0]]
+            wl = float(np.mean(np.asarray(b.wavelength, float)))
+            fwhm = lobe_fwhm(term, ti, wl, 3.0 * step)
+            if not (math.isfinite(fwhm) and fwhm < step):
+                continue
+            d = np.asarray(b.brdf, float)
+            tis = np.asarray(b.theta_i, float)
+            sl = np.flatnonzero((np.abs(tis - ti) < 1e-6) & np.isfinite(d) & (d > 0))
+            signed = np.where(np.abs(np.mod(np.asarray(b.phi_s, float)[sl] - np.asarray(b.phi_i, float)[sl], 2 * math.pi) - math.pi) < 1e-3,
+                              np.asarray(b.theta_s, float)[sl], -np.asarray(b.theta_s, float)[sl])
+            order = np.argsort(signed)
+            vals = d[sl][order]
+            i = int(np.argmax(vals))
+            nb = [vals[j] for j in (i - 1, i + 1) if 0 <= j < vals.size]
+            if not nb:
+                continue
+            excess = math.log(vals[i] / max(nb)) - math.log(16.0)
+            s = float(np.nanmedian(ctx.sigma(k)))
+            z = max(excess, 0.0) / max(s, 1e-12)
+            text = (
+                f"peak unresolved: the fitted lobe's FWHM ({math.degrees(fwhm):.3g} deg) is below the angular sampling "
+                f"({math.degrees(step):.3g} deg) and the peak sample is x{vals[i] / max(nb):.3g} above its neighbours "
+                f"(theta_i = {math.degrees(ti):.4g} deg): the lobe's width and weight are not determined by these data"
+            )
+            if best is None or z > best[0]:
+                best = (z, text)
+        return best
+
     def signature(self, ctx):
+        un = self.unresolved(ctx)
+        if un is not None:
+            z, text = un
+            return Signature(z, score_from_logp(log_sf_normal(z)), text)
         d, a = self._scan(ctx)
         z = math.sqrt(d)
         logp = math.log(len(self.apertures_deg) / 2.0) + log_sf_normal(z)
         return Signature(d, score_from_logp(logp), f"profiled chi^2 decrease {d:.1f} for an aperture of {a:.3g} deg")
 
     def extend(self, ctx):
-        z, a = self._scan(ctx)
+        un = self.unresolved(ctx)
+        if un is not None:
+            # an unresolved peak: every aperture fits the one sample alike (the scan would find nothing to
+            # gain); start at the table's step
+            steps = [st[0] for b in ctx.blocks if isinstance(b, TableData) and (st := table_step(b)) is not None]
+            a = float(np.degrees(min(steps)))
+        else:
+            _, a = self._scan(ctx)
         a = float(np.deg2rad(a))
         model = InstrumentResponse.wrap(ctx.model, "aperture", aperture=a)
         params = dict(ctx.params)
         params["instrument.aperture"] = Param(a, lower=0.0, upper=float(np.deg2rad(10.0)))
-        return Extension(model, params, 1, note=f"aperture start {np.degrees(a):.3g} deg")
+        note = f"aperture start {np.degrees(a):.3g} deg"
+        if un is not None:
+            note = f"{un[1]}; {note}"
+        return Extension(model, params, 1, note=note)

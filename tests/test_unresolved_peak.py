@@ -1,0 +1,67 @@
+"""A 0.1-deg-wide lobe sampled every 1 deg: the fit says its width and weight are not determined (with the range
+the data allow, which holds the truth) and the diagnosis's angular_sampling says the peak is unresolved."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import brdfjax as bj
+from brdfjax.diagnose import diagnose
+from brdfjax.fit import Param, TableData, fit
+from brdfjax.fit.internal import lobe_fwhm
+
+M_TRUE, RHO_TRUE = 0.000526, 0.5  # Beckmann slope width: an in-plane FWHM of 0.10 deg at 30 deg incidence
+
+
+def _model(m: float) -> bj.Model:
+    return bj.Model(terms={"s": bj.Specular(bj.Beckmann(m), rho_s=RHO_TRUE, n=1.5), "d": bj.Lambertian(0.05)})
+
+
+@pytest.fixture(scope="module")
+def table():
+    truth = _model(M_TRUE)
+    ts = np.radians(np.arange(0.0, 86.0, 1.0))  # the mirror direction (30 deg) is one sample
+    ti = np.full(ts.shape, math.radians(30.0))
+    dirs = bj.Directions.from_angles(ti, 0 * ti, ts, np.full(ts.shape, math.pi))
+    f = np.asarray(truth(dirs, 632.8e-9))
+    d = f * np.exp(0.05 * np.random.default_rng(0).standard_normal(f.size))
+    return TableData(ti, 0 * ti, ts, np.full(ts.shape, math.pi), d, name="narrow")
+
+
+PARAMS = {"s.m": Param(0.02, lower=1e-5, upper=1.0), "s.rho_s": "free", "d.rho_d": "free"}
+
+
+def test_truth_is_a_tenth_of_a_degree_wide():
+    fwhm = lobe_fwhm(_model(M_TRUE).terms["s"], math.radians(30.0), 632.8e-9, math.radians(1.0))
+    assert math.degrees(fwhm) == pytest.approx(0.10, abs=0.01)
+
+
+def test_fit_reports_width_and_weight_not_determined_with_a_range_holding_the_truth(table):
+    res = fit(_model(0.02), table, PARAMS)
+    assert res.converged, res.message
+    u = res.undetermined
+    assert set(u) == {"s.m", "s.rho_s"}
+    lo, hi = u["s.m"]["range"]
+    assert lo <= M_TRUE <= hi and u["s.m"]["open_below"] and "the peak is unresolved" in u["s.m"]["reason"]
+    assert u["s.m"]["fwhm_deg_range"][0] <= 0.1 <= u["s.m"]["fwhm_deg_range"][1]
+    lo_a, hi_a = u["s.rho_s"]["range"]
+    assert lo_a <= RHO_TRUE <= hi_a and hi_a / lo_a > 10  # the weight trades off against the width
+    doc = res.to_dict()
+    assert doc["parameters"]["s.m"]["sigma"] is None and doc["undetermined"]["s.m"]["range"][1] == pytest.approx(hi)
+    assert "s.m is NOT determined" in res.summary() or "NOT determined" in res.summary()
+    assert res.sigma("d.rho_d") > 0 and math.isfinite(res.sigma("d.rho_d"))  # the rest keeps its covariance
+
+
+def test_diagnosis_ranks_angular_sampling_and_says_the_peak_is_unresolved(table):
+    d = diagnose(_model(0.02), table, PARAMS, effects=["angular_sampling", "offset_normal_peak"],
+                 fit_kwargs={"resolution_check": False}, max_steps=1)
+    ranked = {c.effect: c for c in d.ranking}
+    assert "angular_sampling" in ranked
+    c = ranked["angular_sampling"]
+    assert "peak unresolved" in c.signature["detail"] and "peak unresolved" in c.note
+    scores = {n: (x.signature.get("score") or 0.0) for n, x in ranked.items()}
+    assert max(scores, key=scores.get) == "angular_sampling" and scores["angular_sampling"] > 5
+    assert d.gap["sigma_estimated"] and "sigma ESTIMATED" in d.summary()
