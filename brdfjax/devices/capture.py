@@ -121,8 +121,8 @@ EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 _NAME_CHARS = set("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_.+-")
 
 
-class CaptureError(RuntimeError):
-    """The capture stopped; the message says where, why and what to check."""
+class CaptureError(InputError, RuntimeError):
+    """The capture stopped or was refused; the message says where, why and what to check (exit 2)."""
 
 
 class LabStage(StrictModel):
