@@ -116,6 +116,7 @@ from ..instrument.raw import RawFormatError
 from ..instrument.reduce import MERGES, ReductionError, reduce_measurement_set
 from ..instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
 from ..io import atomic_output, write_json_atomic
+from ..progress import ProgressLine
 from ..render import Frame, Precision
 from ..terms import Model
 from ._auto_init import INITIALIZERS
@@ -600,9 +601,9 @@ class FitJob:
     notes: list[str] = field(default_factory=list)
     truth: dict[str, float] | None = None  # synthetic data: the model's parameters (stored units)
 
-    def run(self):
-        """``brdfjax.fit.fit(model, blocks, params, **fit_kwargs)``."""
-        return fit(self.model, self.blocks, self.params, **self.fit_kwargs)
+    def run(self, progress: Any = None):
+        """``brdfjax.fit.fit(model, blocks, params, **fit_kwargs)`` (``progress``: see :func:`~brdfjax.fit.fit`)."""
+        return fit(self.model, self.blocks, self.params, progress=progress, **self.fit_kwargs)
 
 
 def _fingerprint(obj: Any) -> str:
@@ -856,7 +857,8 @@ def run_fit(
     for n in job.notes:
         say(n)
     say(f"data: {len(job.blocks)} block(s) loaded in {t_data:.1f} s; fitting ...")
-    result = job.run()
+    with ProgressLine(console, "fit", None, unit="solver evaluation(s)") as bar:
+        result = job.run(progress=lambda k, chi2: bar.update(k, f"chi2 = {chi2:.6g}"))
     doc = result.to_dict()
     doc["config"] = str(cfg.source)
     doc["data"] = [_describe_block(b) for b in job.blocks]
