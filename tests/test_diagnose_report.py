@@ -86,3 +86,21 @@ def test_warnings_held_out_gap_grew_bound_and_not_refitted_text():
     assert row[1] == "not refitted at step 1; refitted at step 2" and "delta BIC 55.0, signature score 281" in row[2]
     other = Candidate("ambient", "ambient", "not refitted", note="signature score 0 below the 4 best")
     assert _not_ranked_row(d, other) == ["ambient", "not refitted", "signature score 0 below the 4 best"]
+
+
+def test_truth_outside_its_interval_is_a_warning():
+    from brdfjax.fit import FitResult
+    from brdfjax.fit._result import ParameterEstimate
+
+    params = {
+        "m1": ParameterEstimate(2.0e-4, 1e-6, "1", True, 2.1e-4),
+        "phi_ref[ti20]": ParameterEstimate(math.radians(-0.0013), math.radians(0.0004), "rad", True, 0.0),
+        "n1": ParameterEstimate(3.6, None, "1", False, 3.6),
+    }
+    res = SimpleNamespace(parameters=params)
+    assert FitResult.truth_warnings(res, {"m1": 2.02e-4, "phi_ref": 0.0, "n1": 9.0}) == [
+        "the truth of 'phi_ref[ti20]' (0 deg) lies -3.2 sigma from the estimate (-0.0013 +- 0.0004 deg): the sigma "
+        "misses an error the data carry (an effect the model or the reduction does not describe), not noise"
+    ]
+    (w,) = FitResult.truth_warnings(res, {"m1": 1.96e-4})
+    assert w.startswith("the truth of 'm1' (0.000196 1) lies +4.0 sigma")

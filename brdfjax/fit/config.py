@@ -868,8 +868,12 @@ def run_fit(
         doc["truth"] = {
             k: {"value": v * to_natural(units[k]), "unit": natural_unit(units[k])} for k, v in job.truth.items()
         }
+        # a synthetic demo knows its truth: one outside 3 sigma is said, not left for the reader to find
+        doc["truth_warnings"] = result.truth_warnings(job.truth)
     _write_json(out / "result.json", doc)
     say(result.summary())
+    for w in doc.get("truth_warnings", ()):
+        say(f"warning: {w}")
     if (cfg.output.figures if figures is None else figures):
         paths = write_figures(job, result, out, dpi=cfg.output.dpi)
         say(f"figures: {', '.join(p.name for p in paths)}")
