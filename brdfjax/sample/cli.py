@@ -222,6 +222,15 @@ def run(args: argparse.Namespace) -> int:
         raise SampleError(f"--resume: there is no chain to resume at {out / 'chain.h5'}; run without --resume to start one")
     if args.walkers is not None and args.walkers < 2:
         raise SampleError(f"--walkers must be an even number >= 2 x the free parameters, got {args.walkers}")
+    # a prior on a parameter the config holds fixed: before any data are generated or read
+    spec = cfg.build_params()
+    held = sorted(k for k in priors if k.split("[")[0] in spec and not spec[k.split("[")[0]].free)
+    unlisted = sorted(k for k in priors if k.split("[")[0] not in spec)
+    if held or unlisted:
+        name = (held or unlisted)[0]
+        raise SampleError(
+            f"{cfg.source}: sample.priors: prior on '{name}', which is held fixed; make it free in [params] to sample it"
+        )
     out.mkdir(parents=True, exist_ok=True)
     job = build_fit_job(cfg, work_dir=out)
     n_walkers = args.walkers if args.walkers is not None else sec.n_walkers
