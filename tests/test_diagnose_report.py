@@ -104,3 +104,33 @@ def test_truth_outside_its_interval_is_a_warning():
     ]
     (w,) = FitResult.truth_warnings(res, {"m1": 1.96e-4})
     assert w.startswith("the truth of 'm1' (0.000196 1) lies +4.0 sigma")
+
+
+def test_candidate_progress_estimates_the_time_left_and_progress_lines_are_plain_off_a_terminal():
+    import io
+
+    from rich.console import Console
+
+    from brdfjax.diagnose.cli import _CandidateProgress
+    from brdfjax.progress import ProgressLine, make_console
+
+    buf = io.StringIO()
+    con = Console(file=buf, force_terminal=False, width=200)
+    p = _CandidateProgress(con)
+    p("fitting the base model")
+    p("step 1: refitting with diffraction (1/3, signature 4.72)")
+    p("step 1: refitting with lambertian (2/3, signature 363)")
+    lines = buf.getvalue().splitlines()
+    assert lines[1] == "step 1: refitting with diffraction (1/3, signature 4.72)"  # nothing measured yet
+    assert lines[2].startswith("step 1: refitting with lambertian (2/3, signature 363); ~") and "s left in this step" in lines[2]
+    assert len(p.t_refits) == 1
+    # plain lines off a terminal (no bar), each with the count and an estimate; nothing when quiet
+    buf = io.StringIO()
+    bar = ProgressLine(Console(file=buf, force_terminal=False), "reduce", 4, unit="sample(s)", min_interval_s=0.0)
+    bar.update(1, "reduced ti20")
+    bar.update(4, "reduced ti80")
+    assert bar._bar is None and bar.lines[0].startswith("reduce: 1/4 sample(s) (") and "left); reduced ti20" in bar.lines[0]
+    assert bar.lines[1].startswith("reduce: 4/4 sample(s) (") and "left" not in bar.lines[1]
+    quiet = ProgressLine(make_console(quiet=True), "fit", None)
+    quiet.update(3, "chi2 = 1")
+    assert quiet.lines == []
