@@ -13,14 +13,14 @@ CONFIG the packaged default job) and writes, per frame, ``<name>.exr``
 (BRDF, theta_s, phi_s, solid angle; see :mod:`brdfjax.io.exr`) and
 ``<name>.png`` (see :mod:`brdfjax.plotting`), plus ``summary.json``.
 
-Exit codes: 0 success, 1 failure while running (e.g. an output that cannot be
-written), 2 bad usage or a bad config (the message names the file and key).
+Exit codes (every subcommand, :func:`brdfjax.errors.run_command`): 0 ran,
+2 bad input or a refusal (the message names the file, key or value), 130
+interrupted, 1 an internal error (a bug: the traceback and where to report it).
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -29,25 +29,26 @@ from typing import Any
 
 import jax
 import numpy as np
-from rich.console import Console
 
 from . import __version__
 from .config import load_simulate_config
 from .detector import PixelGrid
 from .devices import capture as capture_cli
 from .diagnose import cli as diagnose_cli
-from .errors import InputError
+from .errors import EXIT_OK, EXIT_REFUSED, InputError, run_command
 from .fit import cli_fit
-from .instrument.reduce import ReductionError, read_reduced_frame, reduce_measurement_set
+from .instrument.nd import parse_nd_filters
+from .instrument.reduce import read_reduced_frame, reduce_measurement_set
 from .instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
-from .io import ExrError, detector_from_attrs, frame_from_attrs, write_json_atomic
+from .io import check_output_dir, detector_from_attrs, frame_from_attrs, write_json_atomic
 from .plotting import plot_frame
+from .progress import ProgressLine, make_console
 from .sample import cli as sample_cli
 from .simulate import run_simulate
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
-EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
+EXIT_USAGE = EXIT_REFUSED
 
 
 # --- subcommands -------------------------------------------------------------------------------
@@ -79,25 +80,17 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-plot", action="store_true", help="write the EXR files and summary only, no PNG figures")
 
 
-def _error(prog: str, message: str) -> None:
-    sys.stderr.write(f"{prog}: error: {message}\n")
-
-
 def _run_simulate(args: argparse.Namespace) -> int:
 
-    prog = "brdfjax simulate"
-    try:
-        cfg = load_simulate_config(args.config)
-        if args.step is not None or args.precision is not None:
-            cfg = cfg.with_overrides(step=args.step, precision=args.precision)
-    except InputError as e:
-        _error(prog, str(e))
-        return EXIT_USAGE
+    cfg = load_simulate_config(args.config)
+    if args.step is not None or args.precision is not None:
+        cfg = cfg.with_overrides(step=args.step, precision=args.precision)
+    check_output_dir(args.out)
     if cfg.precision == "float64":
         # An edge may flip the process-wide switch; the library never does.
         jax.config.update("jax_enable_x64", True)
 
-    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    console = make_console(args.quiet)
     grid_note = f"every {cfg.grid.step}th pixel" if cfg.grid.step > 1 else "every pixel"
     console.print(
         f"brdfjax simulate: {cfg.source} -> {args.out}: {len(cfg.frames)} frame(s), {grid_note}"
@@ -105,14 +98,7 @@ def _run_simulate(args: argparse.Namespace) -> int:
         + f", {cfg.precision}",
         markup=False,
     )
-    try:
-        summary = run_simulate(cfg, args.out, plot=not args.no_plot, console=console)
-    except (OSError, ExrError) as e:
-        _error(prog, str(e))
-        return EXIT_FAILURE
-    except InputError as e:  # e.g. a ROI that only fails once the detector is built
-        _error(prog, str(e))
-        return EXIT_USAGE
+    summary = run_simulate(cfg, args.out, plot=not args.no_plot, console=console)
     console.print(f"wrote {Path(args.out) / 'summary.json'} ({summary['wall_s']:.1f} s)", markup=False)
     return EXIT_OK
 
@@ -142,7 +128,8 @@ def _reduced_summary(path: Path, frame: Any) -> dict[str, Any]:
     b = np.asarray(frame.brdf)
     keys = (
         "theta_i", "phi_ref", "nd_sample", "od_sample", "incident_flux_sdc", "noise_equivalent_brdf",
-        "max_measurable_brdf", "dynamic_range_decades", "usable_fraction", "merge",
+        "max_measurable_brdf", "dynamic_range_decades", "usable_fraction", "merge", "saturated_pixels",
+        "partly_saturated_pixels",
     )
     out = {k: frame.attrs[k] for k in keys if k in frame.attrs}
     out.update(
@@ -152,31 +139,36 @@ def _reduced_summary(path: Path, frame: Any) -> dict[str, Any]:
         max_brdf=float(np.max(np.where(mask, b, -np.inf))) if mask.any() else None,
         median_sigma_rel=float(np.median(sig[mask])) if mask.any() else None,
     )
+    warnings = []
+    if out.get("saturated_pixels"):
+        warnings.append(
+            f"{out['saturated_pixels']} pixel(s) saturated in every exposure, the shortest too: excluded "
+            "(mask 0, flag 1); a denser ND filter or a shorter exposure would keep them"
+        )
+    if out.get("partly_saturated_pixels"):
+        warnings.append(
+            f"{out['partly_saturated_pixels']} pixel(s) saturated in some exposures: merged from the unsaturated ones only"
+        )
+    out["warnings"] = warnings
     return out
 
 
 def _run_reduce(args: argparse.Namespace) -> int:
-
-    prog = "brdfjax reduce"
     if args.step < 1:
-        _error(prog, f"--step must be a positive integer, got {args.step}")
-        return EXIT_USAGE
-    console = Console(stderr=True, highlight=False, soft_wrap=True)
+        raise InputError(f"--step must be a positive integer, got {args.step}")
+    if args.correct_nonlinearity and args.merge != "weighted":
+        raise InputError("--correct-nonlinearity needs --merge weighted (the replacement scheme is the seed's, §3.6)")
+    if not Path(args.manifest).exists():
+        raise InputError(f"{args.manifest}: no such manifest or folder (give a measurement set's manifest.toml)")
+    check_output_dir(args.out)
+    console = make_console(args.quiet)
     console.print(f"brdfjax reduce: {args.manifest} -> {args.out} ({args.merge} merge)", markup=False)
     t0 = time.perf_counter()
-    try:
-        if args.correct_nonlinearity and args.merge != "weighted":
-            _error(prog, "--correct-nonlinearity needs --merge weighted (the replacement scheme is the seed's, §3.6)")
-            return EXIT_USAGE
+    with ProgressLine(console, "reduce", None, unit="sample(s)", min_interval_s=0.0) as bar:
         paths = reduce_measurement_set(
-            args.manifest, args.out, merge=args.merge, step=args.step, correct_nonlinearity=args.correct_nonlinearity
+            args.manifest, args.out, merge=args.merge, step=args.step, correct_nonlinearity=args.correct_nonlinearity,
+            progress=lambda done, total, name: (setattr(bar, "total", total), bar.update(done, f"reduced {name}")),
         )
-    except (ReductionError, ExrError, OSError) as e:  # before InputError: a set that cannot be reduced exits 1
-        _error(prog, str(e))
-        return EXIT_FAILURE
-    except (InputError, FileNotFoundError) as e:
-        _error(prog, str(e))
-        return EXIT_USAGE
     frames = []
     for path in paths:
         frame = read_reduced_frame(path)
@@ -199,6 +191,8 @@ def _run_reduce(args: argparse.Namespace) -> int:
             f"{entry.get('noise_equivalent_brdf', float('nan')):.3g} sr^-1 -> {path.name}",
             markup=False,
         )
+        for w in entry["warnings"]:
+            console.print(f"warning: {path.stem}: {w}", markup=False)
     summary = {"manifest": str(args.manifest), "merge": args.merge, "step": args.step,
                "frames": frames, "wall_s": time.perf_counter() - t0}
     write_json_atomic(Path(args.out) / "summary.json", summary)
@@ -229,27 +223,22 @@ def _synthesize_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_synthesize(args: argparse.Namespace) -> int:
-
-    prog = "brdfjax synthesize"
-    try:
-        cfg = load_simulate_config(args.config)
-    except InputError as e:
-        _error(prog, str(e))
-        return EXIT_USAGE
-    try:
-        inst_cfg = load_instrument_config(args.instrument, args.camera_seed)
-    except InputError as e:
-        _error(prog, str(e))
-        return EXIT_USAGE
+    # Everything that can be checked is checked before any frame is rendered or written.
+    cfg = load_simulate_config(args.config)
+    inst_cfg = load_instrument_config(args.instrument, args.camera_seed)
     off = [x.strip() for x in args.without.split(",") if x.strip()]
     unknown = sorted(set(off) - set(EFFECTS))
     if unknown:
-        _error(prog, f"--without: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
-        return EXIT_USAGE
+        raise InputError(f"--without: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
     if cfg.grid.step != 1 or cfg.roi:
-        _error(prog, f"{cfg.source}: grid.step/grid.roi do not apply: the synthetic camera reads the whole array")
-        return EXIT_USAGE
-    console = Console(stderr=True, highlight=False, soft_wrap=True)
+        raise InputError(f"{cfg.source}: grid.step/grid.roi do not apply: the synthetic camera reads the whole array")
+    if args.nd is not None:
+        try:
+            parse_nd_filters(args.nd)
+        except ValueError as e:
+            raise InputError(f"--nd {args.nd!r}: {e}") from None
+    check_output_dir(args.out)
+    console = make_console(args.quiet)
     detector = cfg.build_detector()
     # The seed instrument's beam footprint and stray-light offsets are sizes on the array: scale
     # them to this detector's pixels (a no-op on the seed camera).
@@ -264,16 +253,11 @@ def _run_synthesize(args: argparse.Namespace) -> int:
         f"effects on: {', '.join(inst_cfg.enabled_effects())}",
         markup=False,
     )
-    try:
+    with ProgressLine(console, "synthesize", None, unit="step(s)", min_interval_s=0.0) as bar:
         manifest = instrument.measure_set(
-            args.out, model, frames, nd_filters=args.nd, log=lambda line: console.print(line, markup=False)
+            args.out, model, frames, nd_filters=args.nd, log=lambda line: console.print(line, markup=False),
+            progress=lambda done, total, what: (setattr(bar, "total", total), bar.update(done, what)),
         )
-    except InputError as e:
-        _error(prog, str(e))
-        return EXIT_USAGE
-    except (OSError, ValueError) as e:
-        _error(prog, str(e))
-        return EXIT_FAILURE
     console.print(f"wrote {manifest} ({time.perf_counter() - t0:.1f} s)", markup=False)
     return EXIT_OK
 
@@ -335,15 +319,22 @@ def build_parser() -> argparse.ArgumentParser:
     for cmd in COMMANDS.values():
         p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
         cmd.add_arguments(p)
+        if not any("--quiet" in a.option_strings for a in p._actions):
+            p.add_argument("--quiet", action="store_true", help="no progress and no status lines (errors still print)")
         p.set_defaults(_run=cmd.run)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``brdfjax`` console script; returns the exit code."""
+    """Entry point of the ``brdfjax`` console script; returns the exit code.
+
+    Every subcommand runs under :func:`brdfjax.errors.run_command` (0 ran, 2
+    bad input or refused, 130 interrupted, 1 internal error); a usage error
+    of argparse exits 2 with its message (``SystemExit``).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
-    return args._run(args)
+    return run_command(f"brdfjax {args.command}", lambda: args._run(args))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -219,7 +219,7 @@ def test_reduce_refuses_to_overwrite_inputs(tmp_path, capsys):
 
     work = tmp_path / "set"
     shutil.copytree(EXAMPLE_SET, work)
-    assert main(["reduce", str(work), "--out", str(work), "--no-plot"]) == 1
+    assert main(["reduce", str(work), "--out", str(work), "--no-plot"]) == 2  # a refusal (brdfjax.errors)
     assert "would overwrite an input" in capsys.readouterr().err
 
 

@@ -18,7 +18,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1] / "brdfjax"
 #: The differentiable core: pure JAX, no I/O, importing nothing from the edges.
 CORE = ("distributions", "fields", "fresnel", "geometry", "detector", "render", "shadowing", "terms", "registry", "presets")
-EDGES = ("io", "config", "cli", "plotting", "instrument", "devices", "fit", "sample", "diagnose", "simulate", "lightcurve")
+EDGES = ("io", "config", "cli", "plotting", "progress", "instrument", "devices", "fit", "sample", "diagnose", "simulate", "lightcurve")
 #: Most function-local imports allowed (each with a comment saying why).
 MAX_LOCAL_IMPORTS = 20
 

@@ -71,7 +71,6 @@ import hashlib
 import json
 import math
 import os
-import sys
 import time
 import tomllib
 from collections.abc import Callable
@@ -90,7 +89,9 @@ from ..errors import InputError
 from ..instrument.nd import stack_od
 from ..instrument.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
 from ..instrument.synthetic import EFFECTS, load_instrument_config
-from ..io import atomic_output, geometry_attrs
+from ..io import atomic_output, check_output_dir, geometry_attrs
+from ..io.fingerprint import check_resume, value_digest
+from ..progress import make_console
 from ..render import Frame
 from .alignment import AlignmentResult, run_alignment
 from .interfaces import Bench, DeviceError, bench_detector, check_bench
@@ -99,7 +100,6 @@ from .liveview import LiveView
 from .plans import (
     DEFAULT_EXPOSURES_S,
     Interlock,
-    InterlockError,
     Measurement,
     peak_above_black,
     probe_stack,
@@ -121,8 +121,8 @@ EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 _NAME_CHARS = set("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_.+-")
 
 
-class CaptureError(RuntimeError):
-    """The capture stopped; the message says where, why and what to check."""
+class CaptureError(InputError, RuntimeError):
+    """The capture stopped or was refused; the message says where, why and what to check (exit 2)."""
 
 
 class LabStage(StrictModel):
@@ -261,6 +261,28 @@ class CaptureConfig(StrictModel):
         d = self.model_dump(mode="json", exclude={"capture"})
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
+    def fingerprint(self) -> dict[str, Any]:
+        """The problem fingerprint (:mod:`brdfjax.io.fingerprint`): every key that determines the data, by name.
+
+        The ``[capture]`` run options (live view, retries, the interlock
+        override) are excluded: they do not change what is measured.
+        """
+        out: dict[str, Any] = {}
+
+        def walk(prefix: str, v: Any) -> None:
+            if isinstance(v, dict) and v:
+                for k, x in v.items():
+                    walk(f"{prefix}.{k}" if prefix else str(k), x)
+            elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+                for i, x in enumerate(v):
+                    walk(f"{prefix}[{i}]", x)
+            else:
+                d = value_digest(v)
+                out[prefix] = "null" if d is None else d
+
+        walk("", self.model_dump(mode="json", exclude={"capture"}))
+        return out
+
 
 def load_capture_config(path: str | os.PathLike) -> CaptureConfig:
     """Read and validate a capture config; raises :class:`~brdfjax.config.ConfigError` naming the file and key."""
@@ -376,6 +398,7 @@ class CaptureState:
     alignment: dict | None = None
     overridden: list[str] | None = None
     status: str = "in progress"
+    fingerprint: dict[str, Any] | None = None
 
 
 def write_capture_manifest(path: Path, state: CaptureState, plan: list[Measurement], cfg: CaptureConfig) -> Path:
@@ -406,6 +429,10 @@ def write_capture_manifest(path: Path, state: CaptureState, plan: list[Measureme
         f"updated = {_q(time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()))}",
         "",
     ]
+    if state.fingerprint:
+        lines += ["[capture.fingerprint]", "# what defines this capture's problem; --resume refuses any difference"]
+        lines += [f"{_q(k)} = {_toml_value(v)}" for k, v in state.fingerprint.items()]
+        lines.append("")
     if state.alignment:
         lines += ["[capture.alignment]"]
         for k, v in state.alignment.items():
@@ -431,7 +458,7 @@ def read_capture_state(path: Path) -> CaptureState:
         digest=cap["config_digest"], seed=int(cap["seed"]), done=list(cap.get("done", [])), files=files,
         safe_stack=cap.get("interlock_safe_nd") or None, safe_evidence=cap.get("interlock_evidence", ""),
         alignment=cap.get("alignment"), overridden=list(cap.get("interlock_overridden", [])),
-        status=cap.get("status", "in progress"),
+        status=cap.get("status", "in progress"), fingerprint=cap.get("fingerprint"),
     )
 
 
@@ -709,19 +736,29 @@ def run_capture(
     plan = build_plan(cfg)
     manifest = out / "manifest.toml"
     digest = cfg.digest()
+    fingerprint = cfg.fingerprint()
     if manifest.exists():
         if not resume:
             raise FileExistsError(
                 f"{manifest} exists: pass --resume to continue that capture, or choose another --out"
             )
         state = read_capture_state(manifest)
-        if state.digest != digest:
-            raise CaptureError(
-                f"{manifest} was written by a different config (digest {state.digest}, this config {digest}); "
-                "resume only with the config that started the capture"
+        if state.fingerprint is not None or state.digest != digest:
+            check_resume(
+                manifest, state.fingerprint, fingerprint,
+                f"Resume only with the config that started the capture (config digest {state.digest}, "
+                f"this config {digest}), or capture into another --out.",
             )
+        if state.status == "complete":
+            say(f"{manifest}: the capture is already complete ({len(state.done)} step(s)); nothing to resume")
+            return manifest
+        state.fingerprint = fingerprint
     else:
-        state = CaptureState(digest=digest, seed=cfg.seed, done=[], files={})
+        if resume:
+            raise CaptureError(
+                f"--resume: there is no capture to resume in {out} (no manifest.toml); run without --resume to start one"
+            )
+        state = CaptureState(digest=digest, seed=cfg.seed, done=[], files={}, fingerprint=fingerprint)
     out.mkdir(parents=True, exist_ok=True)
     runner = _Runner(cfg, bench, out, log=say, live=live, progress=None, sim=sim)
     if sim is not None:
@@ -815,16 +852,9 @@ def capture_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_capture_command(args: argparse.Namespace) -> int:
-    prog = "brdfjax capture"
-
-    def err(msg: str) -> None:
-        sys.stderr.write(f"{prog}: error: {msg}\n")
-
-    try:
-        cfg = load_capture_config(args.config)
-    except InputError as e:
-        err(str(e))
-        return EXIT_USAGE
+    # Errors and their exit codes: brdfjax.errors.run_command (cli.main), 2 for every refusal.
+    cfg = load_capture_config(args.config)
+    check_output_dir(args.out)
     updates: dict[str, Any] = {}
     if args.seed is not None:
         updates["seed"] = args.seed
@@ -839,23 +869,17 @@ def run_capture_command(args: argparse.Namespace) -> int:
         src = cfg.source
         cfg = cfg.model_copy(update=updates)
         cfg._source = src
-    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    console = make_console(args.quiet)
     log = lambda s: console.print(s, markup=False)  # noqa: E731
     live = None
     if cfg.capture.live != "off":
         live = LiveView(Path(args.out) / "live", mode=cfg.capture.live, min_interval_s=cfg.capture.live_interval_s)
     t0 = time.perf_counter()
     try:
-        manifest = run_capture(cfg, args.out, resume=args.resume, log=log, live=live, progress=not args.no_progress)
-    except FileExistsError as e:
-        err(str(e))
-        return EXIT_FAILURE
-    except InputError as e:
-        err(str(e))
-        return EXIT_USAGE
-    except (CaptureError, InterlockError, ValueError, OSError) as e:
-        err(str(e))
-        return EXIT_FAILURE
+        manifest = run_capture(cfg, args.out, resume=args.resume, log=log, live=live,
+                               progress=not (args.no_progress or args.quiet))
+    except FileExistsError as e:  # a rerun into a started or finished capture: a refusal (exit 2)
+        raise CaptureError(str(e)) from None
     finally:
         if live is not None:
             live.close()

@@ -36,6 +36,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from ..detector import Detector
+from ..errors import InputError
 
 __all__ = [
     "CameraFrame",
@@ -53,8 +54,11 @@ __all__ = [
 ]
 
 
-class DeviceError(RuntimeError):
-    """A device failed.  ``retryable`` says whether repeating the same call is safe (e.g. a read timeout)."""
+class DeviceError(InputError, RuntimeError):
+    """A device failed.  ``retryable`` says whether repeating the same call is safe (e.g. a read timeout).
+
+    A refusal of the bench, not a bug: the command exits 2 with the message (``brdfjax.errors``).
+    """
 
     def __init__(self, message: str, *, retryable: bool = False):
         super().__init__(message)

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import InputError
 from ..instrument.nd import select_stack, stack_od
 
 __all__ = [
@@ -75,8 +76,8 @@ class Measurement:
         return (f"{self.name}.exr", f"{self.name}_background.exr")
 
 
-class InterlockError(RuntimeError):
-    """A plan step refused by the damage interlock (the message says why and how to override)."""
+class InterlockError(InputError, RuntimeError):
+    """A plan step refused by the damage interlock (the message says why and how to override); exit 2."""
 
 
 class Interlock:

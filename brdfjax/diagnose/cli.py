@@ -20,23 +20,25 @@ The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
 Writes ``diagnosis.json``, ``report.md`` and ``report.html`` into ``--out``
 (atomically).  Exit status 2 for bad input (a bad config, frames with no
 usable pixels, an unknown effect name, a candidate the base model already
-contains), 1 for a failure while running, 0 otherwise.
+contains, an output folder that cannot be written), 130 interrupted, 1 an
+internal error (:mod:`brdfjax.errors`), 0 otherwise.  Each refit of a
+candidate prints ``i/n`` of its step and an estimate of the time left.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
+import re
 import time
 from pathlib import Path
 from typing import Any
 
 from pydantic import Field
-from rich.console import Console
 
 from ..config import ConfigError, ModelConfig, StrictModel
-from ..errors import InputError
 from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
+from ..io import check_output_dir
+from ..progress import make_console
 from .effects import EFFECT_LIBRARY
 from .engine import DiagnoseInputError, diagnose
 
@@ -65,10 +67,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, report.html")
     p.add_argument("--effects", default=None, help="comma-separated candidate effects (overrides [diagnose] effects)")
     p.add_argument("--no-figures", action="store_true", help="report.html without figures (faster)")
-
-
-def _error(message: str) -> None:
-    sys.stderr.write(f"brdfjax diagnose: error: {message}\n")
 
 
 def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | None = None, figures: bool | None = None, progress: Any = None):
@@ -131,22 +129,48 @@ def _truth_job(cfg: Any, truth: ModelConfig, out: Path):
     return job
 
 
+_REFIT = re.compile(r"^step (\d+): refitting with (\S+) \((\d+)/(\d+)")
+
+
+class _CandidateProgress:
+    """The engine's progress lines, each refit with ``i/n`` of its step and an estimate of the time left.
+
+    The estimate is the mean wall time of the refits finished so far (over
+    every step) times the refits left in this step; later steps, whose
+    candidates are not known yet, are not in it (the line says so).
+    """
+
+    def __init__(self, console: Any):
+        self.console = console
+        self.t_refits: list[float] = []
+        self._t_last: float | None = None
+
+    def __call__(self, msg: str) -> None:
+        now = time.perf_counter()
+        m = _REFIT.match(msg)
+        if self._t_last is not None:
+            self.t_refits.append(now - self._t_last)
+            self._t_last = None
+        if m is not None:
+            i, n = int(m.group(3)), int(m.group(4))
+            if self.t_refits:
+                left = (n - i + 1) * sum(self.t_refits) / len(self.t_refits)
+                msg += f"; ~{left:.0f} s left in this step (mean refit {sum(self.t_refits) / len(self.t_refits):.0f} s)"
+            self._t_last = now
+        self.console.print(msg, markup=False)
+
+
 def run(args: argparse.Namespace) -> int:
-    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    console = make_console(args.quiet)
     effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
     t0 = time.perf_counter()
-    try:
-        enable_config_precision(args.config)  # the command line, not the library, turns 64-bit JAX on
-        d = run_diagnose(
-            args.config, args.out, effects=effects, figures=False if args.no_figures else None,
-            progress=lambda msg: console.print(msg, markup=False),
-        )
-    except InputError as e:
-        _error(str(e))
-        return EXIT_USAGE
-    except OSError as e:
-        _error(str(e))
-        return EXIT_FAILURE
+    enable_config_precision(args.config)  # the command line, not the library, turns 64-bit JAX on
+    check_output_dir(args.out)
+    # errors: brdfjax.errors.run_command (cli.main) gives them their exit code and message
+    d = run_diagnose(
+        args.config, args.out, effects=effects, figures=False if args.no_figures else None,
+        progress=_CandidateProgress(console),
+    )
     console.print(d.summary(), markup=False)
     console.print(f"wrote {Path(args.out) / 'diagnosis.json'}, report.md, report.html ({time.perf_counter() - t0:.1f} s)", markup=False)
     return EXIT_OK

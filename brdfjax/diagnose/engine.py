@@ -326,8 +326,8 @@ def diagnose(
                     c.note = f"signature score {_score(c):.3g} below the {refit_top} best (refit_top = {refit_top})"
             live = [c for c in live if c.effect in top]
         state_gap = gap_measures(state.result)
-        for c in live:
-            say(f"step {step + 1}: refitting with {c.effect} (signature {_score(c):.3g})")
+        for i, c in enumerate(live):  # "(i/n)": the CLI's progress line counts these for its time estimate
+            say(f"step {step + 1}: refitting with {c.effect} ({i + 1}/{len(live)}, signature {_score(c):.3g})")
             _refit_effect(c, library[c.effect], current_ctx, state, zones, state_gap)
         ranked, rest = _rank(cands)
         rankings.append(ranked)

@@ -2,10 +2,21 @@
 
 Figures (matplotlib, Agg): per frame the normalised residual map of the base
 fit in detector pixels and in specular-relative angles with the zones
-outlined; the column through the peak before/after (data, base model, the
-model at the end of the explanation path); the explanation path as a chart
-(reduced chi^2 and, when measured, the held-out rms of log10 per step).
-Tables (goniometer data) get the residual against ``sx`` per incidence angle.
+outlined; the columns through the named peaks before/after
+(:func:`column_profile`: the column through the specular peak -- the grid
+point nearest the specular direction, ``sx = sy = 0`` -- and, where it lies in
+another column, the one through the base model's maximum; data only where
+usable, masked pixels shaded as masked, never plotted as data; each model
+curve labelled with its chi^2 on the plotted points); the explanation path
+as a chart (reduced chi^2 and, when measured, the held-out rms of log10 per
+step).  Tables (goniometer data) get the residual against ``sx`` per
+incidence angle.
+
+Warnings (:func:`report_warnings`, at the top of both reports): a held-out
+gap that grew at a step of the path, a parameter that ended on its bound (the
+fits' own warnings), and a plotted model that does not reproduce the fit's
+residuals in the plotted column.  The "Not ranked" table says when a
+candidate not refitted at the first step was refitted at a later one.
 """
 
 from __future__ import annotations
@@ -25,7 +36,7 @@ from ..plotting import agg_pyplot
 # write the reports (Any keeps the two out of a cycle)
 Diagnosis = Any
 
-__all__ = ["markdown_report", "html_report", "figures"]
+__all__ = ["markdown_report", "html_report", "figures", "column_profile", "report_warnings"]
 
 
 def _f(x: Any, fmt: str = ".4g") -> str:
@@ -71,7 +82,7 @@ def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
         )
     )
     if d.skipped:
-        out.append(("Not ranked", ["effect", "status", "reason"], [[c.effect, c.status, c.note] for c in d.skipped]))
+        out.append(("Not ranked", ["effect", "status", "reason"], [_not_ranked_row(d, c) for c in d.skipped]))
     zone_names = list(d.path[0].zones)
     out.append(
         (
@@ -84,6 +95,45 @@ def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
             ],
         )
     )
+    return out
+
+
+def _later_refits(d: Diagnosis, effect: str) -> list[tuple[int, Any]]:
+    """``[(step number, candidate)]`` where ``effect`` was refitted at a later step of the path."""
+    out = []
+    for k, ranking in enumerate(d.path_rankings[1:], start=2):
+        for c in ranking:
+            if c.effect == effect and c.status == "ranked":
+                out.append((k, c))
+    return out
+
+
+def _not_ranked_row(d: Diagnosis, c: Any) -> list[str]:
+    later = _later_refits(d, c.effect) if c.status == "not refitted" else []
+    if not later:
+        return [c.effect, c.status, c.note]
+    k, lc = later[0]
+    return [c.effect, f"not refitted at step 1; refitted at step {k}",
+            f"{c.note}; at step {k}: delta BIC {_f(lc.delta_bic, '.1f')}, signature score {_f(lc.signature.get('score'), '.3g')}"]
+
+
+def report_warnings(d: Diagnosis) -> list[str]:
+    """What a reader must not miss (see the module docstring); each a sentence."""
+    out = []
+    prev = None
+    for k, s in enumerate(d.path):
+        h = None if s.heldout is None else s.heldout.get("rms_log10")
+        if prev is not None and h is not None and prev[1] is not None and h > prev[1]:
+            out.append(
+                f"the held-out gap grew at step {k} (+ {s.effect}): rms of log10 {_f(prev[1], '.4g')} -> {_f(h, '.4g')}; "
+                "the effect explains the fitted frames but not the held-out ones (overfitting, or a different cause)"
+            )
+        prev = (s.effect, h if h is not None else (None if prev is None else prev[1]))
+    for label, res in (("base fit", d.base_result), ("final fit", d.final_result)):
+        for w in getattr(res, "warnings", ()) or ():
+            if "on its bound" in w:
+                out.append(f"{label}: {w}")
+    out += [w for _, w in _column_checks(d)]
     return out
 
 
@@ -107,6 +157,9 @@ def noise_line(gap: dict[str, Any]) -> str:
 
 def markdown_report(d: Diagnosis) -> str:
     lines = ["# Sim-to-real gap diagnosis", "", _headline(d).replace("**", "**"), ""]
+    warns = report_warnings(d)
+    if warns:
+        lines += ["## Warnings", ""] + [f"- **warning:** {w}" for w in warns] + [""]
     for title, head, rows in _tables(d):
         lines += [f"## {title}", "", "| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
         lines += ["| " + " | ".join(c.replace("|", "/") for c in row) + " |" for row in rows]
@@ -158,20 +211,13 @@ def figures(d: Diagnosis) -> list[tuple[str, str]]:
             axes[1].set_title("specular-relative angles, zones outlined")
             fig.colorbar(sc, ax=axes[1])
             out.append((f"Residual map of the base fit, {d.block_names[bi]}, with the zones outlined", _png(fig)))
-            # column through the peak: before/after
-            mv = np.where(np.isfinite(ctx.model_values[bi]), ctx.model_values[bi], -np.inf)
-            row, col = np.unravel_index(int(np.argmax(mv)), mv.shape)
-            fig, ax = plt.subplots(figsize=(7, 4))
-            data = np.asarray(b.brdf, float)[:, col]
-            ax.semilogy(b.grid.n_v, np.where(data > 0, data, np.nan), ".", ms=3, color="0.4", label="data")
-            ax.semilogy(b.grid.n_v, ctx.model_values[bi][:, col], "-", label="base model")
+            # the columns through the named peaks: before/after
+            final = None
             if fin is not None and d.significant and bi < len(fin.model_values):
-                ax.semilogy(b.grid.n_v, fin.model_values[bi][:, col], "--", label=" + ".join(d.explained_by))
-            ax.set_xlabel("n_v (px)")
-            ax.set_ylabel("BRDF (sr^-1)")
-            ax.set_title(f"{d.block_names[bi]}: column n_h = {int(b.grid.n_h[col])} through the peak")
-            ax.legend(fontsize=8)
-            out.append((f"Before/after: the column through the peak, {d.block_names[bi]}", _png(fig)))
+                final = (" + ".join(d.explained_by), fin.model_values[bi])
+            for prof in column_profiles(b, geo, ctx.model_values[bi], final):
+                fig = plot_column_profile(prof)
+                out.append((f"Before/after: {prof['title']}", _png(fig)))
         else:
             fig, ax = plt.subplots(figsize=(7, 4))
             ok = np.isfinite(r)
@@ -197,6 +243,107 @@ def figures(d: Diagnosis) -> list[tuple[str, str]]:
     return out
 
 
+def _column_chi2(data: np.ndarray, sigma: np.ndarray, model: np.ndarray, usable: np.ndarray) -> float:
+    ok = usable & (data > 0) & (model > 0) & np.isfinite(model) & (sigma > 0)
+    r = (np.log(data[ok]) - np.log(model[ok])) / sigma[ok]
+    return float(np.sum(r * r))
+
+
+def _peak_columns(b: FrameData, geo: dict[str, np.ndarray], base_values: np.ndarray) -> list[tuple[str, int, str]]:
+    """``[(peak name, column index, note)]``: the specular peak's column and, if another, the model maximum's."""
+    sx, sy = np.asarray(geo["sx"], float), np.asarray(geo["sy"], float)
+    dist = np.where(np.isfinite(sx) & np.isfinite(sy), sx * sx + sy * sy, np.inf)
+    row, col = np.unravel_index(int(np.argmin(dist)), dist.shape)
+    # how far one grid step reaches in angle there: the specular direction is "in" the region if the
+    # nearest grid point is within about one step of it
+    steps = [float(np.nanmax(np.abs(np.diff(a, axis=k)))) for a, k in ((sx, 1), (sy, 0)) if a.shape[k] > 1]
+    inside = not steps or math.sqrt(float(dist[row, col])) <= 1.5 * max(steps)
+    note = "" if inside else " (the specular direction lies outside the region: the nearest column)"
+    out = [("the specular peak", int(col), note)]
+    mv = np.where(np.isfinite(base_values), base_values, -np.inf)
+    _, mcol = np.unravel_index(int(np.argmax(mv)), mv.shape)
+    if int(mcol) != int(col):
+        out.append(("the base model's maximum", int(mcol), ""))
+    return out
+
+
+def column_profiles(b: FrameData, geo: dict[str, np.ndarray], base_values: np.ndarray,
+                    final: tuple[str, np.ndarray] | None = None) -> list[dict[str, Any]]:
+    """The columns through the named peaks of a frame, as plotted (see the module docstring).
+
+    Each: ``name``, ``col`` (index on the grid), ``n_h`` (pixel index),
+    ``n_v``, ``data`` (NaN where masked: masked pixels are not data),
+    ``masked`` (bool per row), ``curves`` (``[(label with chi^2, values,
+    chi2)]``: the base model and, with ``final = (label, values)``, the model
+    at the end of the path), ``title``.
+    """
+    usable = np.asarray(b.usable(), bool)
+    brdf = np.asarray(b.brdf, float)
+    sigma = np.broadcast_to(np.asarray(b.sigma_rel, float), brdf.shape)
+    out = []
+    for name, col, note in _peak_columns(b, geo, base_values):
+        u = usable[:, col]
+        d = brdf[:, col]
+        curves = []
+        for label, values in [("base model", base_values)] + ([final] if final is not None else []):
+            v = np.asarray(values, float)[:, col]
+            chi2 = _column_chi2(d, sigma[:, col], v, u)
+            curves.append((f"{label} (chi^2 {chi2:.4g} on {int(u.sum())} points)", v, chi2))
+        out.append({
+            "name": name, "col": col, "n_h": int(np.asarray(b.grid.n_h)[col]), "n_v": np.asarray(b.grid.n_v),
+            "data": np.where(u & (d > 0), d, np.nan), "masked": ~u, "curves": curves,
+            "title": f"{b.name}: column n_h = {int(np.asarray(b.grid.n_h)[col])} through {name}{note}",
+        })
+    return out
+
+
+def column_profile(b: FrameData, geo: dict[str, np.ndarray], base_values: np.ndarray,
+                   final: tuple[str, np.ndarray] | None = None) -> dict[str, Any]:
+    """The column through the specular peak (the first of :func:`column_profiles`)."""
+    return column_profiles(b, geo, base_values, final)[0]
+
+
+def plot_column_profile(prof: dict[str, Any]):
+    """The figure of one :func:`column_profiles` entry: data points, masked rows shaded, labelled model curves."""
+    plt = agg_pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    n_v = prof["n_v"]
+    dv = float(np.min(np.diff(n_v))) if n_v.size > 1 else 1.0
+    first = True
+    for k in np.flatnonzero(prof["masked"]):
+        ax.axvspan(n_v[k] - dv / 2, n_v[k] + dv / 2, color="0.85", lw=0, label="masked (not data)" if first else None)
+        first = False
+    ax.semilogy(n_v, prof["data"], ".", ms=3, color="0.3", label="data (usable)")
+    for (label, values, _), style in zip(prof["curves"], ("-", "--")):
+        ax.semilogy(n_v, np.where(values > 0, values, np.nan), style, label=label)
+    ax.set_xlabel("n_v (px)")
+    ax.set_ylabel("BRDF (sr^-1)")
+    ax.set_title(prof["title"], fontsize=9)
+    ax.legend(fontsize=7)
+    return fig
+
+
+def _column_checks(d: Diagnosis) -> list[tuple[str, str]]:
+    """A plotted final model that misses the fit's own residuals in its column by more than 2x in chi^2."""
+    ctx, fin = d.context, d.final_context
+    out: list[tuple[str, str]] = []
+    if ctx is None or fin is None or not d.significant:
+        return out
+    for bi, b in enumerate(ctx.blocks):
+        if not isinstance(b, FrameData) or bi >= len(fin.model_values) or bi >= len(fin.residuals):
+            continue
+        for prof in column_profiles(b, ctx.geometry[bi], ctx.model_values[bi], ("final", fin.model_values[bi])):
+            plotted = prof["curves"][-1][2]
+            r = np.asarray(fin.residuals[bi], float)[:, prof["col"]]
+            fitted = float(np.nansum(r * r))
+            if fitted > 0 and not (0.5 <= plotted / fitted <= 2.0):
+                out.append((d.block_names[bi], (
+                    f"{d.block_names[bi]}, column n_h = {prof['n_h']}: the plotted final model gives chi^2 {plotted:.4g} "
+                    f"on the plotted points but the fit's residuals give {fitted:.4g}: the curve is not the model the "
+                    "fit compared with the data (a per-frame term or the footprint is missing from the plot)")))
+    return out
+
+
 _figures = figures  # html_report's keyword ``figures`` (a flag) hides the function
 
 
@@ -208,6 +355,9 @@ def html_report(d: Diagnosis, *, figures: bool = True) -> str:
         "<h1>Sim-to-real gap diagnosis</h1>",
         f"<p>{html.escape(_headline(d)).replace('**', '')}</p>",
     ]
+    warns = report_warnings(d)
+    if warns:
+        parts.append("<h2>Warnings</h2><ul>" + "".join(f"<li><b>warning:</b> {html.escape(w)}</li>" for w in warns) + "</ul>")
     for title, head, rows in _tables(d):
         parts.append(f"<h2>{html.escape(title)}</h2><table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>")
         parts += ["<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>" for row in rows]

@@ -39,6 +39,7 @@ from ._problem import (
     evaluate,
     frame_for_block,
     jacobian,
+    report_evaluations,
     stack_frames,
     template_for_block,
     with_loss,
@@ -425,6 +426,7 @@ def fit(
     allow_different_detectors: bool = False,
     use_footprint: bool = True,
     resolution_check: bool = True,
+    progress: Callable[[int, float], None] | None = None,
 ) -> FitResult:
     """Fit ``model`` to one or several data blocks (detector frames and/or goniometer tables).
 
@@ -447,6 +449,8 @@ def fit(
     (default: yes when every block has ``sigma_rel``).  Frames from different
     detectors need ``allow_different_detectors=True``.  A footprint on a frame
     is convolved with the model unless ``use_footprint=False``.
+    ``progress(k, chi2)`` hears of every residual evaluation of the solver
+    (about one per step) with the sum of squared residuals there.
 
     A fit that does not converge returns normally with ``converged=False``
     and a message that says why; bad inputs raise
@@ -479,10 +483,18 @@ def fit(
         outcome = SolveOutcome(np.zeros(0), True, "successful", "nothing to fit: every parameter is fixed", 0)
     else:
         u_start = u0
+        n_eval = 0
+
+        def heard(chi2: float) -> None:
+            nonlocal n_eval
+            n_eval += 1
+            progress(n_eval, chi2)
+
         for i, (index, k_stage, soften) in enumerate(stages):
-            problem, outcome = _solve_stage(
-                with_loss(problem, index, k_stage, soften), layout, solver_obj, u_start, warnings if i == 0 else []
-            )
+            with report_evaluations(heard if progress is not None else None):
+                problem, outcome = _solve_stage(
+                    with_loss(problem, index, k_stage, soften), layout, solver_obj, u_start, warnings if i == 0 else []
+                )
             total_steps += outcome.n_steps
             if i < len(stages) - 1:
                 notes.append(f"first stage ({first_stage}): {outcome.n_steps} steps, {outcome.status}")

@@ -33,6 +33,8 @@ the solar-cell model slowly, ~7 s per copy):
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import equinox as eqx
@@ -298,12 +300,48 @@ def _plain_residuals(v: Array, problem: Problem) -> Array:
 
 _BIG = 1e8  # stands in for a non-finite residual at a solver's trial point
 
+#: Who hears of each residual evaluation of a solve (:func:`report_evaluations`).  A module-level
+#: list, not an argument: the callback below must be the same function in every compiled solve, so
+#: that listening does not recompile (one program serves fits with and without progress).
+_LISTENERS: list[Callable[[float], None]] = []
+
+
+def _emit(chi2: Any) -> None:
+    if _LISTENERS:
+        value = float(np.min(np.asarray(chi2)))  # vmapped solves report their best member
+        for listener in list(_LISTENERS):
+            listener(value)
+
+
+def _announce(r: Array) -> None:
+    jax.debug.callback(_emit, jnp.sum(jnp.square(r)))
+
+
+@contextmanager
+def report_evaluations(listener: Callable[[float], None] | None) -> Iterator[None]:
+    """While inside, ``listener(sum of squared residuals)`` hears of every residual evaluation of a solver.
+
+    Levenberg-Marquardt evaluates (and linearises) the residuals once per
+    step, so this is the chi^2 (the robust cost, for a robust loss) step by
+    step; the fit's progress line is built on it.
+    """
+    if listener is None:
+        yield
+        return
+    _LISTENERS.append(listener)
+    try:
+        yield
+    finally:
+        _LISTENERS.remove(listener)
+
 
 @jax.custom_jvp
 def residuals(v: Array, problem: Problem) -> Array:
     """The residual function handed to solvers (one object, so compiled programs are reused)."""
     r = problem.residuals(v).astype(jnp.result_type(v))
-    return jnp.where(jnp.isfinite(r), r, _BIG)
+    r = jnp.where(jnp.isfinite(r), r, _BIG)
+    _announce(r)
+    return r
 
 
 @residuals.defjvp
@@ -316,6 +354,7 @@ def _residuals_jvp(primals, tangents):
     # see finite numbers to reject the step rather than fail.
     r = jnp.where(jnp.isfinite(r), r, _BIG)
     J = jnp.where(jnp.isfinite(J), J, 0.0)
+    _announce(r)
     return r, J @ t_v
 
 

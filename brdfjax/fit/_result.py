@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -153,6 +154,31 @@ class FitResult:
 
     def sigma(self, name: str) -> float | None:
         return self._get(name).sigma
+
+    def truth_warnings(self, truth: Mapping[str, float], n_sigma: float = 3.0) -> list[str]:
+        """A warning for every free parameter whose ``truth`` (stored units) lies outside ``n_sigma`` of the estimate.
+
+        For synthetic demos, where the truth is known: a truth that far out
+        means the reported sigma misses an error the data carry (a model
+        or instrument effect the fit does not describe), not bad luck
+        (``n_sigma = 3``: 0.3 % of honest cases).  A name of a per-frame
+        parameter (``phi_ref``) checks every frame's entry.
+        """
+        out = []
+        for name, p in self.parameters.items():
+            base = name.split("[")[0]
+            t = truth.get(name, truth.get(base))
+            if not p.free or t is None or p.sigma is None or not (p.sigma > 0 and math.isfinite(p.sigma)):
+                continue
+            pull = (p.value - float(t)) / p.sigma
+            if abs(pull) > n_sigma:
+                f, unit = to_natural(p.unit), natural_unit(p.unit)
+                out.append(
+                    f"the truth of '{name}' ({float(t) * f:.6g} {unit}) lies {pull:+.1f} sigma from the estimate "
+                    f"({p.value * f:.6g} +- {p.sigma * f:.3g} {unit}): the sigma misses an error the data carry "
+                    "(an effect the model or the reduction does not describe), not noise"
+                )
+        return out
 
     def _get(self, name: str) -> ParameterEstimate:
         if name not in self.parameters:

@@ -5,19 +5,19 @@ name -> ``{value, sigma, unit, free}`` in natural units, ``chi2``,
 ``chi2_reduced``, ``dof``, ``converged``, ``message``, ``n_iterations``,
 ``wall_s``, ...) and the figures.  Exit codes: 0 when the fit ran (also when
 it did not converge: the message says so and ``result.json`` holds what it
-found), 2 for a bad config or unreadable data (the message names the file and
-the key), 1 for a failure while writing the output.
+found), 2 for a bad config, unreadable data or an output folder that cannot be
+written (the message names the file and the key), 130 interrupted, 1 an
+internal error (:mod:`brdfjax.errors`).  The solver's progress (chi^2 per
+evaluation) goes to stderr unless ``--quiet``.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from rich.console import Console
-
-from ..errors import InputError
+from ..io import check_output_dir
+from ..progress import make_console
 from .config import enable_config_precision, run_fit
 
 __all__ = ["add_arguments", "run"]
@@ -30,18 +30,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    console = make_console(args.quiet)
     prog = "brdfjax fit"
     enable_config_precision(args.config)
-
-    try:
-        result = run_fit(args.config, args.out, console=console, figures=False if args.no_figures else None)
-    except (InputError, FileNotFoundError) as e:
-        print(f"{prog}: error: {e}", file=sys.stderr)
-        return 2
-    except OSError as e:
-        print(f"{prog}: error: cannot write the output: {e}", file=sys.stderr)
-        return 1
+    check_output_dir(args.out)
+    # errors: brdfjax.errors.run_command (cli.main) gives them their exit code and message
+    result = run_fit(args.config, args.out, console=console, figures=False if args.no_figures else None)
     state = "converged" if result.converged else "did NOT converge"
     console.print(
         f"{prog}: {state} ({result.message}); chi2_reduced = {result.chi2_reduced:.4g}; wrote {Path(args.out) / 'result.json'}",

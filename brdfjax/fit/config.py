@@ -115,6 +115,7 @@ from ..instrument.raw import RawFormatError
 from ..instrument.reduce import MERGES, ReductionError, reduce_measurement_set
 from ..instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
 from ..io import atomic_output, write_json_atomic
+from ..progress import ProgressLine
 from ..render import Frame, Precision
 from ..terms import Model
 from ._auto_init import INITIALIZERS
@@ -605,9 +606,9 @@ class FitJob:
     notes: list[str] = field(default_factory=list)
     truth: dict[str, float] | None = None  # synthetic data: the model's parameters (stored units)
 
-    def run(self):
-        """``brdfjax.fit.fit(model, blocks, params, **fit_kwargs)``."""
-        return fit(self.model, self.blocks, self.params, **self.fit_kwargs)
+    def run(self, progress: Any = None):
+        """``brdfjax.fit.fit(model, blocks, params, **fit_kwargs)`` (``progress``: see :func:`~brdfjax.fit.fit`)."""
+        return fit(self.model, self.blocks, self.params, progress=progress, **self.fit_kwargs)
 
 
 def _fingerprint(obj: Any) -> str:
@@ -887,7 +888,8 @@ def run_fit(
     for n in job.notes:
         say(n)
     say(f"data: {len(job.blocks)} block(s) loaded in {t_data:.1f} s; fitting ...")
-    result = job.run()
+    with ProgressLine(console, "fit", None, unit="solver evaluation(s)") as bar:
+        result = job.run(progress=lambda k, chi2: bar.update(k, f"chi2 = {chi2:.6g}"))
     doc = result.to_dict()
     doc["config"] = str(cfg.source)
     doc["data"] = [_describe_block(b) for b in job.blocks]
@@ -897,8 +899,12 @@ def run_fit(
         doc["truth"] = {
             k: {"value": v * to_natural(units[k]), "unit": natural_unit(units[k])} for k, v in job.truth.items()
         }
+        # a synthetic demo knows its truth: one outside 3 sigma is said, not left for the reader to find
+        doc["truth_warnings"] = result.truth_warnings(job.truth)
     _write_json(out / "result.json", doc)
     say(result.summary())
+    for w in doc.get("truth_warnings", ()):
+        say(f"warning: {w}")
     if (cfg.output.figures if figures is None else figures):
         paths = write_figures(job, result, out, dpi=cfg.output.dpi)
         say(f"figures: {', '.join(p.name for p in paths)}")

@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
+
 __all__ = [
     "ND_STACKS",
     "ND_3_TOLERANCE",
@@ -99,7 +101,7 @@ def select_stack(
     for stack in sorted(stacks, key=stack_od):
         if peak_rate_unattenuated * 10 ** -stack_od(stack) * t_min + 2 * black_level < 0.9 * full_scale:
             return stack
-    raise ValueError(
+    raise InputError(  # a refusal (exit 2): the sample is too bright for every stack on the bench
         f"no ND stack up to OD {max(map(stack_od, stacks)):g} keeps the brightest pixel unsaturated "
         f"(peak {peak_rate_unattenuated:.4g} counts/s unattenuated)"
     )

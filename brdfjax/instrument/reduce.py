@@ -84,7 +84,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -773,7 +773,12 @@ def reduce_measurement(
     phi_s_flux = s.flux[np.ix_(rr, cc)].astype(np.float64) * exposure_ratio
     phi_s_std = np.sqrt(s.variance[np.ix_(rr, cc)].astype(np.float64)) * exposure_ratio
     saturated = s.saturated[np.ix_(rr, cc)]
-    del s
+    # Partial saturation: usable, but merged without the exposures that saturated there (weighted: fewer
+    # exposures merged than taken; replacement: not taken from the longest exposure).
+    src = s.source[np.ix_(rr, cc)]
+    n_exp = len(sample.exposures)
+    partly = ~saturated & ((src < n_exp) if s.merge == "weighted" else (src < n_exp - 1))
+    del s, src
     brdf = np.asarray(brdf_eq45(phi_s_flux, phi_i, theta_s, omega), dtype=np.float32)
 
     # §4.2 figures from the inputs.
@@ -803,6 +808,8 @@ def reduce_measurement(
     if min_snr > 0:
         flags[phi_s_flux < min_snr * phi_s_std] |= FLAG_LOW_SNR
     mask = (flags == 0).astype(np.float32)
+    if not mask.any():
+        _no_usable_pixel(sample, flags, saturation_fraction)
 
     # Uncertainty (Chapter IV) with the stitched noise as the scatter-noise contribution.
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -880,6 +887,8 @@ def reduce_measurement(
         "nonlinearity_corrected": int(bool(correct_nonlinearity) and merge == "weighted"),
         **{f"u_{k}": v for k, v in sorted(uniform.items())},
         "usable_fraction": float(mask.mean()),
+        "saturated_pixels": int(saturated.sum()),
+        "partly_saturated_pixels": int(partly.sum()),
         "channel_units": "brdf: sr^-1, theta_s: rad, phi_s: rad, omega: sr, "
         "noise_equivalent_brdf: sr^-1, sigma_rel and u_*: relative, mask: 1 usable / 0 excluded, "
         "flags: 1 saturated, 2 below noise, 4 below artifact floor, 8 not finite, 16 low SNR; "
@@ -887,6 +896,26 @@ def reduce_measurement(
     }
     return ExrFrame(brdf, theta_s.astype(np.float32), phi_s.astype(np.float32),
                     omega.astype(np.float32), attrs, extra)
+
+
+def _no_usable_pixel(sample: RawStack, flags: np.ndarray, saturation_fraction: float) -> None:
+    """Raise the :class:`ReductionError` of a measurement whose mask is empty, saying why pixel by pixel."""
+    n = flags.size
+    why = {name: int(np.count_nonzero(flags & bit)) for name, bit in (
+        ("saturated in every exposure", FLAG_SATURATED), ("below the noise-equivalent BRDF", FLAG_BELOW_NOISE),
+        ("not finite", FLAG_NOT_FINITE), ("below the artifact floor", FLAG_BELOW_ARTIFACT_FLOOR),
+        ("below min_snr", FLAG_LOW_SNR))}
+    parts = ", ".join(f"{k} {v}" for k, v in why.items() if v)
+    hint = (
+        f"every pixel reaches {saturation_fraction:g} x full scale even in the shortest exposure "
+        f"({float(sample.exposure_times[0]):g} s): take it again through a denser ND filter or with shorter exposures"
+        if why["saturated in every exposure"] == n
+        else "check the exposures, the ND filters and the background"
+    )
+    raise ReductionError(
+        f"{sample.path or 'measurement'}: no usable pixel in the reduced frame ({n} pixels: {parts}); {hint}. "
+        "Nothing was written for this measurement set"
+    )
 
 
 # --- frame files with extra channels --------------------------------------------------------------
@@ -928,6 +957,7 @@ def reduce_measurement_set(
     *,
     merge: Literal["weighted", "replacement"] = "weighted",
     step: int = 1,
+    progress: Callable[[int, int, str], None] | None = None,
     **options: Any,
 ) -> list[Path]:
     """Reduce every sample of a measurement set; returns the written frame paths (``<out_dir>/<name>.exr``).
@@ -944,8 +974,10 @@ def reduce_measurement_set(
     ``[calibration]`` table supplies ``scatter_nonlinearity``,
     ``nonlinearity_curve`` and extra ``nd_tolerances`` (added to the seed's
     table) unless given here.  Inputs are only read; each
-    output is written to a temporary name and renamed into place, so an
-    interrupted run leaves the old output or the new one.
+    output is written to a temporary name and renamed into place only once
+    every sample reduced, so an interrupted or refused run leaves the old
+    outputs, never a part of the new ones.  ``progress(done, total, name)``
+    is called after each sample.
     """
     if merge not in MERGES:
         raise ValueError(f"unknown merge {merge!r}; known: {', '.join(MERGES)}")
@@ -975,20 +1007,36 @@ def reduce_measurement_set(
         merge=merge,
         **stitch_kw,
     )
-    written = []
+    targets = []
     for entry in manifest.samples:
         target = (out_dir / f"{entry.name}.exr").resolve()
         if target in inputs:
             raise ReductionError(
                 f"{target}: the output would overwrite an input of {manifest.path}; choose another --out"
             )
-        sample = _read(entry.file, f"sample '{entry.name}'")
-        sample_bg = _read(entry.background, f"background of sample '{entry.name}'")
-        reduced = reduce_measurement(sample, sample_bg, beam, merge=merge, step=int(step), **options)
-        del sample, sample_bg
-        written.append(write_reduced_frame(target, reduced))
-        del reduced
-    return written
+        targets.append(target)
+    # Every frame is first written under a hidden staging name and renamed into place only when all of
+    # them reduced: a measurement that cannot be reduced (e.g. saturated everywhere) leaves nothing
+    # half-written, and the old outputs stay as they were.
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for i, (entry, target) in enumerate(zip(manifest.samples, targets)):
+            sample = _read(entry.file, f"sample '{entry.name}'")
+            sample_bg = _read(entry.background, f"background of sample '{entry.name}'")
+            reduced = reduce_measurement(sample, sample_bg, beam, merge=merge, step=int(step), **options)
+            del sample, sample_bg
+            tmp = target.with_name(f".{target.stem}.staged.exr")
+            staged.append((write_reduced_frame(tmp, reduced), target))
+            del reduced
+            if progress is not None:
+                progress(i + 1, len(targets), entry.name)
+        for tmp, target in staged:
+            os.replace(tmp, target)
+    finally:
+        for tmp, _ in staged:
+            if tmp.exists():
+                tmp.unlink()
+    return targets
 
 
 # --- figure ---------------------------------------------------------------------------------------

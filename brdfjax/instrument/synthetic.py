@@ -877,6 +877,7 @@ class SyntheticInstrument:
         wavelength: float = 632.8e-9,
         calibration: Calibration | None = None,
         log: Callable[[str], None] | None = None,
+        progress: Callable[[int, int, str], None] | None = None,
     ) -> Path:
         """Measure ``model`` at every ``frames[name]`` and write the measurement set: the one synthetic pipeline.
 
@@ -885,8 +886,11 @@ class SyntheticInstrument:
         unless ``nd_filters`` fixes it; the beam's stack likewise unless
         ``beam_filters`` is given.  ``calibration`` defaults to the seed's ND
         tolerances plus the inferred 3.0 OD one; ``log`` receives one line per
-        choice.  Returns the manifest path (:meth:`write_set`).
+        choice; ``progress(done, total, what)`` is called per step (each
+        sample rendered, each file written).  Returns the manifest path (:meth:`write_set`).
         """
+        total = 3 * len(frames) + 2
+        tick = progress or (lambda done, total, what: None)
         samples = {}
         for name, frame in frames.items():
             brdf = self.render_brdf(model, frame)
@@ -894,6 +898,7 @@ class SyntheticInstrument:
                 lambda stack, b=brdf, f=frame: self.sample_flux(b, f, stack), self
             )
             samples[name] = (brdf, frame, nd)
+            tick(len(samples), total, f"rendered {name}")
             if log is not None:
                 log(f"{name}: sample ND filters '{nd or 'none'}'")
         if beam_filters is None:
@@ -902,7 +907,10 @@ class SyntheticInstrument:
                 log(f"beam signature: ND filters '{beam_filters}'")
         if calibration is None:
             calibration = Calibration(nd_tolerances={3.0: ND_3_TOLERANCE})
-        return self.write_set(folder, samples, beam_filters=beam_filters, wavelength=wavelength, calibration=calibration)
+        return self.write_set(
+            folder, samples, beam_filters=beam_filters, wavelength=wavelength, calibration=calibration,
+            progress=None if progress is None else (lambda d, t, w: progress(len(frames) + d, total, w)),
+        )
 
     def write_set(
         self,
@@ -912,30 +920,37 @@ class SyntheticInstrument:
         beam_filters: str = SEED_BEAM_FILTERS,
         wavelength: float = 632.8e-9,
         calibration: Calibration | None = None,
+        progress: Callable[[int, int, str], None] | None = None,
     ) -> Path:
         """Write a measurement set (beam + background, each sample + background, ``manifest.toml``).
 
         ``samples`` maps a sample name (file stem) to ``(model or BRDF frame,
         Frame, nd_filters)``; ``calibration`` goes into the manifest's
         ``[calibration]`` table.  Files are written one at a time
-        (atomically); returns the manifest path.
+        (atomically), ``progress(done, total, file name)`` after each; returns the manifest path.
         """
+        tick = progress or (lambda done, total, what: None)
+        n_files = 2 + 2 * len(samples)
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         beam = self.measure_beam(beam_filters, wavelength=wavelength)
         write_raw_exr(folder / "beam.exr", beam.attrs, beam.exposures)
+        tick(1, n_files, "beam.exr")
         bg = self.measure_background(beam.attrs)
         del beam
         write_raw_exr(folder / "beam_background.exr", bg.attrs, bg.exposures)
+        tick(2, n_files, "beam_background.exr")
         del bg
         entries = []
         for name, (brdf, frame, nd) in samples.items():
             st = self.measure_sample(brdf, frame, nd, sample=name)
             write_raw_exr(folder / f"{name}.exr", st.attrs, st.exposures)
+            tick(3 + 2 * len(entries), n_files, f"{name}.exr")
             attrs = st.attrs
             del st
             bg = self.measure_background(attrs)
             write_raw_exr(folder / f"{name}_background.exr", bg.attrs, bg.exposures)
+            tick(4 + 2 * len(entries), n_files, f"{name}_background.exr")
             del bg
             entries.append((name, f"{name}.exr", f"{name}_background.exr"))
         return write_manifest(folder / "manifest.toml", ("beam.exr", "beam_background.exr"), entries, calibration)

@@ -16,6 +16,7 @@ from ..detector import PixelGrid
 from ..fit import FitResult, FrameData, TableData, fit, prepare, versions
 from ..fit.internal import as_param, block_names, get_solver, to_natural
 from ..io import write_json_atomic
+from ..io.fingerprint import array_digest, value_digest
 from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
 from ._outputs import (
     model_at_points,
@@ -28,7 +29,15 @@ from ._outputs import (
 from ._posterior import LogPosterior, build_log_posterior, check_walkers, default_walkers, start_ball
 from ._priors import Prior, SampleError
 
-__all__ = ["sample", "PosteriorResult", "decimate_frame", "sampling_record", "start_from_fit_json"]
+__all__ = [
+    "sample",
+    "PosteriorResult",
+    "check_sampling",
+    "decimate_frame",
+    "problem_fingerprint",
+    "sampling_record",
+    "start_from_fit_json",
+]
 
 #: Options of :func:`brdfjax.fit.prepare` among a fit's keyword arguments.
 _PREPARE_KEYS = (
@@ -90,6 +99,113 @@ def decimate_frame(data: FrameData, step: int = 1, roi: tuple[int, int, int, int
         footprint=fp,
         name=data.name,
     )
+
+
+#: Options of the fit that define the likelihood (the start-value initialiser does not).
+_LIKELIHOOD_KEYS = ("loss", "loss_scale", "floor", "precision", "allow_different_detectors", "use_footprint")
+
+
+def _grid_text(b: FrameData) -> str:
+    n_h, n_v = np.asarray(b.grid.n_h), np.asarray(b.grid.n_v)
+    st = lambda a: int(np.min(np.diff(a))) if a.size > 1 else 1  # noqa: E731
+    return (
+        f"{n_h.size} x {n_v.size} points, n_h {int(n_h[0])}..{int(n_h[-1])} step {st(n_h)}, "
+        f"n_v {int(n_v[0])}..{int(n_v[-1])} step {st(n_v)}; " + array_digest(np.concatenate([n_h, n_v]))
+    )
+
+
+def problem_fingerprint(
+    model: Any,
+    blocks: Sequence[FrameData | TableData],
+    post: LogPosterior,
+    layout: Any,
+    fit_kwargs: Mapping[str, Any],
+    *,
+    n_walkers: int,
+    seed: int,
+    ball: float,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Everything that defines a sampling problem, component by component (:mod:`brdfjax.io.fingerprint`).
+
+    The model (its class, terms and every fixed value), each free
+    parameter (unit, physical bounds) and its prior, each data block's
+    values, uncertainties, mask and grid (after ``step``/``roi``), the
+    likelihood's settings (loss, floor, precision, footprint) and the
+    sampler's (walkers, seed, start ball); ``extra`` adds the caller's
+    components (the CLI: data files' checksums and the config's data
+    settings).  Not in it: ``n_steps`` (a resume extends the chain),
+    ``burn``, ``thin`` and the figures, which only change the summary.
+    """
+    fp: dict[str, Any] = {
+        "model.structure": value_digest(f"{type(model).__name__}: {sorted(model.parameter_units())}"),
+    }
+    for e in layout.fixed:
+        fp[f"fixed.{e.name}"] = float(e.value)
+    for name, unit, lo, hi in zip(post.names, post.units, post.lower, post.upper):
+        fp[f"free.{name}"] = f"{unit or '1'} [{float(lo):.9g}, {float(hi):.9g}]"
+    for name, text in post.describe_priors().items():
+        fp[f"priors.{name}"] = text
+    for b in blocks:
+        key = f"data[{b.name}]"
+        fp[f"{key}.brdf"] = array_digest(np.asarray(b.brdf))
+        fp[f"{key}.sigma_rel"] = array_digest(None if b.sigma_rel is None else np.asarray(b.sigma_rel))
+        fp[f"{key}.mask"] = array_digest(b.usable())
+        if isinstance(b, FrameData):
+            fp[f"{key}.grid"] = _grid_text(b)
+            fp[f"{key}.footprint"] = array_digest(None if b.footprint is None else np.asarray(b.footprint))
+            fp[f"{key}.detector"] = value_digest(repr(b.detector))
+        else:
+            fp[f"{key}.directions"] = array_digest(
+                np.stack([np.broadcast_to(np.asarray(getattr(b, k), np.float64), np.shape(b.brdf))
+                          for k in ("theta_i", "phi_i", "theta_s", "phi_s")])
+            )
+    for k in _LIKELIHOOD_KEYS:
+        v = fit_kwargs.get(k)
+        fp[f"likelihood.{k}"] = value_digest(v if v is None or isinstance(v, bool | int | float | str) else repr(v))
+    fp["sampler.n_walkers"] = int(n_walkers)
+    fp["sampler.seed"] = int(seed)
+    fp["sampler.ball"] = float(ball)
+    fp.update(dict(extra or {}))
+    return fp
+
+
+def check_sampling(
+    model: Any,
+    data: FrameData | TableData | Sequence[FrameData | TableData],
+    params: Mapping[str, Any] | None = None,
+    *,
+    priors: Mapping[str, Prior] | None = None,
+    n_walkers: int | None = None,
+    fit_kwargs: Mapping[str, Any] | None = None,
+    step: int | None = None,
+    roi: tuple[int, int, int, int] | None = None,
+) -> int:
+    """Check a sampling problem before any fit: priors on unknown or fixed parameters, the walker count.
+
+    Returns the number of walkers (the default when ``n_walkers`` is
+    ``None``); raises :class:`SampleError` (or the fit's input errors).  A
+    prior that excludes the start can only be checked once the start (the
+    fit's optimum) is known; :func:`sample` does that before writing anything.
+    """
+    fit_kwargs = dict(fit_kwargs or {})
+    blocks = [data] if isinstance(data, FrameData | TableData) else list(data)
+    if step is not None or roi is not None:
+        blocks = [decimate_frame(b, step or 1, roi) if isinstance(b, FrameData) else b for b in blocks]
+    solver = get_solver(fit_kwargs.get("solver", "levenberg_marquardt"), **dict(fit_kwargs.get("solver_options") or {}))
+    prep_kw = {k: fit_kwargs[k] for k in _PREPARE_KEYS if k in fit_kwargs and k not in ("initializer", "init_options")}
+    # No auto-initialisation here (it can cost a fit's worth of model evaluations): 'auto' starts stand in as 1.
+    spec = {k: (replace(as_param(k, v), value=None) if _is_auto(k, v) else v) for k, v in dict(params or {}).items()}
+    prep = prepare(model, blocks, spec, solver=solver, **prep_kw)
+    post = build_log_posterior(prep, priors, loss=fit_kwargs.get("loss", "linear"))
+    nw = default_walkers(post.ndim) if n_walkers is None else n_walkers
+    check_walkers(nw, post.ndim)
+    return nw
+
+
+def _is_auto(k: str, v: Any) -> bool:
+    p = as_param(k, v)
+    return isinstance(p.value, str) and p.value == "auto"
 
 
 def sampling_record(blocks: Sequence[FrameData | TableData], step: int | None, roi: Any) -> dict[str, Any]:
@@ -214,6 +330,7 @@ def sample(
     vectorize: bool = True,
     log: Any = None,
     extra_record: Mapping[str, Any] | None = None,
+    extra_fingerprint: Mapping[str, Any] | None = None,
 ) -> PosteriorResult:
     """Sample the posterior of ``params`` (as for :func:`brdfjax.fit.fit`) given ``data`` with emcee.
 
@@ -228,6 +345,12 @@ def sample(
     is drawn (``resume=True`` continues it to ``n_steps`` in total) and
     ``posterior.json``, ``corner.png``, ``trace.png`` and
     ``predictive_<frame>.png`` are written there.
+
+    The chain file records the problem's fingerprint
+    (:func:`problem_fingerprint`, plus ``extra_fingerprint``); a resume of a
+    chain drawn under another problem (a prior, a data value, the grid, a
+    sigma setting, the walkers ...) is refused naming what differs.  A run
+    that fails or is interrupted before its first step leaves no chain file.
     """
     t_start = time.perf_counter()
     say = log or (lambda msg: None)
@@ -255,6 +378,8 @@ def sample(
     resuming = bool(resume and chain_path is not None and chain_path.exists())
     if chain_path is not None and chain_path.exists() != bool(resume):
         open_chain(chain_path, (), 0, resume=resume)  # raises the message (before any fitting)
+    if not resuming:  # priors on fixed or unknown parameters and the walker count, before any fit
+        check_sampling(model, blocks, spec, priors=priors, n_walkers=n_walkers, fit_kwargs=fit_kwargs)
     if fit_res is None and start_json is None and not resuming:
         say("no fit result given: fitting first (the walkers start around the least-squares optimum)")
         fit_res = fit(model, blocks, spec, **fit_kwargs)
@@ -296,28 +421,39 @@ def sample(
         "ball": float(ball),
         "priors": post.describe_priors(),
     }
-    backend, info = open_chain(chain_path, post.names, nw, resume=resume, meta=meta)
-    p0 = None
-    if info is None or info.iteration == 0:
-        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
-    else:
-        say(f"resuming {chain_path}: {info.iteration} steps present, running to {n_steps}")
-        if info.meta.get("seed") is not None:
-            seed = int(info.meta["seed"])
-    log_prob = post if vectorize else post.log_prob_one
-    outcome = run_chain(
-        log_prob,
-        backend,
-        p0,
-        n_steps,
-        seed=seed,
-        vectorize=vectorize,
-        progress=progress,
-        stop_when_converged=stop_when_converged,
-        check_every=check_every,
+    fingerprint = problem_fingerprint(
+        model, blocks, post, prep.layout, fit_kwargs, n_walkers=nw, seed=seed, ball=ball, extra=extra_fingerprint
     )
+    p0 = None
+    if not resuming:  # the start is checked before the chain file exists: a refusal leaves nothing behind
+        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
+    backend, info = open_chain(chain_path, post.names, nw, resume=resume, meta=meta, fingerprint=fingerprint)
+    created = chain_path is not None and info is None
+    if info is not None and info.iteration == 0:
+        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
+    elif info is not None:
+        say(f"resuming {chain_path}: {info.iteration} steps present, running to {n_steps}")
+    log_prob = post if vectorize else post.log_prob_one
+    try:
+        outcome = run_chain(
+            log_prob,
+            backend,
+            p0,
+            n_steps,
+            seed=seed,
+            vectorize=vectorize,
+            progress=progress,
+            stop_when_converged=stop_when_converged,
+            check_every=check_every,
+        )
+    except BaseException:
+        if created and int(getattr(backend, "iteration", 0)) == 0:
+            chain_path.unlink(missing_ok=True)  # failed before its first step: nothing to resume, nothing left
+        raise
     if outcome.iterations == 0:
-        raise SampleError("the run was interrupted before the first step was saved; nothing to summarise")
+        if created:
+            chain_path.unlink(missing_ok=True)
+        raise SampleError("the run was interrupted before the first step was saved; nothing was kept")
     chain = backend.get_chain()
     lp = backend.get_log_prob()
     diag = diagnose(backend, post.names, burn=burn, thin=thin, check_every=check_every)

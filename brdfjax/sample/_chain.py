@@ -6,7 +6,11 @@ state, so an interrupted run (Ctrl-C, a killed process) loses at most the
 step in flight and a resumed run continues the same chain -- and, since the
 random state is restored, draws exactly what the uninterrupted run would
 have.  A group ``brdfjax`` beside it records the parameter names, units and
-seed; resuming checks them against the current problem.
+seed and the problem's fingerprint (:mod:`brdfjax.io.fingerprint`: model,
+fixed values, bounds, priors, every data block's values, uncertainties,
+mask and grid, the likelihood's and the sampler's settings); resuming
+checks them against the current problem and refuses any difference, naming
+it.
 
 A chain file that cannot be read (corrupted, truncated, not HDF5) or that
 belongs to another problem is an error naming the file; it is never
@@ -37,6 +41,7 @@ import emcee
 import h5py
 import numpy as np
 
+from ..io.fingerprint import check_resume
 from ._priors import SampleError
 
 __all__ = ["ChainInfo", "Diagnostics", "open_chain", "run_chain", "diagnose", "read_chain"]
@@ -112,12 +117,16 @@ def open_chain(
     *,
     resume: bool,
     meta: dict[str, Any] | None = None,
+    fingerprint: dict[str, Any] | None = None,
 ) -> tuple[Any, ChainInfo | None]:
     """The emcee backend for ``path`` (``None``: in memory) and what it already holds.
 
     ``resume=False`` with an existing file, ``resume=True`` without one, a
     corrupted file and a chain of another problem (names, walkers) are
-    errors; the file is never modified before these checks pass.
+    errors; the file is never modified before these checks pass.  With
+    ``fingerprint`` a new chain records it and a resumed one must match it
+    (:func:`brdfjax.io.fingerprint.check_resume`: the message names every
+    difference).
     """
     if path is None:
         if resume:
@@ -141,13 +150,19 @@ def open_chain(
                 f"{path}: the chain has {info.n_walkers} walkers x {info.ndim} parameters, but this run asks for "
                 f"{n_walkers} x {len(names)}; resume with the same n_walkers"
             )
+        if fingerprint is not None:
+            check_resume(
+                path, info.meta.get("fingerprint"), fingerprint,
+                "Resume with the problem that started the chain, or start a new chain in another --out "
+                "(the chain is left untouched).",
+            )
         return emcee.backends.HDFBackend(str(path), name=GROUP), info
     if resume:
         raise SampleError(f"--resume: there is no chain to resume at {path}; run without --resume to start one")
     path.parent.mkdir(parents=True, exist_ok=True)
     backend = emcee.backends.HDFBackend(str(path), name=GROUP)
     backend.reset(n_walkers, len(names))
-    _write_meta(path, dict(meta or {}, names=list(names)))
+    _write_meta(path, dict(meta or {}, names=list(names), **({"fingerprint": fingerprint} if fingerprint else {})))
     return backend, None
 
 

@@ -30,9 +30,16 @@ and, when it fitted first, ``fit_result.json``.  ``--resume`` continues the
 chain in ``DIR/chain.h5`` to ``n_steps`` (``--steps`` to extend it).  Ctrl-C
 stops after the step in flight; what was drawn is kept and summarised.
 
-Exit codes: 0 done, 130 interrupted (resumable), 2 bad config, priors,
-walkers or chain file (the message names the file and key), 1 failure while
-writing.
+The chain records the problem's fingerprint (the model, priors, data
+values, grid, masks, sigma settings, sampler settings: see
+:func:`brdfjax.sample.problem_fingerprint`) plus, from the config, the
+checksum of every data file and every ``[data]`` setting; ``--resume``
+refuses a chain drawn under any other problem and names what differs.
+
+Exit codes (:mod:`brdfjax.errors`): 0 done, 130 interrupted (resumable), 2
+bad config, priors, walkers, chain file, a resume of another problem or an
+output folder that cannot be written (the message names the file and key),
+1 an internal error.
 """
 
 from __future__ import annotations
@@ -40,12 +47,10 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import sys
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import Field, field_validator
-from rich.console import Console
 
 from ..config import (
     ConfigError,
@@ -55,10 +60,12 @@ from ..config import (
     quoted_choices,
     unknown_key_message,
 )
-from ..errors import InputError
 from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
 from ..fit.internal import FRAME_PARAMETERS
-from ._api import sample
+from ..io import check_output_dir
+from ..io.fingerprint import file_digest, value_digest
+from ..progress import make_console
+from ._api import check_sampling, sample
 from ._priors import PRIOR_KINDS, Prior, SampleError
 
 __all__ = ["SampleSection", "PriorConfig", "add_arguments", "run", "priors_from_config"]
@@ -174,81 +181,111 @@ def _print_summary(console: Any, s: dict[str, Any]) -> None:
     console.print("\n".join(lines), markup=False)
 
 
+def config_fingerprint(cfg: Any) -> dict[str, Any]:
+    """The config's part of a chain's fingerprint: every data file's checksum and every ``[data]`` setting."""
+    fp: dict[str, Any] = {}
+    d = cfg.data
+    for f in d.frames:
+        fp[f"file[{f}]"] = file_digest(cfg.resolve(f))
+    for t in d.tables:
+        fp[f"file[{t.path}]"] = file_digest(cfg.resolve(t.path))
+    if d.manifest is not None:
+        m = cfg.resolve(d.manifest)
+        m = m / "manifest.toml" if m.is_dir() else m
+        fp[f"file[{d.manifest}]"] = file_digest(m)
+        for raw in sorted(m.parent.glob("*.exr")):
+            fp[f"file[{raw.name}]"] = file_digest(raw)
+    for k, v in d.model_dump(mode="json", exclude={"frames", "tables", "manifest"}).items():
+        fp[f"config.data.{k}"] = value_digest(v)
+    return fp
+
+
 def run(args: argparse.Namespace) -> int:
-    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    console = make_console(args.quiet)
     prog = "brdfjax sample"
     enable_config_precision(args.config)
     out = Path(args.out)
-    try:
-        cfg = load_fit_config(args.config, sections={"sample": SampleSection})
-        sec: SampleSection = cfg.sections.get("sample") or SampleSection()
-        model = cfg.build_model()
-        priors = priors_from_config(str(cfg.source), sec, model)
-        if args.steps is not None and args.steps < 1:
-            raise SampleError(f"--steps must be a positive integer, got {args.steps}")
-        chain_exists = (out / "chain.h5").exists()
-        if chain_exists and not args.resume:
-            raise SampleError(
-                f"{out / 'chain.h5'} already holds a chain; continue it with --resume, or choose another --out "
-                "(an existing chain is never overwritten)"
-            )
-        if args.resume and not chain_exists:
-            raise SampleError(f"--resume: there is no chain to resume at {out / 'chain.h5'}; run without --resume to start one")
-        out.mkdir(parents=True, exist_ok=True)
-        job = build_fit_job(cfg, work_dir=out)
-        for note in job.notes:
-            console.print(note, markup=False)
-        start: Any = None
-        fit_path = args.fit_result or (None if sec.fit_result is None else str(cfg.resolve(sec.fit_result)))
-        if fit_path is None and (out / "fit_result.json").is_file():
-            fit_path = str(out / "fit_result.json")
-        if fit_path is not None:
-            try:
-                start = json.loads(Path(fit_path).read_text())
-            except FileNotFoundError:
-                raise SampleError(f"{fit_path}: fit result not found (sample.fit_result / --fit-result)") from None
-            except (OSError, ValueError) as e:
-                raise SampleError(f"{fit_path}: cannot read the fit result JSON: {e}") from None
-            console.print(f"starting from the fit result {fit_path}", markup=False)
-        elif not (args.resume and chain_exists):
-            console.print("fitting first (no fit result given) ...", markup=False)
-            start = job.run()
-            start.to_json(out / "fit_result.json")
-            console.print(start.summary(), markup=False)
-            fit_path = str(out / "fit_result.json")
-        record = {"config": str(cfg.source), "fit_result": fit_path, "data_step": cfg.data.step, "data_roi": cfg.data.roi,
-                  "data_roi_deg": cfg.data.roi_deg}
-        res = sample(
-            job.model,
-            job.blocks,
-            job.params,
-            priors=priors,
-            n_walkers=args.walkers if args.walkers is not None else sec.n_walkers,
-            n_steps=args.steps if args.steps is not None else sec.n_steps,
-            out_dir=out,
-            resume=args.resume,
-            start=start,
-            fit_kwargs=job.fit_kwargs,
-            seed=sec.seed,
-            ball=sec.ball,
-            burn=sec.burn,
-            thin=sec.thin,
-            stop_when_converged=sec.stop_when_converged,
-            check_every=sec.check_every,
-            progress=sec.progress and not args.no_progress,
-            figures=cfg.output.figures and not args.no_figures,
-            predictive_draws=sec.predictive_draws,
-            step=sec.step,
-            roi=None if sec.roi is None else tuple(sec.roi),
-            log=lambda m: console.print(m, markup=False),
-            extra_record=record,
+    check_output_dir(out)
+    cfg = load_fit_config(args.config, sections={"sample": SampleSection})
+    sec: SampleSection = cfg.sections.get("sample") or SampleSection()
+    model = cfg.build_model()
+    priors = priors_from_config(str(cfg.source), sec, model)
+    if args.steps is not None and args.steps < 1:
+        raise SampleError(f"--steps must be a positive integer, got {args.steps}")
+    chain_exists = (out / "chain.h5").exists()
+    if chain_exists and not args.resume:
+        raise SampleError(
+            f"{out / 'chain.h5'} already holds a chain; continue it with --resume, or choose another --out "
+            "(an existing chain is never overwritten)"
         )
-    except (InputError, FileNotFoundError) as e:
-        print(f"{prog}: error: {e}", file=sys.stderr)
-        return 2
-    except OSError as e:
-        print(f"{prog}: error: cannot write the output: {e}", file=sys.stderr)
-        return 1
+    if args.resume and not chain_exists:
+        raise SampleError(f"--resume: there is no chain to resume at {out / 'chain.h5'}; run without --resume to start one")
+    if args.walkers is not None and args.walkers < 2:
+        raise SampleError(f"--walkers must be an even number >= 2 x the free parameters, got {args.walkers}")
+    # a prior on a parameter the config holds fixed: before any data are generated or read
+    spec = cfg.build_params()
+    held = sorted(k for k in priors if k.split("[")[0] in spec and not spec[k.split("[")[0]].free)
+    unlisted = sorted(k for k in priors if k.split("[")[0] not in spec)
+    if held or unlisted:
+        name = (held or unlisted)[0]
+        raise SampleError(
+            f"{cfg.source}: sample.priors: prior on '{name}', which is held fixed; make it free in [params] to sample it"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    job = build_fit_job(cfg, work_dir=out)
+    n_walkers = args.walkers if args.walkers is not None else sec.n_walkers
+    step_roi = dict(step=sec.step, roi=None if sec.roi is None else tuple(sec.roi))
+    # priors on fixed or unknown parameters and the walker count: before the fit
+    check_sampling(job.model, job.blocks, job.params, priors=priors, n_walkers=n_walkers,
+                   fit_kwargs=job.fit_kwargs, **step_roi)
+    for note in job.notes:
+        console.print(note, markup=False)
+    start: Any = None
+    fit_path = args.fit_result or (None if sec.fit_result is None else str(cfg.resolve(sec.fit_result)))
+    if fit_path is None and (out / "fit_result.json").is_file():
+        fit_path = str(out / "fit_result.json")
+    if fit_path is not None:
+        try:
+            start = json.loads(Path(fit_path).read_text())
+        except FileNotFoundError:
+            raise SampleError(f"{fit_path}: fit result not found (sample.fit_result / --fit-result)") from None
+        except (OSError, ValueError) as e:
+            raise SampleError(f"{fit_path}: cannot read the fit result JSON: {e}") from None
+        console.print(f"starting from the fit result {fit_path}", markup=False)
+    elif not (args.resume and chain_exists):
+        console.print("fitting first (no fit result given) ...", markup=False)
+        start = job.run()
+        start.to_json(out / "fit_result.json")
+        console.print(start.summary(), markup=False)
+        fit_path = str(out / "fit_result.json")
+    record = {"config": str(cfg.source), "fit_result": fit_path, "data_step": cfg.data.step, "data_roi": cfg.data.roi,
+              "data_roi_deg": cfg.data.roi_deg}
+    res = sample(
+        job.model,
+        job.blocks,
+        job.params,
+        priors=priors,
+        n_walkers=n_walkers,
+        n_steps=args.steps if args.steps is not None else sec.n_steps,
+        out_dir=out,
+        resume=args.resume,
+        start=start,
+        fit_kwargs=job.fit_kwargs,
+        seed=sec.seed,
+        ball=sec.ball,
+        burn=sec.burn,
+        thin=sec.thin,
+        stop_when_converged=sec.stop_when_converged,
+        check_every=sec.check_every,
+        progress=sec.progress and not args.no_progress and not args.quiet,
+        figures=cfg.output.figures and not args.no_figures,
+        predictive_draws=sec.predictive_draws,
+        step=sec.step,
+        roi=None if sec.roi is None else tuple(sec.roi),
+        log=lambda m: console.print(m, markup=False),
+        extra_record=record,
+        extra_fingerprint=config_fingerprint(cfg),
+    )
     _print_summary(console, res.summary)
     console.print(f"wrote {', '.join(sorted(Path(f).name for f in res.files.values()))} in {out}", markup=False)
     if res.run.interrupted:
