@@ -109,34 +109,45 @@ def test_sun_ephemeris_and_gmst():
 
 
 def test_gradient_matches_finite_differences():
-    """d(loss)/d(BRDF parameter, attitude yaw) of a light-curve loss equals central differences."""
-    cfg = load_lightcurve_config(SHIPPED)
-    job = build_job(cfg.model_copy(update={"time": cfg.time.model_copy(update={"step_s": 20.0})}))
-    geo = jax.tree_util.tree_map(lambda x: x[::4], job.geometry)
-    sat = job.satellite({"cell": "cell_nodiff"})
-    sat = eqx.tree_at(lambda s: s.models, sat, (Phong(0.1, 0.4, 30.0),) + sat.models[1:])
-    sat = eqx.tree_at(lambda s: s.attitude.yaw, sat, jnp.asarray(0.05))
+    """d(loss)/d(BRDF parameters, attitude yaw) of a light-curve loss equals central differences."""
+    T = 6
+    ang = np.linspace(0.0, 0.3, T)
+    r_hat = np.stack([np.cos(ang), np.sin(ang), np.zeros(T)], -1)
+    t_hat = np.stack([-np.sin(ang), np.cos(ang), np.zeros(T)], -1)
+    r_sat = 6.93e6 * r_hat
+    s = -0.3 * r_hat + t_hat + np.array([0.0, 0.0, 0.4])
+    s /= np.linalg.norm(s, axis=-1, keepdims=True)
+    r_obs = 6.37e6 * r_hat - 3e5 * t_hat + np.array([0.0, 0.0, 2e5])
+    geo = Geometry.from_positions(r_sat, 7.6e3 * t_hat, r_sat + s * AU_M, r_obs)
+    fac = Facets.build(["a", "b"], [1.0, 2.0], [[0.0, 0.0, 1.0], [0.3, 0.2, 1.0]])
+    sat = Satellite(fac, (Phong(0.1, 0.4, 30.0), bj.Model({"d": bj.Lambertian(0.2)})), Attitude.nadir(yaw=0.05), (0, 1))
     disk = SunDisk.rings(2)
     target = 6.0
 
-    def loss(s):
-        mag = magnitude(facet_flux(s, geo, disk, chunk=64)["flux"].sum(-1) + 1e-30)
-        return jnp.mean(jnp.square(jnp.where(jnp.isfinite(mag), mag - target, 0.0)))
+    def loss(st):
+        mag = magnitude(facet_flux(st, geo, disk)["flux"].sum(-1))
+        return jnp.mean(jnp.square(mag - target))
 
+    assert np.all(np.isfinite(np.asarray(loss(sat))))
     grads = eqx.filter_grad(loss)(sat)
-    for get, h in ((lambda s: s.models[0].ks, 1e-5), (lambda s: s.attitude.yaw, 1e-6), (lambda s: s.models[1].terms["diffuse"].rho_d, 1e-6)):
+    getters = (
+        (lambda st: st.models[0].ks, 1e-6),
+        (lambda st: st.attitude.yaw, 1e-6),
+        (lambda st: st.models[1].terms["d"].rho_d, 1e-7),
+    )
+    for get, h in getters:
         x0 = float(get(sat))
-        lp = loss(eqx.tree_at(get, sat, jnp.asarray(x0 + h)))
-        lm = loss(eqx.tree_at(get, sat, jnp.asarray(x0 - h)))
+        lp = loss(eqx.tree_at(get, sat, np.asarray(x0 + h, np.float64)))
+        lm = loss(eqx.tree_at(get, sat, np.asarray(x0 - h, np.float64)))
         fd = float((lp - lm) / (2 * h))
         g = float(get(grads))
         assert np.isfinite(g) and g != 0.0
-        assert g == pytest.approx(fd, rel=1e-5)
+        assert g == pytest.approx(fd, rel=1e-5, abs=1e-9)
 
 
 def test_albedo_of_lambertian_and_seed_cell():
     lam = bj.Model({"d": bj.Lambertian(0.3)})
-    assert directional_albedo(lam, 0.5, n_theta=400, n_phi=256) == pytest.approx(0.3, rel=1e-4)
+    assert directional_albedo(lam, 0.5, n_theta=400, n_phi=256) == pytest.approx(0.3, rel=3e-4)
     # seed cell at normal incidence: centre rho_s1 (F_s+F_p)/2 + offset + bars (0.0278 at 550 nm)
     a = directional_albedo(bj.solar_cell(), 0.0, 550e-9)
     Fs, Fp = bj.fresnel(3.6, 0.0)
