@@ -262,6 +262,16 @@ class Satellite(eqx.Module):
     def with_models(self, models: Sequence[AbstractTerm]) -> "Satellite":
         return eqx.tree_at(lambda s: s.models, self, tuple(models))
 
+    def subset(self, idx: Sequence[int]) -> "Satellite":
+        """The satellite reduced to the facets ``idx`` (and the models they use)."""
+        idx = list(idx)
+        f = self.facets
+        used = sorted({self.model_of[j] for j in idx})
+        facets = Facets(f.area[idx], f.normal[idx], f.x_axis[idx], f.phi_ref[idx], f.tracking[idx], f.side[idx],
+                        tuple(f.names[j] for j in idx))
+        return Satellite(facets, tuple(self.models[m] for m in used), self.attitude,
+                         tuple(used.index(self.model_of[j]) for j in idx))
+
 
 class Geometry(eqx.Module):
     """Per-time-step geometry for the JAX code (host-computed in float64, cast to the working dtype).

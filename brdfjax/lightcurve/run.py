@@ -113,18 +113,34 @@ def build_job(cfg: LightcurveConfig) -> LightcurveJob:
 
 def posterior_total_flux(sat: Satellite, geometry: Geometry, disk: SunDisk, wavelength: float, model_index: int,
                          names: tuple[str, ...], draws: Any, *, chunk: int = 256, batch: int | None = None) -> jax.Array:
-    """Total flux (S, T) for each row of ``draws`` (S, p) replacing the parameters ``names`` of ``sat.models[model_index]``."""
-    base = sat.models[model_index]
+    """Total flux (S, T) for each row of ``draws`` (S, p) replacing the parameters ``names`` of ``sat.models[model_index]``.
+
+    The facets of the other models do not change between draws: they are evaluated once.  Draws run
+    ``batch`` at a time (vmapped), time steps in chunks of ``chunk``.
+    """
+    J = len(sat.facets.names)
+    mine = [j for j in range(J) if sat.model_of[j] == model_index]
+    rest = [j for j in range(J) if sat.model_of[j] != model_index]
+    if not mine:
+        raise ValueError(f"posterior_total_flux: no facet uses model {model_index}")
+    fixed = facet_flux(sat.subset(rest), geometry, disk, wavelength, chunk=chunk)["flux"].sum(-1) if rest else 0.0
+    if batch is None:
+        per_sample = min(chunk, len(geometry)) * len(mine) * disk.n_nodes
+        batch = int(max(1, min(len(draws), 4_000_000 // max(per_sample, 1))))
+    draws = jnp.asarray(draws, geometry.d_obs.dtype)
+    return _draws_flux(sat.subset(mine), geometry, disk, wavelength, tuple(names), draws, chunk, batch) + fixed
+
+
+@eqx.filter_jit
+def _draws_flux(sub: Satellite, geometry: Geometry, disk: SunDisk, wavelength: float, names: tuple[str, ...],
+                draws: jax.Array, chunk: int, batch: int) -> jax.Array:
+    base = sub.models[0]
 
     def one(p):
         m = base.with_params({n: p[i] for i, n in enumerate(names)})
-        s2 = eqx.tree_at(lambda s: s.models[model_index], sat, m)
-        return facet_flux(s2, geometry, disk, wavelength, chunk=chunk)["flux"].sum(-1)
+        return facet_flux(sub.with_models((m,)), geometry, disk, wavelength, chunk=chunk)["flux"].sum(-1)
 
-    if batch is None:
-        per_sample = min(chunk, len(geometry)) * len(sat.facets.names) * disk.n_nodes
-        batch = int(max(1, min(len(draws), 2_000_000 // max(per_sample, 1))))
-    return jax.lax.map(one, jnp.asarray(draws, geometry.d_obs.dtype), batch_size=batch)
+    return jax.lax.map(one, draws, batch_size=batch)
 
 
 def glint_runs(mag: np.ndarray, seconds: np.ndarray, step_s: float, threshold: float) -> list[dict[str, float]]:
