@@ -282,3 +282,65 @@ def test_tle_checksum_message():
     l1, l2 = load_lightcurve_config(SHIPPED).orbit.tle
     with pytest.raises(ValueError, match="bad TLE checksum"):
         parse_tle(l1[:-1] + "0", l2, where="x.toml: orbit.tle")
+
+
+# --- posterior bands and the glint map -------------------------------------------------------------------
+
+
+def _fake_chain(path: Path, names: list[str], center: list[float], spread: list[float], steps: int = 12, walkers: int = 8):
+    """A chain.h5 in the layout ``brdfjax sample`` writes (emcee's HDF5 backend + the brdfjax meta group)."""
+    import emcee
+    import h5py
+
+    rng = np.random.default_rng(1)
+    backend = emcee.backends.HDFBackend(str(path), name="mcmc")
+    backend.reset(walkers, len(names))
+    backend.grow(steps, None)
+    for _ in range(steps):
+        coords = np.asarray(center) * (1 + np.asarray(spread) * rng.normal(size=(walkers, len(names))))
+        state = emcee.State(coords, log_prob=np.zeros(walkers), random_state=np.random.RandomState(0).get_state())
+        backend.save_step(state, np.ones(walkers, bool))
+    with h5py.File(path, "a") as f:
+        f.require_group("brdfjax").attrs["meta"] = json.dumps({"names": names})
+
+
+def test_posterior_bands(tmp_path):
+    _fake_chain(tmp_path / "chain.h5", ["rho_s2", "rho_s3"], [0.7, 300.0], [0.3, 0.3])
+    # the seconds around the shipped pass's diffraction glint, where the array's bars light the observer
+    cfg = _small_config(tmp_path, **{'[models.cell]\npreset = "solar_cell"':
+                                     '[models.cell]\npreset = "solar_cell"\nposterior = "chain.h5"\nposterior_samples = 24',
+                                     "start = 2026-12-02T07:15:00Z": "start = 2026-12-02T07:13:38Z",
+                                     "stop = 2026-12-02T07:16:00Z": "stop = 2026-12-02T07:13:44Z",
+                                     "step_s = 10.0": "step_s = 1.0"})
+    assert main(["lightcurve", str(cfg), "--out", str(tmp_path / "out"), "--no-plot"]) == 0
+    summary = json.loads((tmp_path / "out" / "lightcurve.json").read_text())
+    assert summary["posterior"] == {"model": "cell", "n_samples": 24}
+    band = {k: np.array(v, float) for k, v in summary["series"]["mag_band"].items()}
+    q = np.stack([band[k] for k in ("q025", "q16", "q50", "q84", "q975")])
+    assert np.all(np.diff(q, axis=0) >= -1e-12)
+    # the array's offset peak and bars vary by 30 %: where the array matters the band is open
+    assert np.max(q[-1] - q[0]) > 0
+
+
+def test_posterior_with_foreign_parameters_exits_2(tmp_path, capsys):
+    _fake_chain(tmp_path / "chain.h5", ["rho_s2", "sigma_x"], [0.7, 1.0], [0.1, 0.1])
+    cfg = _small_config(tmp_path, **{'[models.cell]\npreset = "solar_cell"':
+                                     '[models.cell]\npreset = "solar_cell"\nposterior = "chain.h5"'})
+    assert main(["lightcurve", str(cfg), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "models.cell" in err and "sigma_x" in err and "chain.h5" in err
+
+
+def test_glint_map_diffraction_widens_the_glints():
+    from brdfjax.lightcurve.glintmap import glint_map
+
+    cell = bj.solar_cell()
+    nodiff = bj.Model({k: v for k, v in cell.terms.items() if k != "bars"})
+    base = bj.Model({"d": bj.Lambertian(0.0278)})
+    th = np.deg2rad(30.0)
+    kw = {"du": 1e-4, "dv": 2e-4, "half_width_v": 0.1}
+    g1, g2 = glint_map(cell, base, th, **kw), glint_map(nodiff, base, th, **kw)
+    # without diffraction: the two peaks, each blurred into the Sun's image (an ellipse of area pi r^2 cos theta_i)
+    ellipse = np.pi * SunDisk.rings(1).radius**2 * np.cos(th)
+    assert g2.solid_angle_sr == pytest.approx(2 * ellipse, rel=0.25)
+    assert g1.solid_angle_sr > 5 * g2.solid_angle_sr
