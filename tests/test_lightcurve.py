@@ -341,6 +341,8 @@ def test_glint_map_diffraction_widens_the_glints():
     kw = {"du": 1e-4, "dv": 2e-4, "half_width_v": 0.1}
     g1, g2 = glint_map(cell, base, th, **kw), glint_map(nodiff, base, th, **kw)
     # without diffraction: the two peaks, each blurred into the Sun's image (an ellipse of area pi r^2 cos theta_i)
-    ellipse = np.pi * SunDisk.rings(1).radius**2 * np.cos(th)
-    assert g2.solid_angle_sr == pytest.approx(2 * ellipse, rel=0.25)
+    # grown by the lobe's tail (sigma ~ 2.8e-4 rad) where the ~3e4-times-brighter peak stays > 2.5 x the baseline
+    r = SunDisk.rings(1).radius
+    ellipse = np.pi * r**2 * np.cos(th)
+    assert 2 * ellipse < g2.solid_angle_sr < 2 * ellipse * (1 + 6 * 2.8e-4 / r) ** 2
     assert g1.solid_angle_sr > 5 * g2.solid_angle_sr
