@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import tempfile
@@ -198,7 +199,9 @@ def main() -> None:
     ap.add_argument("--only", default="shipped,map,height,speed")
     args = ap.parse_args()
     parts = args.only.split(",")
-    res: dict = {"quick": args.quick}
+    # parts run separately (--only) are merged into the same results file
+    res: dict = json.loads(args.out.read_text()) if args.out.exists() else {}
+    res["quick"] = args.quick
     if "height" in parts:
         res["glint_height"] = glint_height()
     if "shipped" in parts:

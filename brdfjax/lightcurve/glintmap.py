@@ -101,7 +101,8 @@ def glint_map(
     fm_disk = _convolve_same(fm, k)
     fb_disk = _convolve_same(fb, k)
     ratio = 10 ** (0.4 * threshold_mag)
-    glint = fm_disk > ratio * np.maximum(fb_disk, 1e-300)
+    above = (1 - u[None, :] ** 2 - v[:, None] ** 2) > 0  # observer directions above the facet's horizon
+    glint = above & (fb_disk > 0) & (fm_disk > ratio * np.maximum(fb_disk, 1e-300))
     # keep the border clear of the zero padding's edge effect: judge the interior only
     a, b = k.shape[0] // 2 + 1, k.shape[1] // 2 + 1
     interior = np.zeros_like(glint)
@@ -111,5 +112,6 @@ def glint_map(
     omega = float(np.sum(glint / W) * du * dv)
     border = np.zeros_like(interior)
     border[a, b:-b] = border[-a - 1, b:-b] = border[a:-a, b] = border[a:-a, -b - 1] = True
-    edge = float(np.max(fm_disk[border] / np.maximum(fb_disk[border], 1e-300)))
+    border &= above & (fb_disk > 0)
+    edge = float(np.max(fm_disk[border] / fb_disk[border])) if border.any() else 0.0
     return GlintMap(float(theta_i), u, v, fm_disk, fb_disk, glint, omega, edge)
