@@ -126,7 +126,7 @@ def glint_maps(quick: bool) -> dict:
             ax.contour(np.rad2deg(g.u - g.u.mean()), np.rad2deg(g.v), g.glint.astype(float), levels=[0.5], colors="cyan",
                        linewidths=0.6)
             ax.set_title(f"{name}: {g.solid_angle_sr:.2e} sr", fontsize=9)
-            ax.set_xlabel("observer offset from the mirror direction, in-plane (deg)")
+            ax.set_xlabel("in-plane offset from the mirror direction (deg)", fontsize=8)
         axes[0].set_ylabel("out of plane (deg)")
         fig.colorbar(im, ax=axes, label="brighter than the Lambertian baseline (mag)")
         fig.suptitle("Solar-array facet, Sun at 30 deg, disk-averaged: cyan = brighter by > 1 mag", fontsize=9)
