@@ -41,6 +41,7 @@ from .instrument.nd import parse_nd_filters
 from .instrument.reduce import read_reduced_frame, reduce_measurement_set
 from .instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
 from .io import check_output_dir, detector_from_attrs, frame_from_attrs, write_json_atomic
+from .lightcurve import cli as lightcurve_cli
 from .plotting import plot_frame
 from .progress import ProgressLine, make_console
 from .sample import cli as sample_cli
@@ -305,6 +306,12 @@ COMMANDS: dict[str, Command] = {
         "parameter posteriors with emcee from a fit config ([sample] table): chain.h5, posterior.json, corner/trace plots",
         sample_cli.add_arguments,
         sample_cli.run,
+    ),
+    "lightcurve": Command(
+        "lightcurve",
+        "a satellite's light curve from facets with brdfjax models along TLE passes: CSV, JSON, magnitude plot",
+        lightcurve_cli.add_arguments,
+        lightcurve_cli.run,
     ),
 }
 

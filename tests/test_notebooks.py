@@ -85,7 +85,22 @@ def _check_04_posterior(r: dict) -> None:
     assert {"chain.h5", "corner.png", "posterior.json", "predictive_ti20.png", "trace.png"} <= set(r["files"])
 
 
-CHECKS = {"01_forward_model": _check_01_forward_model, "03_diagnosis": _check_03_diagnosis, "04_posterior": _check_04_posterior}
+def _check_05_lightcurves(r: dict) -> None:
+    # ten minutes of the shipped second pass at COARSE_STEP-second steps
+    assert 0 < r["n_visible_steps"] <= 600 // COARSE_STEP + 1
+    # the Lambertian array differs everywhere; a narrow lobe's glint: disk average to 1e-3, point Sun > 100x
+    assert r["max_dm_lambertian"] > 0.1
+    assert abs(r["disk_over_analytic"] - 1) < 1e-3
+    assert r["point_over_analytic"] > 100
+    assert r["glint_ratio_30"] > 5
+
+
+CHECKS = {
+    "01_forward_model": _check_01_forward_model,
+    "03_diagnosis": _check_03_diagnosis,
+    "04_posterior": _check_04_posterior,
+    "05_lightcurves": _check_05_lightcurves,
+}
 
 
 def _set_parameters(nb, step: int) -> None:
