@@ -18,7 +18,9 @@ The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
                                                # diagnosis itself never sees it
 
 Writes ``diagnosis.json``, ``report.md`` and ``report.html`` into ``--out``
-(atomically).  Exit status 2 for bad input (a bad config, frames with no
+(atomically), and ``final_model.toml``: the path's final model as a fit
+config that ``brdfjax fit`` reruns to the same chi^2 (where a config can
+express it; otherwise a note says why).  Exit status 2 for bad input (a bad config, frames with no
 usable pixels, an unknown effect name, a candidate the base model already
 contains), 1 for a failure while running, 0 otherwise.
 """
@@ -34,11 +36,11 @@ from typing import Any
 from pydantic import Field
 from rich.console import Console
 
-from ..config import ConfigError, ModelConfig, StrictModel
+from ..config import ConfigError, ModelConfig, StrictModel, read_toml
 from ..errors import InputError
 from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
 from .effects import EFFECT_LIBRARY
-from .engine import DiagnoseInputError, diagnose
+from .engine import DiagnoseInputError, diagnose, final_model_config
 
 __all__ = ["DiagnoseSection", "add_arguments", "run", "run_diagnose"]
 
@@ -114,6 +116,13 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
         progress=progress,
     )
     d.settings["config"] = str(cfg.source)
+    synthetic_dir = None
+    if cfg.data.synthetic is not None:
+        synthetic_dir = cfg.resolve(cfg.data.synthetic.cache_dir) if cfg.data.synthetic.cache_dir else out / "synthetic"
+    try:
+        d.final_config = final_model_config(d, read_toml(cfg.source), cfg.source.parent, sec.heldout, synthetic_dir)
+    except (ValueError, KeyError) as e:
+        d.notes.append(f"the final model is not written as a config (final_model.toml): {e}")
     d.write(out, figures=sec.figures if figures is None else figures)
     return d
 
