@@ -436,6 +436,7 @@ def diagnose(
     threshold: float = 4.0,
     smooth: int = 3,
     presence: bool = True,
+    noise_stop: bool = True,
     library: Mapping[str, Any] | None = None,
     progress: Any = None,
 ) -> Diagnosis:
@@ -460,7 +461,8 @@ def diagnose(
     :data:`brdfjax.diagnose.effects.EFFECT_LIBRARY`); ``presence``: keep a
     candidate whose signature score is below its effect's presence threshold
     (``Effect.presence``, 3) off the path (reported with the reason; False:
-    rank by the refit alone); ``progress``: a callable taking a message string.
+    rank by the refit alone); ``noise_stop``: stop once the reduced chi^2 is
+    within the noise (``1 + 3 sqrt(2/dof)``; data with sigma only); ``progress``: a callable taking a message string.
     """
     t_start = time.perf_counter()
     say = progress or (lambda msg: None)
@@ -506,7 +508,7 @@ def diagnose(
     pool, retry = list(names), []
     removed: list[str] = []
     first_ranked: list[Candidate] = []
-    noise = _noise_level(base_gap, blocks)
+    noise = _noise_level(base_gap, blocks) if noise_stop else None
     stop_reason = f"max_steps = {max_steps} reached"
     if noise is not None and base_gap["chi2_reduced"] <= noise:
         stop_reason = f"the base's reduced chi^2 {base_gap['chi2_reduced']:.4g} is within the noise (<= {noise:.4g})"
@@ -637,6 +639,7 @@ def diagnose(
             "path_pool": path_pool,
             "refit_top": refit_top,
             "presence_threshold": presence,
+            "noise_stop": noise_stop,
             "bic_threshold": bic_threshold,
             "threshold_sigma": threshold,
             "smooth": smooth,
