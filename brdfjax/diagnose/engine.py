@@ -254,7 +254,9 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
 
 
 def _natural(name: str, x: float, unit: str) -> str:
-    return f"{x * to_natural(unit):.6g} {natural_unit(unit)}".rstrip()
+    """A value in the unit reports and configs use (degrees for angles)."""
+    u = natural_unit(unit)
+    return f"{x * to_natural(unit):.6g}" + ("" if u in ("", "1") else f" {u}")
 
 
 def _admission_flags(c: Candidate, eff: Any, before: _State, presence: bool) -> list[str]:
