@@ -184,3 +184,37 @@ def test_readme_external_frame_writer(tmp_path, monkeypatch):
     np.testing.assert_allclose(np.asarray(data.brdf), ns["brdf"], rtol=1e-6)
     with pytest.raises(FitInputError, match=r"no 'u_scatter_flux' channel .*This frame has: sigma = 'total' \(sigma_rel\)"):
         read_frame_data(tmp_path / "external_frame.exr", sigma="pixel")
+
+
+# --- the independent generator (NumPy reference -> EXR) -------------------------------------------------------
+
+
+def test_reference_frames_read_back_with_the_truths_noise(tmp_path):
+    """Frames from the NumPy reference, written to EXR and read as fit data: the truth's reduced chi^2 is ~1."""
+    from brdfjax.diagnose.effects import reference_frames
+    from brdfjax.fit import read_frame_data
+
+    paths, clean = reference_frames(tmp_path, [25.0], phi_ref_deg=30.0, step=16, seed=3)
+    (b,) = [read_frame_data(p) for p in paths]
+    u = b.usable()
+    assert b.brdf.shape == (31, 31) and 100 < u.sum() < 600  # the faint far field is masked (below 3 read sigmas)
+    r = (np.log(np.asarray(b.brdf)[u]) - np.log(clean[0][u])) / np.asarray(b.sigma_rel)[u]
+    assert 0.8 < float(np.mean(r**2)) < 1.25
+    assert float(np.degrees(b.phi_ref)) == pytest.approx(30.0) and float(np.degrees(b.theta_i)) == pytest.approx(25.0)
+
+
+@pytest.mark.skipif(not __import__("os").environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1 (a few minutes)")
+def test_reference_withheld_diffraction_quick(tmp_path):
+    """One small reference trial: diffraction withheld from the two-peak base, no floor in the truth."""
+    import importlib.util
+    import types
+
+    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    args = types.SimpleNamespace(seed=2026, step=16, max_steps=2, refit_top=None, path_pool=4, verbose=False,
+                                 candidates="diffraction,lambertian")
+    (t,) = [t for t in mod.reference_trial_list(types.SimpleNamespace(quick=True, trials=1, effects="diffraction"))]
+    r = mod.run_reference_trial(t, args)
+    assert r["top1"] == "diffraction" and r["path"] == ["diffraction"]
+    assert abs(r["chi2_reduced_after"] / r["chi2_reduced_true"] - 1) <= 0.2
