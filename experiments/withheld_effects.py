@@ -41,6 +41,7 @@ import json
 import math
 import os
 import sys
+import tempfile
 import time
 import traceback
 import zlib
@@ -56,11 +57,14 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import brdfjax as bj  # noqa: E402
+from brdfjax import reference as ref  # noqa: E402
 from brdfjax.diagnose import (
     diagnose,  # noqa: E402
     effects as fx,  # noqa: E402
 )
-from brdfjax.fit import Param  # noqa: E402
+from brdfjax.diagnose.effects import reference_frames  # noqa: E402
+from brdfjax.fit import Param, read_frame_data  # noqa: E402
 
 
 def _atomic_json(path: Path, obj: Any) -> None:
@@ -220,6 +224,110 @@ def run_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     )
 
 
+# --- the independent generator: frames from the NumPy reference, written to EXR ------------------------------
+
+#: reference trials: (id prefix, withheld effects, truth has bars, offset peak, floor)
+REFERENCE_KINDS = {
+    "diffraction": (["diffraction"], True, True, False),
+    "diffraction+floor": (["diffraction", "lambertian"], True, True, True),
+    "offset_normal_peak": (["offset_normal_peak"], False, True, False),
+    "lambertian": (["lambertian"], False, True, True),
+    "null": ([], False, True, False),
+}
+
+
+def reference_trial_list(args: argparse.Namespace) -> list[dict[str, Any]]:
+    n = 1 if args.quick else args.trials
+    kinds = list(REFERENCE_KINDS) if args.effects is None else [k for k in REFERENCE_KINDS if k in args.effects.split(",")]
+    out = []
+    for k in range(n):
+        for kind in kinds:
+            effects = REFERENCE_KINDS[kind][0]
+            out.append({"id": f"reference:{kind}:{k}", "kind": "null" if not effects else ("single" if len(effects) == 1 else "two"),
+                        "effects": effects, "reference_kind": kind})
+    return out
+
+
+def reference_case(kind: str, rng: np.random.Generator, out_dir: Path, step: int, seed: int, quick: bool = False):
+    """One reference scenario: frames (fitted, held out) from the NumPy reference, the base model and its starts."""
+    _, bars, offset, floor = REFERENCE_KINDS[kind]
+    ti = float(rng.uniform(20.0, 45.0))
+    held_ti = ti + float(rng.uniform(10.0, 15.0))
+    phi_ref = float(rng.uniform(0.0, 180.0))
+    truth = {"a": float(rng.uniform(5e-4, 9e-4)), "rho_s3": 300.0 if bars else 0.0, "rho_s2": 0.7 if offset else 0.0,
+             "m1": float(rng.uniform(1.6e-4, 2.4e-4)), "m2": float(rng.uniform(1.6e-4, 2.4e-4))}
+    peak = float(ref.solar_cell(np.radians(ti), np.radians(ti), np.pi, np.radians(phi_ref), **truth))
+    level = peak * 10 ** float(rng.uniform(-3.3, -2.7)) if floor else 0.0
+    paths, clean = reference_frames(out_dir, [ti, held_ti], phi_ref_deg=phi_ref, truth=truth, floor=np.pi * level, step=step,
+                                    seed=seed)
+    blocks = [read_frame_data(p, sigma="total") for p in paths]
+    model = bj.solar_cell()
+    drop = {"bars"} | (set() if offset else {"offset"})
+    base = bj.Model(terms={k: v for k, v in model.terms.items() if k not in drop},
+                    aliases=tuple(a for a in model.aliases if a[1].split(".")[0] not in drop))
+    starts = {"m1": truth["m1"] * float(rng.uniform(0.7, 1.4)), "rho_s1": 0.015 * float(rng.uniform(0.7, 1.4))}
+    if offset:
+        starts |= {"m2": truth["m2"] * float(rng.uniform(0.7, 1.4)), "rho_s2": 0.7 * float(rng.uniform(0.7, 1.4))}
+    info = {"theta_i_deg": ti, "heldout_theta_i_deg": held_ti, "phi_ref_deg": phi_ref, "floor_sr": level, **truth}
+    return blocks[:1], blocks[1:], clean[:1], base, starts, info
+
+
+def _truth_chi2(blocks, clean) -> dict[str, float]:
+    num, n, sq = 0.0, 0, 0.0
+    for b, f in zip(blocks, clean):
+        u = b.usable()
+        res = np.log(np.asarray(b.brdf, float)[u]) - np.log(np.asarray(f, float)[u])
+        num += float(np.sum((res / np.broadcast_to(np.asarray(b.sigma_rel, float), u.shape)[u]) ** 2))
+        sq += float(np.sum(res**2))
+        n += int(u.sum())
+    return {"chi2_reduced": num / n, "rms_log10": math.sqrt(sq / n) / math.log(10.0)}
+
+
+def run_reference_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    seed = zlib.crc32(f"{args.seed}:{t['id']}".encode())
+    rng = np.random.default_rng(seed)
+    with tempfile.TemporaryDirectory(prefix="brdfjax-reference-") as tmp:
+        fitted, held, clean, base, starts, info = reference_case(t["reference_kind"], rng, Path(tmp), args.step, seed)
+        t0 = time.perf_counter()
+        say = (lambda m: print(f"    {time.perf_counter() - t0:7.1f} s  {m}", flush=True)) if args.verbose else None
+        steps = max(args.max_steps, len(t["effects"]) + 1)
+        effects = None if args.candidates is None else args.candidates.split(",")
+        d = diagnose(base, fitted, starts, heldout_blocks=held, max_steps=steps, refit_top=args.refit_top,
+                     path_pool=args.path_pool, effects=effects, progress=say)
+        wall = time.perf_counter() - t0
+        true = _truth_chi2(fitted, clean)
+    return _clean(_trial_record(t, seed, d, true, wall, info))
+
+
+def _trial_record(t, seed, d, true, wall, info) -> dict[str, Any]:
+    j = d.to_dict()
+    path = list(d.explained_by)
+    return {
+        **t, "seed": seed, "truth": info,
+        "top1": j["ranking"][0]["effect"] if j["ranking"] else None,
+        "ranking": [(c["effect"], c["delta_bic"], c["signature"].get("score"), c["flags"]) for c in j["ranking"]],
+        "skipped": [(c["effect"], c["status"], c["note"]) for c in j["skipped"]],
+        "path": path,
+        "path_steps": [(s["action"], s["effect"], s["chi2_reduced"], s["heldout_rms_log10"], s["flags"]) for s in j["path"]],
+        "significant": j["significant"],
+        "in_path": all(e in path for e in t["effects"]) if t["effects"] else None,
+        "extra_in_path": [e for e in path if e not in t["effects"]],
+        "stop_reason": j["stop_reason"],
+        "chi2_reduced_before": j["path"][0]["chi2_reduced"],
+        "chi2_reduced_after": j["path"][-1]["chi2_reduced"],
+        "chi2_reduced_true": true["chi2_reduced"],
+        "rms_log10_before": j["path"][0]["rms_log10"],
+        "rms_log10_after": j["path"][-1]["rms_log10"],
+        "rms_log10_true": true["rms_log10"],
+        "heldout_rms_log10_before": j["path"][0]["heldout_rms_log10"],
+        "heldout_rms_log10_after": j["path"][-1]["heldout_rms_log10"],
+        "heldout_smaller": None if j["path"][0]["heldout_rms_log10"] is None or len(j["path"]) == 1
+        else bool(j["path"][-1]["heldout_rms_log10"] < j["path"][0]["heldout_rms_log10"]),
+        "zones": [(z["name"], z["share"], z["sign"], z["description"]) for z in j["zones"]],
+        "wall_s": wall,
+    }
+
+
 def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
     ok = [r for r in results if "error" not in r]
     single = [r for r in ok if r["kind"] == "single"]
@@ -321,6 +429,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--path", choices=("render", "instrument"), default="render",
                    help="synthesis: 'render' (truth rendered, instrument effects applied on the grid, log-normal noise) "
                         "or 'instrument' (the full synthetic CCD, reduced and read back; slow)")
+    p.add_argument("--generator", choices=("library", "reference"), default="library",
+                   help="'library': the effect generators (brdfjax.diagnose.effects); 'reference': frames from the NumPy "
+                        "reference (brdfjax.reference) with detector noise, written to EXR and read back (kinds: "
+                        + ", ".join(REFERENCE_KINDS) + "; --effects selects kinds)")
+    p.add_argument("--candidates", default=None, help="reference generator: comma-separated candidate effects (default: the library)")
     p.add_argument("--refit-top", type=int, default=None,
                    help="refit only the K candidates with the highest signature scores (default: every candidate)")
     args = p.parse_args(argv)
@@ -345,7 +458,11 @@ def main(argv: list[str] | None = None) -> int:
             done = {r["id"]: r for r in prev.get("trials", []) if "error" not in r}
         except (OSError, ValueError):
             print(f"warning: {out} is unreadable; starting afresh", file=sys.stderr)
-    trials = trial_list(args, names)
+    if args.generator == "reference":
+        names = list(fx.EFFECT_LIBRARY)
+        trials = reference_trial_list(args)
+    else:
+        trials = trial_list(args, names)
     if args.shard:
         i, n = (int(x) for x in args.shard.split("/"))
         trials = trials[i::n]
@@ -356,7 +473,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         t0 = time.perf_counter()
         try:
-            r = run_trial(t, args)
+            r = run_reference_trial(t, args) if args.generator == "reference" else run_trial(t, args)
         except Exception as e:  # noqa: BLE001 - a failing trial is recorded, the benchmark goes on
             r = {**t, "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc(limit=6)}
         results.append(r)

@@ -266,7 +266,7 @@ def test_refit_top_keeps_the_runners_up():
     frames = render_noisy_frames(truth, [20.0], roi=(-160, 160, -160, 160), step=16, seed=4)
     base = bj.Model(terms={"center": truth.terms["center"]})
     d = diagnose(base, frames, {"center.m": 2.4e-4, "center.rho_s": 0.02}, library=library, refit_top=2, max_steps=2,
-                 bic_threshold=-1e9)
+                 bic_threshold=-1e9, noise_stop=False)
     first, second = d.path_rankings
     assert {c.effect for c in first} == {"A", "B"} and d.path[1].effect in {"A", "B"}
     runner_up = ({"A", "B"} - {d.path[1].effect}).pop()

@@ -274,7 +274,7 @@ def test_pixel_nonlinearity_frees_the_response_level():
           f"chi2_reduced {d.gap['chi2_reduced']:.3f} -> {top.gap_after['chi2_reduced']:.3f}")
     assert top.effect == "pixel_nonlinearity" and top.delta_bic > other.delta_bic + 10.0
     assert top.gap_after["chi2_reduced"] < 1.2
-    assert abs(d.path[1].parameters["instrument.gamma"] - sc.truth["gamma"]) < 0.01
+    assert abs(d.path[1].parameters["instrument.gamma"]["value"] - sc.truth["gamma"]) < 0.01
 
 
 def test_offset_peak_start_inside_a_blended_base_lobe():

@@ -18,7 +18,9 @@ The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
                                                # diagnosis itself never sees it
 
 Writes ``diagnosis.json``, ``report.md`` and ``report.html`` into ``--out``
-(atomically).  Exit status 2 for bad input (a bad config, frames with no
+(atomically), and ``final_model.toml``: the path's final model as a fit
+config that ``brdfjax fit`` reruns to the same chi^2 (where a config can
+express it; otherwise a note says why).  Exit status 2 for bad input (a bad config, frames with no
 usable pixels, an unknown effect name, a candidate the base model already
 contains, an output folder that cannot be written), 130 interrupted, 1 an
 internal error (:mod:`brdfjax.errors`), 0 otherwise.  Each refit of a
@@ -35,12 +37,12 @@ from typing import Any
 
 from pydantic import Field
 
-from ..config import ConfigError, ModelConfig, StrictModel
+from ..config import ConfigError, ModelConfig, StrictModel, read_toml
 from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
 from ..io import check_output_dir
 from ..progress import make_console
 from .effects import EFFECT_LIBRARY
-from .engine import DiagnoseInputError, diagnose
+from .engine import DiagnoseInputError, diagnose, final_model_config
 
 __all__ = ["DiagnoseSection", "add_arguments", "run", "run_diagnose"]
 
@@ -112,6 +114,13 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
         progress=progress,
     )
     d.settings["config"] = str(cfg.source)
+    synthetic_dir = None
+    if cfg.data.synthetic is not None:
+        synthetic_dir = cfg.resolve(cfg.data.synthetic.cache_dir) if cfg.data.synthetic.cache_dir else out / "synthetic"
+    try:
+        d.final_config = final_model_config(d, read_toml(cfg.source), cfg.source.parent, sec.heldout, synthetic_dir)
+    except (ValueError, KeyError) as e:
+        d.notes.append(f"the final model is not written as a config (final_model.toml): {e}")
     d.write(out, figures=sec.figures if figures is None else figures)
     return d
 

@@ -20,11 +20,23 @@
    BIC_with`` (``BIC = chi2 + k ln N``, ``k`` free parameters, ``N`` points)
    are *decreases*: positive means the effect explains part of the gap.  The
    ranking is by ``delta_bic``;
-5. HOW FAR: greedy forward selection: the best effect is added when its BIC
-   gain exceeds ``bic_threshold``; the previous step's runners-up and the
-   candidates with the strongest signatures in the new residual (``path_pool``
-   of each) are re-tried on the extended model, and so on up to
-   ``max_steps``.  Every step records the global gap (``chi2_reduced``,
+5. HOW FAR: forward selection with backward elimination: the best
+   *admissible* effect is added when its BIC gain exceeds ``bic_threshold``
+   (a candidate whose refit failed or ended above the model it extends is
+   ``failed`` and never ranked; one whose new parameter ends on a bound, that
+   drives a term of the model to zero, or whose signature is below its
+   presence threshold is ranked but flagged and not added); a generic best
+   (a floor, a response curve) is compared with the best specific runner-up
+   on their joint refit, and the one the joint model needs more enters first;
+   the chosen model is refitted jointly from fresh starts as well (the lower
+   chi^2 is kept); then every earlier effect on the path is tried out again
+   and removed when the BIC without it is within ``bic_threshold``.  The
+   previous step's runners-up and the candidates with the strongest
+   signatures in the new residual (``path_pool`` of each) are re-tried on the
+   extended model, and so on until the gain is not significant, the reduced
+   chi^2 is within the noise (``1 + 3 sqrt(2/dof)``, data with sigma), or
+   ``max_steps`` (``Diagnosis.stop_reason`` says which).  A step after which
+   the held-out gap grows is flagged.  Every step records the global gap (``chi2_reduced``,
    ``rms_log10``), the per-zone reduced chi^2 on the base's zones, and, when
    ``heldout_blocks`` are given, the prediction gap on them (the fitted model
    evaluated, nothing refitted, at the held-out frames' nominal conditions).
@@ -35,23 +47,29 @@ The engine never sees a generator's truth: only the blocks and the library.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .. import registry
+from ..config import parameter_keys
 from ..errors import InputError
 from ..fit import FitInputError, FitResult, FrameData, TableData, fit
+from ..fit.internal import as_param, natural_unit, to_natural
 from ..terms import Model
 from .context import build_context, gap_measures, residual_maps
 from .effects import EFFECT_LIBRARY, camera_params, response_features
+from .effects.base import drop_missing, weight_names, with_terms
 from .results import Candidate, Diagnosis, Step, finite_or_none
 from .zones import find_regions, zone_masks
 
-__all__ = ["DiagnoseInputError", "diagnose"]
+__all__ = ["DiagnoseInputError", "diagnose", "final_model_config", "model_terms_config", "toml_text"]
 
 
 class DiagnoseInputError(InputError):
@@ -82,7 +100,11 @@ class _State:
     fit_kwargs: dict[str, Any]
     result: FitResult
     effects: tuple[str, ...]
-
+    # per effect on the path: the start specs of the parameters it added (the joint refit from fresh starts)
+    starts: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+    # per effect on the path: the terms it added, or None when it changed the model otherwise (removal then replays)
+    added_terms: dict[str, tuple[str, ...] | None] = dataclasses.field(default_factory=dict)
+    ctx: Any = None
 
 
 # --- the engine ----------------------------------------------------------------------------
@@ -124,8 +146,16 @@ def _select_effects(library: Mapping[str, Any], names: Sequence[str] | None, bas
     return chosen, skipped
 
 
-def _fit_state(model, blocks, params, fit_kwargs, effects) -> _State:
-    return _State(model, dict(params), list(blocks), dict(fit_kwargs), fit(model, blocks, params, **fit_kwargs), tuple(effects))
+def _fit_state(model, blocks, params, fit_kwargs, effects, starts=None, added_terms=None) -> _State:
+    return _State(model, dict(params), list(blocks), dict(fit_kwargs), fit(model, blocks, params, **fit_kwargs), tuple(effects),
+                  dict(starts or {}), dict(added_terms or {}))
+
+
+def _with_context(state: _State) -> _State:
+    """``state`` with its :class:`Context` built and its model/params moved to the fitted, warm-started ones."""
+    ctx = build_context(state.model, state.params, state.result, state.blocks, state.fit_kwargs)
+    state.model, state.params, state.ctx = ctx.model, dict(ctx.params), ctx
+    return state
 
 
 def _heldout_gap(state: _State, heldout: Sequence[Any] | None, base_blocks: Sequence[Any]) -> dict[str, float] | None:
@@ -178,16 +208,28 @@ def _check_effect(name: str, eff: Any, ctx: Any, state: _State, has_tables: bool
 
 
 def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mapping[str, list[np.ndarray]], base_gap: dict) -> Candidate:
-    """The refit with the effect added (warm start); fills the candidate's gap, BIC and per-zone measures."""
+    """The refit with the effect added (warm start); fills the candidate's gap, BIC and per-zone measures.
+
+    A refit that raises, gives a non-finite chi^2 or ends above the model it
+    extends (warm-started there, it can only have gone wrong) is ``failed``
+    with its reason and never ranked.
+    """
     t0 = time.perf_counter()
     name = c.effect
+    c.side = getattr(eff, "side", "material")
     try:
         ext = eff.extend(ctx)
         blocks = list(ext.blocks) if ext.blocks is not None else state.blocks
         kw = {**state.fit_kwargs, **dict(ext.fit_kwargs)}
-        new = _fit_state(ext.model, blocks, ext.params, kw, state.effects + (name,))
+        new_params = {k: v for k, v in ext.params.items() if k not in state.params}
+        old = state.model.terms
+        added = tuple(n for n in ext.model.terms if n not in old)
+        term_only = (bool(added) and ext.blocks is None and type(ext.model) is type(state.model)
+                     and all(ext.model.terms.get(n) is t for n, t in old.items()))
+        new = _fit_state(ext.model, blocks, ext.params, kw, state.effects + (name,),
+                         {**state.starts, name: new_params}, {**state.added_terms, name: added if term_only else None})
     except Exception as e:  # noqa: BLE001 - one failing effect must not stop the diagnosis
-        c.status, c.note = "failed", f"{type(e).__name__}: {e}"
+        c.status, c.note = "failed", f"the refit failed: {type(e).__name__}: {e}"
         c.wall_s = time.perf_counter() - t0
         return c
     g = gap_measures(new.result)
@@ -196,12 +238,111 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     c.gap_after = g
     c.delta_chi2 = base_gap["chi2"] - g["chi2"]
     c.delta_bic = base_gap["bic"] - g["bic"]
+    c.parameters = {k: p.natural() for k, p in new.result.parameters.items() if k.split("[", 1)[0] in new_params}
     if not math.isfinite(c.delta_bic):
-        c.status, c.note = "failed", f"refit gave a non-finite chi2 ({new.result.message})"
+        c.status, c.note = "failed", f"the refit gave a non-finite chi2 ({new.result.message}); {ext.note}"
+    elif c.delta_chi2 < -1e-6 * max(abs(base_gap["chi2"]), 1.0):
+        # warm-started at the base's optimum with the effect added, the refit can only end above it by failing
+        # (measured: pixel_nonlinearity 1.33e5 -> 8.4e5, distribution_shape 1.033 -> 248.7 were ranked before)
+        c.status = "failed"
+        c.note = (f"the refit ended above the model it extends (chi2 {base_gap['chi2']:.6g} -> {g['chi2']:.6g}; "
+                  f"{new.result.message}); {ext.note}")
     c.zones_after = _zone_stats(residual_maps(new.result, new.blocks), zones)
     c.state = new
     c.wall_s = time.perf_counter() - t0
     return c
+
+
+def _natural(name: str, x: float, unit: str) -> str:
+    """A value in the unit reports and configs use (degrees for angles)."""
+    u = natural_unit(unit)
+    return f"{x * to_natural(unit):.6g}" + ("" if u in ("", "1") else f" {u}")
+
+
+def _admission_flags(c: Candidate, eff: Any, before: _State, presence: bool) -> list[str]:
+    """Why a ranked candidate may not enter the path (issue 14); empty when it may.
+
+    - its own new parameter ended on a bound (the fit pushed the effect out of its physical range, or off);
+    - it drove a term of the model it extends to zero (it replaced that term rather than adding to it);
+    - its signature is below its presence threshold (``Effect.presence``): its own evidence is too weak.
+    """
+    out = []
+    score = c.signature.get("score")
+    if presence and score is not None and score < getattr(eff, "presence", 3.0):
+        out.append(f"its signature score {score:.3g} is below its presence threshold {getattr(eff, 'presence', 3.0):g}")
+    after = c.state
+    if after is None:
+        return out
+    before_free = set(before.result.free_names)
+    for name in after.result.free_names:
+        base = name[:-1].split("[", 1)[0] if name.endswith("]") else name
+        if name in before_free or base in before_free or base not in after.params:
+            continue
+        p = as_param(base, after.params[base])
+        est = after.result.parameters[name]
+        for bound in (p.lower, p.upper):
+            if bound is None or not math.isfinite(float(bound)):
+                continue
+            tol = 1e-6 * max(abs(est.initial - bound), abs(bound), 1e-300)
+            if abs(est.value - bound) <= tol:
+                out.append(f"its parameter {name} ended on its bound {_natural(name, float(bound), est.unit)}")
+    for tname, w in weight_names(before.model):
+        if w is None or w not in before.result.parameters or w not in after.result.parameters:
+            continue
+        if not before.result.parameters[w].free:
+            continue
+        v0, v1 = before.result.value(w), after.result.value(w)
+        if v0 > 0 and v1 < 1e-6 * v0:
+            out.append(f"it drives the term '{tname}' to zero ({w} {v0:.3g} -> {v1:.3g})")
+    return out
+
+
+def _without(state: _State, effect: str, base: _State, library: Mapping[str, Any]) -> _State:
+    """``state`` with ``effect`` taken out, refitted (backward elimination).
+
+    An effect that only added terms is taken out by dropping them (warm start
+    at ``state``); any other (a changed distribution, an instrument response, a
+    data-side footprint) by replaying the path's other effects on the base.
+    """
+    added = state.added_terms.get(effect)
+    rest = [e for e in state.effects if e != effect]
+    if added:
+        model = with_terms(state.model, {n: t for n, t in state.model.terms.items() if n not in added})
+        params = drop_missing(state.params, model)
+        starts = {e: v for e, v in state.starts.items() if e != effect}
+        terms = {e: v for e, v in state.added_terms.items() if e != effect}
+        return _with_context(_fit_state(model, state.blocks, params, state.fit_kwargs, rest, starts, terms))
+    cur = base
+    for e in rest:
+        ext = library[e].extend(cur.ctx)
+        blocks = list(ext.blocks) if ext.blocks is not None else cur.blocks
+        new_params = {k: v for k, v in ext.params.items() if k not in cur.params}
+        cur = _with_context(_fit_state(ext.model, blocks, ext.params, {**cur.fit_kwargs, **dict(ext.fit_kwargs)},
+                                       cur.effects + (e,), {**cur.starts, e: new_params},
+                                       {**cur.added_terms, e: state.added_terms.get(e)}))
+    return cur
+
+
+def _fresh_refit(state: _State, params0: Mapping[str, Any]) -> _State | None:
+    """The chosen model refitted jointly from fresh starts: the base's own starts and each effect's initial values."""
+    fresh = dict(state.params)
+    for k, v in params0.items():
+        if k in fresh:
+            fresh[k] = v
+    for new in state.starts.values():
+        fresh.update({k: v for k, v in new.items() if k in fresh})
+    try:
+        s = _fit_state(state.model, state.blocks, fresh, state.fit_kwargs, state.effects, state.starts, state.added_terms)
+    except Exception:  # noqa: BLE001 - the warm refit stands; the note says so
+        return None
+    return s if math.isfinite(float(s.result.chi2)) else None
+
+
+def _noise_level(gap: Mapping[str, float], blocks: Sequence[Any]) -> float | None:
+    """The reduced chi^2 that pure noise reaches (1 + 3 sqrt(2 / dof)), or None when the data carry no sigma."""
+    if any(isinstance(b, TableData) and b.sigma_rel is None for b in blocks) or gap.get("dof", 0) <= 0:
+        return None
+    return 1.0 + 3.0 * math.sqrt(2.0 / gap["dof"])
 
 
 def _score(c: Candidate) -> float:
@@ -215,7 +356,72 @@ def _rank(cands: list[Candidate]) -> tuple[list[Candidate], list[Candidate]]:
 
 
 def _params_report(result: FitResult) -> dict[str, Any]:
-    return {k: p.natural()["value"] for k, p in result.parameters.items() if p.free}
+    """Every parameter of a fit (free and held), in natural units: ``{value, sigma, unit, free, initial}``."""
+    return {k: p.natural() for k, p in result.parameters.items()}
+
+
+def _extend_state(state: _State, effect: str, library: Mapping[str, Any]) -> _State:
+    """``state`` (with its context) extended by ``effect`` and refitted (warm start)."""
+    ext = library[effect].extend(state.ctx)
+    blocks = list(ext.blocks) if ext.blocks is not None else state.blocks
+    new_params = {k: v for k, v in ext.params.items() if k not in state.params}
+    old = state.model.terms
+    added = tuple(n for n in ext.model.terms if n not in old)
+    term_only = bool(added) and ext.blocks is None and all(ext.model.terms.get(n) is t for n, t in old.items())
+    return _fit_state(ext.model, blocks, ext.params, {**state.fit_kwargs, **dict(ext.fit_kwargs)}, state.effects + (effect,),
+                      {**state.starts, effect: new_params}, {**state.added_terms, effect: added if term_only else None})
+
+
+def _specific_first(best: Candidate, admissible: list[Candidate], state: _State, library: Mapping[str, Any],
+                    bic_threshold: float, notes: list[str], say: Any) -> Candidate:
+    """A generic best (a floor, a response curve) against the best specific runner-up, on their joint refit.
+
+    The joint model J = the specific effect's refit extended by the generic
+    one.  If taking the generic effect out of J costs less BIC than taking the
+    specific one out, the specific effect enters first (the generic one is
+    re-tried on it at the next step).  (Measured: far-field diffraction fringes
+    look like a uniform floor to a score test; once the floor was in, the bars'
+    refit started from a contaminated model and the path ended at reduced
+    chi^2 7695 against the truth's 1.02.)
+    """
+    spec = sorted((c for c in admissible if c is not best and not getattr(library[c.effect], "generic", False)
+                   and c.delta_bic > bic_threshold), key=lambda c: -c.delta_bic)
+    if not spec:
+        return best
+    s_c = spec[0]
+    say(f"comparing {best.effect} with {s_c.effect} on their joint refit")
+    try:
+        joint = _extend_state(_with_context(s_c.state), best.effect, library)
+    except Exception as e:  # noqa: BLE001 - reported; the ranking stands
+        notes.append(f"joint refit of {s_c.effect} + {best.effect} failed ({type(e).__name__}: {e}); ranking kept")
+        return best
+    b_j = gap_measures(joint.result)["bic"]
+    cost_g = gap_measures(s_c.state.result)["bic"] - b_j
+    cost_s = gap_measures(best.state.result)["bic"] - b_j
+    notes.append(f"{best.effect} (generic, delta BIC {best.delta_bic:.4g}) vs {s_c.effect} (delta BIC {s_c.delta_bic:.4g}) on "
+                 f"their joint refit: BIC cost of taking out {best.effect} {cost_g:.4g}, {s_c.effect} {cost_s:.4g}")
+    if cost_g < cost_s:
+        notes.append(f"{s_c.effect} enters first: the joint refit needs it more than {best.effect}"
+                     + (f" (although {'; '.join(s_c.flags)})" if s_c.flags else ""))
+        return s_c
+    return best
+
+
+def _step(effect: str, action: str, eff: Any, state: _State, zones: Mapping[str, list[np.ndarray]], heldout: Any,
+          blocks: Sequence[Any], delta_bic: float, path: list[Step], notes: list[str], alts: list[dict]) -> Step:
+    h = _heldout_gap(state, heldout, blocks)
+    st = Step(effect, gap_measures(state.result), _zone_stats(state.ctx.residuals, zones), h, delta_bic,
+              _params_report(state.result), action=action, side=getattr(eff, "side", "material"), notes=list(notes),
+              alternatives=alts)
+    prev = path[-1].heldout if path else None
+    if h is not None and prev is not None and math.isfinite(h.get("rms_log10", math.nan)) \
+            and math.isfinite(prev.get("rms_log10", math.nan)) and h["rms_log10"] > prev["rms_log10"]:
+        st.flags.append(f"the held-out rms log10 rose from {prev['rms_log10']:.4g} to {h['rms_log10']:.4g}: this step is "
+                        "questioned (it may fit what the fitted frames alone show, or start a dead end)")
+    if alts and alts[0]["margin"] < max(10.0, 0.1 * abs(delta_bic)):  # within 10 % of the gain: a close call
+        st.notes.append(f"close alternative: {alts[0]['effect']} (delta BIC {alts[0]['delta_bic']:.4g}, "
+                        f"{alts[0]['margin']:.4g} behind)")
+    return st
 
 
 def diagnose(
@@ -232,6 +438,8 @@ def diagnose(
     refit_top: int | None = None,
     threshold: float = 4.0,
     smooth: int = 3,
+    presence: bool = True,
+    noise_stop: bool = True,
     library: Mapping[str, Any] | None = None,
     progress: Any = None,
 ) -> Diagnosis:
@@ -253,8 +461,11 @@ def diagnose(
     benchmark ``refit_top=3`` left the withheld effect unrefitted in 2 of 3
     trials); ``threshold``/``smooth``: the region detection (smoothed ``|z|`` and
     box size); ``library``: the effect library (default
-    :data:`brdfjax.diagnose.effects.EFFECT_LIBRARY`); ``progress``: a callable taking
-    a message string.
+    :data:`brdfjax.diagnose.effects.EFFECT_LIBRARY`); ``presence``: keep a
+    candidate whose signature score is below its effect's presence threshold
+    (``Effect.presence``, 3) off the path (reported with the reason; False:
+    rank by the refit alone); ``noise_stop``: stop once the reduced chi^2 is
+    within the noise (``1 + 3 sqrt(2/dof)``; data with sigma only); ``progress``: a callable taking a message string.
     """
     t_start = time.perf_counter()
     say = progress or (lambda msg: None)
@@ -293,12 +504,19 @@ def diagnose(
     if has_tables:
         notes.append("goniometer tables: zones are angle intervals relative to the specular direction; effects that need a 2-D frame are skipped")
 
-    path = [Step("base", base_gap, _zone_stats(ctx.residuals, zones), base_heldout, math.nan, _params_report(base.result))]
-    state, current_ctx = base, ctx
+    base.ctx = ctx
+    path = [Step("base", base_gap, _zone_stats(ctx.residuals, zones), base_heldout, math.nan, _params_report(base.result), action="base")]
+    state = base
     rankings: list[list[Candidate]] = []
     pool, retry = list(names), []
+    removed: list[str] = []
     first_ranked: list[Candidate] = []
+    noise = _noise_level(base_gap, blocks) if noise_stop else None
+    stop_reason = f"max_steps = {max_steps} reached"
+    if noise is not None and base_gap["chi2_reduced"] <= noise:
+        stop_reason = f"the base's reduced chi^2 {base_gap['chi2_reduced']:.4g} is within the noise (<= {noise:.4g})"
     for step in range(max(max_steps, 1)):
+        current_ctx = state.ctx
         cands = []
         for n in pool:
             eff = library[n]
@@ -330,25 +548,83 @@ def diagnose(
             say(f"step {step + 1}: refitting with {c.effect} ({i + 1}/{len(live)}, signature {_score(c):.3g})")
             _refit_effect(c, library[c.effect], current_ctx, state, zones, state_gap)
         ranked, rest = _rank(cands)
+        for c in ranked:
+            c.flags = _admission_flags(c, library[c.effect], state, presence)
         rankings.append(ranked)
         if step == 0:
             first_ranked = ranked
             skipped += rest
-        if max_steps == 0 or not ranked or not (ranked[0].delta_bic > bic_threshold):
+        if max_steps == 0:
+            stop_reason = "max_steps = 0: the candidates are ranked, none added"
             break
-        best = ranked[0]
-        state = best.state
+        if noise is not None and state_gap["chi2_reduced"] <= noise:
+            break
+        admissible = [c for c in ranked if not c.flags]
+        if not admissible or not (admissible[0].delta_bic > bic_threshold):
+            held = [c for c in ranked if c.flags and c.delta_bic > bic_threshold]
+            stop_reason = ("the gain is not significant: " + (
+                f"the best admissible effect, {admissible[0].effect}, gains delta BIC {admissible[0].delta_bic:.4g} "
+                f"<= {bic_threshold:g}" if admissible else "no admissible candidate is left"))
+            if held:
+                stop_reason += "; not added although their BIC gain is larger: " + "; ".join(
+                    f"{c.effect} (delta BIC {c.delta_bic:.4g}: {', '.join(c.flags)})" for c in held)
+            break
+        best = admissible[0]
+        step_notes: list[str] = []
+        if getattr(library[best.effect], "generic", False):
+            # specific runners-up whose only flag is a weak signature are compared too: next to a floor that
+            # soaks up their residual the signature is the weaker evidence (measured on reference frames with the
+            # far field masked: the bars' periodogram gave 2.0 while a floor took delta BIC 1e7)
+            weak = [c for c in ranked if c.flags and all("presence threshold" in f for f in c.flags)]
+            best = _specific_first(best, admissible + weak, state, library, bic_threshold, step_notes, say)
+        new_state = _with_context(best.state)
+        fresh = _fresh_refit(new_state, params)
+        if fresh is not None:
+            warm_chi2, fresh_chi2 = float(new_state.result.chi2), float(fresh.result.chi2)
+            if fresh_chi2 < warm_chi2 * (1 - 1e-6):
+                new_state = _with_context(fresh)
+                step_notes.append(f"the joint refit from fresh starts reached chi2 {fresh_chi2:.6g} below the warm refit's "
+                                  f"{warm_chi2:.6g} and is kept")
+            else:
+                step_notes.append(f"joint refit from fresh starts: chi2 {fresh_chi2:.6g} (warm {warm_chi2:.6g}, kept)")
+        else:
+            step_notes.append("the joint refit from fresh starts failed; the warm refit is kept")
+        state = new_state
         say(f"step {step + 1}: added {best.effect} (delta BIC {best.delta_bic:.1f})")
-        current_ctx = build_context(state.model, state.params, state.result, state.blocks, state.fit_kwargs)
-        state.model, state.params = current_ctx.model, dict(current_ctx.params)
-        path.append(
-            Step(
-                best.effect, best.gap_after, _zone_stats(current_ctx.residuals, zones), _heldout_gap(state, heldout, blocks),
-                best.delta_bic, _params_report(state.result),
-            )
-        )
-        retry = [c.effect for c in ranked[1:] if c.delta_bic > 0][:path_pool]
-        pool = [n for n in names if n not in state.effects]  # every effect already on the path is out
+        alts = [{"effect": c.effect, "delta_bic": c.delta_bic, "margin": best.delta_bic - c.delta_bic, "flags": c.flags}
+                for c in ranked if c is not best and c.delta_bic > 0][:3]
+        path.append(_step(best.effect, "add", library[best.effect], state, zones, heldout, blocks, best.delta_bic, path,
+                          step_notes, alts))
+        # backward elimination: an effect on the path that the others now explain is taken out again
+        # (measured: a floor taken first for far-field fringes stayed in once the bars were added)
+        if len(state.effects) >= 2:
+            for e in state.effects[:-1]:
+                say(f"step {step + 1}: trying the path without {e}")
+                try:
+                    w = _without(state, e, base, library)
+                except Exception as ex:  # noqa: BLE001 - reported; the effect stays
+                    path[-1].notes.append(f"removing {e} failed: {type(ex).__name__}: {ex}")
+                    continue
+                cost = gap_measures(w.result)["bic"] - gap_measures(state.result)["bic"]
+                path[-1].notes.append(f"without {e}: BIC {'+' if cost >= 0 else ''}{cost:.4g}")
+                if cost < bic_threshold:
+                    state = w
+                    removed.append(e)
+                    say(f"step {step + 1}: removed {e} (BIC without it {cost:+.1f})")
+                    path.append(_step(e, "remove", library[e], state, zones, heldout, blocks, -cost, path,
+                                      [f"taken out again: the other effects explain it (BIC change without it {cost:+.4g} "
+                                       f"< {bic_threshold:g})"], []))
+                    break
+        retry = [c.effect for c in ranked if c is not best and c.delta_bic > 0][:path_pool]
+        pool = [n for n in names if n not in state.effects and n not in removed]
+        g_now = gap_measures(state.result)
+        if noise is not None and g_now["chi2_reduced"] <= noise:
+            stop_reason = f"the reduced chi^2 {g_now['chi2_reduced']:.4g} is within the noise (<= {noise:.4g}, 1 + 3 sqrt(2/dof))"
+            break
+    current_ctx = state.ctx
+    for s_ in path:
+        for f in s_.flags:
+            notes.append(f"path step {s_.action} {s_.effect}: {f}")
     for r in rankings:
         for c in r:
             c.state = None  # drop the refits' data (memory); the path keeps what it needs
@@ -360,7 +636,7 @@ def diagnose(
         ranking=first_ranked,
         skipped=skipped,
         path=path,
-        significant=len(path) > 1,
+        significant=len(state.effects) > 0,
         bic_threshold=float(bic_threshold),
         notes=notes + [f"{c.effect}: {c.status}: {c.note}" for c in skipped],
         timings={"base_fit_s": t_base - t_start, "where_s": t_where - t_base, "which_and_path_s": t_end - t_where, "total_s": t_end - t_start},
@@ -369,6 +645,9 @@ def diagnose(
             "max_steps": max_steps,
             "path_pool": path_pool,
             "refit_top": refit_top,
+            "presence_threshold": presence,
+            "noise_stop": noise_stop,
+            "bic_threshold": bic_threshold,
             "threshold_sigma": threshold,
             "smooth": smooth,
             "n_blocks": len(blocks),
@@ -379,4 +658,167 @@ def diagnose(
         path_rankings=rankings,
         base_result=base.result,
         final_result=state.result,
+        stop_reason=stop_reason,
+        final_params=dict(state.params),
+        final_effects=[(e, getattr(library[e], "side", "material")) for e in state.effects],
     )
+
+
+# --- the final model as a fit config ----------------------------------------------------------------
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | np.integer):
+        return str(int(v))
+    if isinstance(v, float | np.floating):
+        x = float(v)
+        return repr(x) if math.isfinite(x) else ("nan" if math.isnan(x) else ("inf" if x > 0 else "-inf"))
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string is a TOML basic string
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, Mapping):
+        return "{ " + ", ".join(f"{json.dumps(str(k))} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def toml_text(doc: Mapping[str, Any]) -> str:
+    """A TOML document of nested tables, arrays of tables and inline values.
+
+    Written here (some 20 lines) rather than taken from a TOML-writing package: the project reads TOML with the
+    standard library, and the configs it writes use only this subset.
+    """
+    lines: list[str] = []
+
+    def table(prefix: str, d: Mapping[str, Any]) -> None:
+        scalars = {k: v for k, v in d.items() if not _is_table(v) and not _is_table_array(v)}
+        if prefix and (scalars or not d):
+            lines.append(f"\n[{prefix}]")
+        lines.extend(f"{json.dumps(str(k))} = {_toml_value(v)}" for k, v in scalars.items())
+        for k, v in d.items():
+            key = f"{prefix}.{k}" if prefix else str(k)
+            if _is_table(v):
+                table(key, v)
+            elif _is_table_array(v):
+                for item in v:
+                    lines.append(f"\n[[{key}]]")
+                    lines.extend(f"{json.dumps(str(k2))} = {_toml_value(x)}" for k2, x in item.items())
+
+    table("", doc)
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def _is_table(v: Any) -> bool:
+    return isinstance(v, Mapping) and any(isinstance(x, Mapping) for x in v.values()) or (
+        isinstance(v, Mapping) and not v)
+
+
+def _is_table_array(v: Any) -> bool:
+    return isinstance(v, list) and bool(v) and all(isinstance(x, Mapping) for x in v)
+
+
+def model_terms_config(model: Model) -> tuple[dict[str, Any], dict[str, tuple[str, float]]]:
+    """``[model.terms]`` of ``model`` (values in config units) and, per public parameter name, its config key and scale.
+
+    Raises ``ValueError`` naming the first term (or wrapper) a config cannot express (an oriented term, an
+    instrument response, a distribution outside the registry).
+    """
+    if type(model) is not Model:
+        raise ValueError(f"the model is a {type(model).__name__} (an instrument response); a fit config has none")
+    dist_names = {cls: name for name, cls in reversed(list(registry.DISTRIBUTIONS.items()))}
+    kinds = {cls: name for name, cls in registry.TERMS.items()}
+    paths = model._paths()
+    values = {}
+    back = dict(model.aliases)
+    for pub, v in model.params().items():
+        values[back.get(pub, pub)] = float(np.asarray(v))
+    terms: dict[str, Any] = {}
+    for tname, term in model.terms.items():
+        kind = kinds.get(type(term))
+        if kind is None:
+            raise ValueError(f"term '{tname}' is a {type(term).__name__}, which a config cannot express")
+        entry: dict[str, Any] = {"kind": kind}
+        inner = getattr(term, "term", term)
+        dist = getattr(inner, "distribution", None)
+        if dist is not None:
+            if type(dist) not in dist_names:
+                raise ValueError(f"term '{tname}' has a {type(dist).__name__} distribution, not in the registry")
+            entry["distribution"] = dist_names[type(dist)]
+        units = {flat.split(".", 1)[1]: unit for flat, (_, unit) in paths.items() if flat.split(".", 1)[0] == tname}
+        keys = parameter_keys(units)
+        entry["params"] = {key: values[f"{tname}.{field}"] / scale for key, (field, scale, _) in keys.items()}
+        for opt, attr in (("grating_factor", "grating_factor"), ("distance_m", "distance")):
+            if kind == "diffraction" and hasattr(term, attr):
+                val = getattr(term, attr)
+                entry[opt] = bool(val) if opt == "grating_factor" else float(np.asarray(val))
+        terms[tname] = entry
+    pub_keys = {}
+    for pub in model.params():
+        flat = back.get(pub, pub)
+        tname, field = flat.split(".", 1)
+        key, scale, _ = next((k, s, u) for k, (f, s, u) in parameter_keys({field: paths[flat][1]}).items() if f == field)
+        pub_keys[pub] = (f"{tname}.{key}", scale)
+    return terms, pub_keys
+
+
+def final_model_config(d: Diagnosis, source: Mapping[str, Any], config_dir: Any, heldout: Sequence[str],
+                       synthetic_dir: Any = None) -> str:
+    """The diagnosis's final model as a fit config (TOML) that ``brdfjax fit`` reruns to the same chi^2.
+
+    ``source``: the diagnose config as read (its ``[data]``, ``[fit]``,
+    ``precision`` are kept, file paths made absolute, held-out frames and
+    tables left out, generated frames replaced by the files the diagnosis
+    read); ``[model]`` is the final model's terms and ``[params]`` frees what
+    the final fit freed, started at its values, with the bounds it had.
+    Raises ``ValueError`` when the final model or its data cannot be written
+    as a config (an instrument response, an oriented term, a data-side
+    footprint the diagnosis added).
+    """
+    res = d.final_result
+    model = res.models[0] if res.models else None
+    if model is None:
+        raise ValueError("the final fit has no model")
+    if any(e == "instrument_function" for e in d.explained_by):
+        raise ValueError("the path added a beam footprint to the data (instrument_function); give it as "
+                         "[data] footprint_w_px with [fit] use_footprint = true")
+    terms, keys = model_terms_config(model)
+    doc = {k: v for k, v in source.items() if k not in ("diagnose", "model", "params", "output")}
+    data = dict(doc.get("data", {}))
+    base = Path(config_dir)
+    absolute = lambda p: str((base / p).resolve())  # noqa: E731
+    if "frames" in data:
+        data["frames"] = [absolute(p) for p in data["frames"] if Path(p).stem not in heldout]
+    if "manifest" in data:
+        data["manifest"] = absolute(data["manifest"])
+    if "tables" in data:
+        data["tables"] = [{**t, "path": absolute(t["path"])} for t in data["tables"]
+                          if (t.get("name") or Path(t["path"]).stem) not in heldout]
+    if "synthetic" in data:
+        if synthetic_dir is None:
+            raise ValueError("the frames were generated and their folder is not known")
+        data.pop("synthetic")
+        data["frames"] = [str((Path(synthetic_dir) / "reduced" / f"{n}.exr").resolve()) for n in d.block_names]
+    doc["data"] = data
+    doc["model"] = {"terms": terms}
+    params: dict[str, Any] = {}
+    for name in res.free_names:
+        pub = name[:-1].split("[", 1)[0] if name.endswith("]") else name
+        if pub not in keys or pub in params:
+            continue
+        key, scale = keys[pub]
+        est = res.parameters[name]
+        entry: dict[str, Any] = {"value": float(est.value) / scale}
+        spec = d.final_params.get(pub) if d.final_params else None
+        if spec is not None:
+            p = as_param(pub, spec)
+            if p.lower is not None and math.isfinite(float(p.lower)):
+                entry["lower"] = float(p.lower) / scale
+            if p.upper is not None and math.isfinite(float(p.upper)):
+                entry["upper"] = float(p.upper) / scale
+        params[key] = entry
+    doc["params"] = params
+    head = (f"# The final model of a diagnosis ({' + '.join(['base', *d.explained_by])}), written by brdfjax diagnose.\n"
+            f"# brdfjax fit reruns it: reduced chi^2 {res.chi2_reduced:.6g} (chi2 {res.chi2:.8g}) at the diagnosis.\n")
+    return head + toml_text(doc)

@@ -89,7 +89,7 @@ def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
             "How far: the explanation path",
             ["step", "effect", "chi2_reduced", "rms_log10", "held-out rms_log10", "delta BIC"] + [f"chi2_red {z}" for z in zone_names],
             [
-                [str(i), s.effect, _f(s.gap["chi2_reduced"]), _f(s.gap["rms_log10"]), _f(None if s.heldout is None else s.heldout["rms_log10"]),
+                [str(i), _name(s), _f(s.gap["chi2_reduced"]), _f(s.gap["rms_log10"]), _f(None if s.heldout is None else s.heldout["rms_log10"]),
                  _f(s.delta_bic, ".1f")] + [_f(s.zones[z]["chi2_reduced"]) for z in zone_names]
                 for i, s in enumerate(d.path)
             ],
@@ -137,11 +137,21 @@ def report_warnings(d: Diagnosis) -> list[str]:
     return out
 
 
+def _name(s: Any) -> str:
+    """A path step's name: ``base``, ``+effect`` (added) or ``-effect`` (taken out again)."""
+    return {"add": "+", "remove": "-"}.get(getattr(s, "action", "add"), "") + s.effect if getattr(s, "action", "") != "base" else s.effect
+
+
 def _headline(d: Diagnosis) -> str:
-    p = " -> ".join(f"{s.effect} ({_f(s.gap['chi2_reduced'], '.3g')})" for s in d.path)
+    p = " -> ".join(f"{_name(s)} ({_f(s.gap['chi2_reduced'], '.3g')})" for s in d.path)
+    by = d.effects_by_side()
+    sides = (f" Material effects: {', '.join(by['material']) or 'none'}; instrument effects: "
+             f"{', '.join(by['instrument']) or 'none'}. The path stopped because {d.stop_reason}.")
+    flags = "".join(f" Flag at {_name(s)}: {f}." for s in d.path for f in s.flags)
     if d.significant:
-        return f"The gap is most likely caused by **{d.path[1].effect}**. Explanation path (reduced chi^2): {p}. {noise_line(d.gap)}."
-    return f"No candidate effect is significant (BIC gain > {d.bic_threshold:g}). Path: {p}. {noise_line(d.gap)}."
+        return (f"The gap is most likely caused by **{d.explained_by[0]}**. Explanation path (reduced chi^2): {p}.{sides}{flags} "
+                f"{noise_line(d.gap)}.")
+    return f"No candidate effect is significant (BIC gain > {d.bic_threshold:g}). Path: {p}.{sides}{flags} {noise_line(d.gap)}."
 
 
 def noise_line(gap: dict[str, Any]) -> str:
@@ -152,7 +162,6 @@ def noise_line(gap: dict[str, Any]) -> str:
             "chi2 and BIC are -2 ln L of the profile likelihood, chi2_reduced is not a goodness of fit"
         )
     return "noise: the data's own uncertainties (sigma not estimated)"
-
 
 
 def markdown_report(d: Diagnosis) -> str:
@@ -231,7 +240,7 @@ def figures(d: Diagnosis) -> list[tuple[str, str]]:
     fig, ax = plt.subplots(figsize=(7, 4))
     xs = np.arange(len(d.path))
     ax.semilogy(xs, [s.gap["chi2_reduced"] for s in d.path], "o-", label="reduced chi^2 (fitted frames)")
-    ax.set_xticks(xs, [s.effect if i == 0 else "+ " + s.effect for i, s in enumerate(d.path)], rotation=20)
+    ax.set_xticks(xs, [_name(s) for s in d.path], rotation=20)
     ax.set_ylabel("reduced chi^2")
     if any(s.heldout is not None for s in d.path):
         ax2 = ax.twinx()

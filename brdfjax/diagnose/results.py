@@ -57,8 +57,13 @@ class Candidate:
 
     effect: str
     title: str
-    status: str  # "ranked", "skipped", "not identifiable", "failed"
+    status: str  # "ranked", "skipped", "not identifiable", "failed", "not retried", "not refitted"
     note: str = ""
+    side: str = "material"  # "material" (the surface) or "instrument" (the measurement)
+    # reasons a ranked candidate may not enter the path (a new parameter on its bound, another term driven to
+    # zero, its signature below the presence threshold); empty: admissible
+    flags: list[str] = field(default_factory=list)
+    parameters: dict[str, Any] = field(default_factory=dict)  # the effect's own parameters after the refit
     signature: dict[str, Any] = field(default_factory=dict)  # value, score, detail
     n_new: int = 0
     delta_chi2: float = math.nan
@@ -76,6 +81,10 @@ class Candidate:
                 "title": self.title,
                 "status": self.status,
                 "note": self.note,
+                "side": self.side,
+                "admissible": self.status == "ranked" and not self.flags,
+                "flags": self.flags,
+                "parameters": self.parameters,
                 "delta_chi2": self.delta_chi2,
                 "delta_bic": self.delta_bic,
                 "signature": self.signature,
@@ -97,12 +106,22 @@ class Step:
     zones: dict[str, dict[str, float]]
     heldout: dict[str, float] | None
     delta_bic: float = math.nan
-    parameters: dict[str, Any] = field(default_factory=dict)
+    parameters: dict[str, Any] = field(default_factory=dict)  # every parameter: {value, sigma, unit, free, initial}
+    action: str = "add"  # "base", "add" (the effect entered) or "remove" (backward elimination took it out)
+    side: str = ""  # "material" or "instrument" (empty for the base)
+    flags: list[str] = field(default_factory=list)  # e.g. the held-out gap grew at this step
+    notes: list[str] = field(default_factory=list)  # the joint refit from fresh starts, the close alternatives
+    alternatives: list[dict[str, Any]] = field(default_factory=list)  # runners-up: effect, delta_bic, margin
 
     def to_dict(self) -> dict[str, Any]:
         return json_ready(
             {
                 "effect": self.effect,
+                "action": self.action,
+                "side": self.side,
+                "flags": self.flags,
+                "notes": self.notes,
+                "alternatives": self.alternatives,
                 "chi2": self.gap["chi2"],
                 "chi2_reduced": self.gap["chi2_reduced"],
                 "rms_log10": self.gap["rms_log10"],
@@ -137,6 +156,10 @@ class Diagnosis:
     path_rankings: list[list[Candidate]] = field(default_factory=list, repr=False)
     base_result: FitResult | None = field(default=None, repr=False)
     final_result: FitResult | None = field(default=None, repr=False)
+    stop_reason: str = ""  # why the path stopped adding effects
+    final_effects: list[tuple[str, str]] = field(default_factory=list)  # (effect, side) in the final model
+    final_config: str | None = None  # the final model as a fit config (TOML), where the config path knows it
+    final_params: dict[str, Any] = field(default_factory=dict, repr=False)  # the final fit's spec (bounds)
 
     @property
     def zones(self) -> list[dict[str, Any]]:
@@ -144,7 +167,14 @@ class Diagnosis:
 
     @property
     def explained_by(self) -> list[str]:
-        return [s.effect for s in self.path[1:]]
+        """The effects of the final model, in the order they entered (effects removed again are left out)."""
+        return [e for e, _ in self.final_effects]
+
+    def effects_by_side(self) -> dict[str, list[str]]:
+        out: dict[str, list[str]] = {"material": [], "instrument": []}
+        for e, side in self.final_effects:
+            out.setdefault(side, []).append(e)
+        return out
 
     def to_dict(self) -> dict[str, Any]:
         return json_ready(
@@ -159,6 +189,8 @@ class Diagnosis:
                 "path_rankings": [[c.to_dict() for c in r] for r in self.path_rankings],
                 "significant": self.significant,
                 "explained_by": self.explained_by,
+                "explained_by_side": self.effects_by_side(),
+                "stop_reason": self.stop_reason,
                 "bic_threshold": self.bic_threshold,
                 "blocks": self.block_names,
                 "notes": self.notes,
@@ -183,7 +215,13 @@ class Diagnosis:
             lines.append(f"  zone {z['label']}: share {z['share']:.1%}, centre {z['center_deg'][0]:+.3g}/{z['center_deg'][1]:+.3g} deg, {z['sign']}")
         for c in self.ranking[:6]:
             lines.append(f"  {c.effect:<22s} dBIC {c.delta_bic:12.1f}  dchi2 {c.delta_chi2:12.1f}  signature {c.signature.get('score', math.nan):.3g}")
-        lines.append("path: " + " -> ".join(f"{s.effect} ({s.gap['chi2_reduced']:.3g})" for s in self.path))
+        lines.append("path: " + " -> ".join(f"{_step_name(s)} ({s.gap['chi2_reduced']:.3g})" for s in self.path))
+        by = self.effects_by_side()
+        lines.append(f"material effects: {', '.join(by['material']) or 'none'}; instrument effects: {', '.join(by['instrument']) or 'none'}")
+        lines.append(f"stopped: {self.stop_reason}")
+        for s in self.path:
+            for f in s.flags:
+                lines.append(f"  flag at {_step_name(s)}: {f}")
         lines.append(f"significant: {self.significant}")
         return "\n".join(lines)
 
@@ -193,9 +231,16 @@ class Diagnosis:
         out.mkdir(parents=True, exist_ok=True)
         paths = {"json": out / "diagnosis.json", "md": out / "report.md", "html": out / "report.html"}
         self.to_json(paths["json"])
+        if self.final_config is not None:
+            paths["config"] = out / "final_model.toml"
+            _atomic_write(paths["config"], self.final_config)
         _atomic_write(paths["md"], markdown_report(self))
         _atomic_write(paths["html"], html_report(self, figures=figures))
         return paths
+
+
+def _step_name(s: Step) -> str:
+    return {"base": "base", "add": f"+{s.effect}", "remove": f"-{s.effect}"}.get(s.action, s.effect)
 
 
 def _atomic_write(path: Path, text: str) -> None:

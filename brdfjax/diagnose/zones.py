@@ -22,16 +22,25 @@ the positions weighted by ``r^2``), its orientation (major axis, degrees from
 ``+sx`` toward ``+sy``, in [0, 180)), its sign, its share of the total misfit
 (``sum r^2`` in the region over the total chi^2) and a zone name:
 
+- ``far field`` first when the region covers 30 % or more of the block's
+  points or is larger than the wings' diameter and half the block: a
+  structure that spans the frame is a floor or far field whatever its
+  centroid (named by extent and position together);
 - ``peak core``: the centroid within the peak core (where the data are
-  above half their maximum) and the region not elongated;
+  above half their maximum), the region not elongated and no larger than
+  three core radii;
 - ``band``: an elongated region (axis ratio > 3, longer than the peak core's
   diameter) whose axis passes through the peak: a band through the peak with
   its orientation (diffraction bars, anisotropy);
 - ``peak wings``: the centroid within the wings (the data above 1e-3 of their
   maximum, at most 6 core radii) but outside the core;
 - ``secondary lobe``: a compact region outside the wings (an offset peak,
-  a stray-light sub-peak);
+  a stray-light sub-peak; "at the specular direction" when it sits there
+  while the brightest peak is elsewhere);
 - ``far field``: anything else (background, a diffuse floor).
+
+Every description gives the region's extent and its distance from both the
+brightest peak and the specular direction.
 
 The remaining points form the ``background`` zone.  The peak is located at
 the data's maximum (not the fitted model's: a base fit that absorbs a
@@ -42,6 +51,7 @@ light is.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -198,22 +208,36 @@ def peak_scales(model: np.ndarray, sx: np.ndarray, sy: np.ndarray, usable: np.nd
     return {"px": px, "py": py, "core": core, "wings": max(min(wings, 6 * core), 2 * spacing, core)}
 
 
-def _classify(cx, cy, major, minor, ang, scales, one_d: bool) -> tuple[str, str]:
+def _classify(cx, cy, major, minor, ang, scales, one_d: bool, cover: float = 0.0, span: float = math.inf) -> tuple[str, str]:
+    """Zone kind and description from a region's position AND extent (issue 18: named by the centroid alone, a
+    floor spanning the whole region was called a peak core, and a lobe at the specular direction a secondary
+    lobe of the brighter offset peak).
+
+    ``cover``: the share of the block's usable points in the region; ``span``: the block's half-size (deg).
+    """
     px, py, core, wings = scales["px"], scales["py"], scales["core"], scales["wings"]
     dc = float(np.hypot(cx - px, cy - py))
+    ds = float(np.hypot(cx, cy))  # from the specular direction
+    where = f"centre {dc:.3g} deg from the brightest peak, {ds:.3g} deg from the specular direction"
+    size = f"extent {major:.3g} x {minor:.3g} deg"
     elong = major / max(minor, 1e-12)
     # distance from the peak to the region's major axis line
     ux, uy = np.cos(np.radians(ang)), np.sin(np.radians(ang))
     d_axis = abs((px - cx) * uy - (py - cy) * ux)
-    if not one_d and elong > 3.0 and major > 2 * core and d_axis < max(core, 0.25 * major):
-        return "band", f"a band through the peak oriented {ang:.0f} deg from the plane of incidence"
-    if dc <= core and (one_d or elong <= 3.0 or major <= 2 * core):
-        return "peak core", f"within {core:.3g} deg of the peak"
+    if not one_d and elong > 3.0 and major > 2 * core and d_axis < max(core, 0.25 * major) and cover < 0.5:
+        return "band", f"a band through the peak oriented {ang:.0f} deg from the plane of incidence ({size}, {where})"
+    spread = major > max(2.0 * wings, 0.5 * span) if math.isfinite(span) else False
+    if cover >= 0.3 or spread:
+        # a region spanning much of the block is a floor or far-field structure whatever its centroid
+        return "far field", f"spans {100 * cover:.0f} % of the block's points ({size}, {where}): a floor or far-field structure"
+    if dc <= core and (one_d or elong <= 3.0 or major <= 2 * core) and (one_d or major <= 3.0 * core):
+        return "peak core", f"the peak core: {size}, {where} (core radius {core:.3g} deg)"
     if dc <= wings:
-        return "peak wings", f"{dc:.3g} deg from the peak (wings extend to {wings:.3g} deg)"
+        return "peak wings", f"{size}, {where} (wings extend to {wings:.3g} deg)"
     if major <= max(wings, 0.2 * dc) or elong <= 3.0 and major <= 0.5 * dc:
-        return "secondary lobe", f"an isolated lobe {dc:.3g} deg from the peak"
-    return "far field", f"{dc:.3g} deg from the peak, beyond the wings"
+        what = "a lobe at the specular direction" if ds <= max(core, major) else "an isolated lobe"
+        return "secondary lobe", f"{what}: {size}, {where}"
+    return "far field", f"{size}, {where}, beyond the wings"
 
 
 def find_regions(
@@ -244,6 +268,8 @@ def find_regions(
         grp = None if groups is None else groups[bi]
         one_d = r.ndim == 1
         masks: list[tuple[np.ndarray, int]] = []
+        n_usable = max(int(usable.sum()), 1)
+        span = 0.5 * float(np.hypot(np.ptp(sx[usable]), np.ptp(sy[usable]))) if usable.any() and not one_d else math.inf
         if not one_d:
             scales = peak_scales(np.asarray(mv, float), sx, sy, usable)
             z = smoothed_z(r, smooth)
@@ -279,7 +305,7 @@ def find_regions(
                 ang = 0.0
             else:
                 sc = scales
-            name, desc = _classify(cx, cy, major, minor, ang, sc, one_d)
+            name, desc = _classify(cx, cy, major, minor, ang, sc, one_d, npts / n_usable, span)
             out.append(Region(bi, name, sign, chi2 / total, chi2, npts, (cx, cy), (major, minor), ang, m, desc))
     out.sort(key=lambda z: -z.share)
     return out[:max_regions]

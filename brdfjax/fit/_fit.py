@@ -561,8 +561,13 @@ def fit(
     for i, e in enumerate(layout.free):
         for bound in (e.lower, e.upper):
             if math.isfinite(bound) and abs(x[i] - bound) <= 1e-6 * abs(e.x0 - bound):
+                # in the unit a config gives the key in (degrees for angles: '<name>_deg'), radians beside
+                u_name = natural_unit(e.unit)
+                shown = f"{bound * to_natural(e.unit):.6g}" + ("" if u_name in ("", "1") else f" {u_name}")
+                if e.unit == "rad":
+                    shown += f" ({bound:.6g} rad; config key '{e.name}_deg')"
                 warnings.append(
-                    f"parameter '{e.name}' ended on its bound {bound:.6g}; its sigma is not meaningful "
+                    f"parameter '{e.name}' ended on its bound {shown}; its sigma is not meaningful "
                     "(widen the bound, or fix the parameter)"
                 )
 

@@ -22,7 +22,9 @@ angles share one detector (a joint fit needs no
 incidence, not the camera.  Otherwise the arm stays at the stored
 ``theta_c``.
 
-The weights: ``sigma="total"`` (default) takes the ``sigma_rel`` channel,
+The weights: ``sigma="auto"`` (default, here and in the fit config) takes
+``u_scatter_flux`` where the frame carries it (a brdfjax reduction) and
+``sigma_rel`` otherwise; ``"total"`` takes the ``sigma_rel`` channel,
 the quadrature total of every contribution of the reduction, frame-wide ones
 included (the ND filters' tolerance, the incident flux, the geometry: one
 scale error shared by every pixel of the frame, which per-pixel weights
@@ -62,7 +64,10 @@ from ._data import FrameData
 
 __all__ = ["frame_data_from_reduced", "read_frame_data", "detector_from_attrs", "SIGMA_CHOICES"]
 
-SIGMA_CHOICES = {"total": "sigma_rel", "pixel": "u_scatter_flux", "noise": "u_scatter_noise"}
+#: The ``sigma`` choices and the channel each reads; ``"auto"`` (the default of the API and the config) reads
+#: ``u_scatter_flux`` where the frame has it (a brdfjax reduction) and ``sigma_rel`` otherwise (frames
+#: written by another program need only ``sigma_rel``).
+SIGMA_CHOICES = {"auto": "u_scatter_flux", "total": "sigma_rel", "pixel": "u_scatter_flux", "noise": "u_scatter_noise"}
 
 _REQUIRED = ("theta_i", "phi_ref", "wavelength", "R", "pixel_pitch", "step", "roi")
 
@@ -115,7 +120,7 @@ def frame_data_from_reduced(
     roi: tuple[int, int, int, int] | None = None,
     footprint: Any = "auto",
     footprint_w_px: float | None = None,
-    sigma: str = "total",
+    sigma: str = "auto",
     sigma_floor: float = 0.0,
     source: str | None = None,
 ) -> FrameData:
@@ -145,10 +150,15 @@ def frame_data_from_reduced(
     if sigma not in SIGMA_CHOICES:
         raise FitInputError(f"{owner}: sigma must be one of {', '.join(SIGMA_CHOICES)}, got {sigma!r}")
     channel = SIGMA_CHOICES[sigma]
+    if sigma == "auto" and channel not in extra:
+        channel = "sigma_rel"
     if channel not in extra:
+        have = [f"sigma = {k!r} ({c})" for k, c in SIGMA_CHOICES.items() if k != "auto" and c in extra]
         raise FitInputError(
-            f"{owner}: no '{channel}' channel (sigma = {sigma!r}); a fit needs each pixel's relative uncertainty "
-            "(a reduced frame from brdfjax reduce has it)"
+            f"{owner}: no '{channel}' channel (sigma = {sigma!r}); a fit needs each pixel's relative uncertainty. "
+            + (f"This frame has: {', '.join(have)}; pass that sigma (config: [data] sigma)." if have else
+               "This frame has no uncertainty channel at all: write 'sigma_rel' (relative, 1-sigma, per pixel) "
+               "with the frame (README: Frame files).")
         )
     if not (np.isfinite(sigma_floor) and sigma_floor >= 0):
         raise FitInputError(f"{owner}: sigma_floor must be a non-negative number, got {sigma_floor!r}")
@@ -225,7 +235,7 @@ def read_frame_data(
     roi: tuple[int, int, int, int] | None = None,
     footprint: Any = "auto",
     footprint_w_px: float | None = None,
-    sigma: str = "total",
+    sigma: str = "auto",
     sigma_floor: float = 0.0,
 ) -> FrameData:
     """A :class:`FrameData` from a reduced frame EXR (``brdfjax reduce`` output); ``name`` defaults to the file stem.

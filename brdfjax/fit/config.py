@@ -18,7 +18,7 @@ file::
     step = 1                                # every step-th pixel of the reduced frames
     # roi = [-40, 140, -40, 40]             # [h0, h1, v0, v1] seed pixel indices, inclusive
     # roi_deg = [-0.3, 1.1, -0.3, 0.3]      # the same as angles from the alignment pixel (deg)
-    sigma = "pixel"                         # weights: "total" | "pixel" | "noise" (see below)
+    sigma = "auto"                          # weights: "auto" | "total" | "pixel" | "noise" (see below)
     sigma_floor = 0.0                       # relative, added in quadrature
     # max_sigma_rel = 0.1                   # mask pixels less certain than this
     # min_brdf = 1.0                        # mask pixels below this BRDF (sr^-1)
@@ -64,7 +64,9 @@ Parameters not named keep the model's (or the data's) values, fixed.
 Weights of reduced frames (``sigma``): ``"total"`` is the reduction's
 ``sigma_rel`` (frame-wide scale errors included, which per-pixel weights
 would count as independent noise), ``"pixel"`` each pixel's own noise and
-non-linearity (``u_scatter_flux``; the default), ``"noise"`` its noise only.
+non-linearity (``u_scatter_flux``), ``"noise"`` its noise only; ``"auto"``
+(the default, as in :func:`brdfjax.fit.read_frame_data`) is ``"pixel"`` where
+the frame has ``u_scatter_flux`` and ``"total"`` otherwise.
 
 :func:`load_fit_config` validates a file strictly (unknown keys, unknown
 parameters, bounds in the wrong order, missing files: :class:`ConfigError`
@@ -280,7 +282,7 @@ class FitDataConfig(StrictModel):
         None, min_length=4, max_length=4,
         description="[h0, h1, v0, v1] as angles (deg) from the alignment pixel: n = tan(angle) R / pitch",
     )
-    sigma: str = Field("pixel", description=f"the per-pixel weights of frames: {quoted_choices(SIGMA_CHOICES)}")
+    sigma: str = Field("auto", description=f"the per-pixel weights of frames: {quoted_choices(SIGMA_CHOICES)}")
     sigma_floor: float = Field(0.0, ge=0, description="relative uncertainty added in quadrature, >= 0")
     max_sigma_rel: float | None = Field(None, gt=0, description="mask pixels whose relative uncertainty exceeds this")
     min_brdf: float | None = Field(None, ge=0, description="mask pixels below this BRDF (sr^-1)")

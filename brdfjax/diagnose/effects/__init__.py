@@ -45,9 +45,11 @@ from .base import Context as Context, Effect as Effect, Extension as Extension, 
 from .generators import (
     EXCLUSIVE as EXCLUSIVE,
     GENERATORS as GENERATORS,
+    REFERENCE_EFFECTS as REFERENCE_EFFECTS,
     Scenario as Scenario,
     base_scenario as base_scenario,
     inject as inject,
+    reference_frames as reference_frames,
     synthesize as synthesize,
     table_scenario as table_scenario,
 )
@@ -89,6 +91,8 @@ __all__ = [
     "synthesize",
     "GENERATORS",
     "EXCLUSIVE",
+    "reference_frames",
+    "REFERENCE_EFFECTS",
 ]
 
 #: The candidate effects, by name, in the order the engine tries them.

@@ -81,6 +81,13 @@ class Effect:
     title: str = ""
     doc: str = ""
     needs_2d: bool = True
+    #: "material" (what the surface does) or "instrument" (what the measurement does); the report separates them
+    side: str = "material"
+    #: a broad, unspecific change (a uniform floor, a response curve, another distribution family): its score
+    #: can hold what a more specific effect's signature explains, so the engine compares the two on a joint refit
+    generic: bool = False
+    #: the signature score below which the effect is not added to the path (its own evidence is too weak)
+    presence: float = 3.0
 
     def present_in(self, model: Model) -> bool:
         raise NotImplementedError

@@ -41,6 +41,7 @@ from typing import Any
 import equinox as eqx
 import numpy as np
 
+from ... import reference as ref
 from ...detector import Detector
 from ...distributions import Beckmann, BeckmannAniso
 from ...fit import FrameData, Param, TableData, read_frame_data
@@ -54,6 +55,7 @@ from ...instrument.synthetic import (
     footprint_kernel,
     shift_add,
 )
+from ...io import write_frame_exr
 from ...render import Frame, render
 from ...terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
 from .base import weight_names
@@ -65,7 +67,8 @@ from .model import (
 )
 from .terms import InstrumentResponse, Oriented, SpectralDiffraction
 
-__all__ = ["Scenario", "base_scenario", "table_scenario", "inject", "synthesize", "GENERATORS", "EXCLUSIVE"]
+__all__ = ["Scenario", "base_scenario", "table_scenario", "inject", "synthesize", "GENERATORS", "EXCLUSIVE",
+           "reference_frames", "REFERENCE_EFFECTS"]
 
 
 @dataclass
@@ -449,3 +452,69 @@ def _synth_instrument(sc: Scenario, seed: int, out_dir: str | Path | None) -> li
                                wavelength=sc.frames[0][2])
     paths = reduce_measurement_set(manifest, folder / "reduced")
     return [read_frame_data(p, step=sc.step, roi=sc.roi) for p in paths]
+
+
+# --- an independent generator: the NumPy reference, written to EXR ------------------------------------------
+
+#: What :func:`reference_frames` can withhold from a two-peak solar-cell truth, by effect name.
+REFERENCE_EFFECTS = ("diffraction", "offset_normal_peak", "lambertian")
+
+
+def reference_frames(
+    out_dir: str | Path,
+    theta_i_deg: list[float],
+    *,
+    phi_ref_deg: float = 0.0,
+    truth: dict[str, float] | None = None,
+    floor: float = 0.0,
+    step: int = 8,
+    roi: tuple[int, int, int, int] = (-240, 240, -240, 240),
+    peak_counts: float = 1e6,
+    read_noise: float = 10.0,
+    seed: int = 0,
+) -> tuple[list[Path], list[np.ndarray]]:
+    """Frames of the seed's solar cell made WITHOUT brdfjax's model or instrument code: returns ``(paths, clean)``.
+
+    The physics is :func:`brdfjax.reference.solar_cell` (NumPy, float64) plus
+    a diffuse floor ``floor / pi`` sr^-1, on the seed detector's pixel grid
+    (:func:`brdfjax.reference.pixel_angles`, :func:`~brdfjax.reference.solar_cell`
+    keyword ``truth``: ``m1, rho_s1, ..., a, b, c, rho_s3``; ``rho_s3 = 0``
+    leaves the bars out, ``rho_s2 = 0`` the offset peak).  The noise is a
+    detector's: the brightest pixel collects ``peak_counts`` electrons, each
+    pixel ``N(counts, counts + read_noise^2)``; ``sigma_rel = sqrt(counts +
+    read^2) / counts`` and pixels below ten read-noise sigmas are masked.
+    Each frame is written by :func:`brdfjax.io.write_frame_exr` (the format
+    of the README's "Writing frames from another program") to
+    ``out_dir/ti<deg>.exr``; ``clean`` holds the noiseless BRDF (the truth's
+    own chi^2 on the same frames).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    h0, h1, v0, v1 = roi
+    nh, nv = np.meshgrid(np.arange(h0, h1 + 1, step), np.arange(v0, v1 + 1, step))
+    paths, clean = [], []
+    for t in theta_i_deg:
+        ti = float(np.radians(t))
+        ts, ps = ref.pixel_angles(nh, nv, ti)
+        omega = ref.solid_angle(nh, nv)
+        f = ref.solar_cell(ti, ts, ps, float(np.radians(phi_ref_deg)), **(truth or {})) + floor / np.pi
+        counts = f / f.max() * peak_counts
+        meas = counts + np.sqrt(counts + read_noise**2) * rng.standard_normal(counts.shape)
+        # masked below ten read sigmas: a pixel of pure read noise passes three sigmas about once per thousand,
+        # and its ln(data / model) is then enormous (measured: a truth's own reduced chi^2 of 171 with 3 sigmas)
+        ok = meas > 10.0 * read_noise
+        meas = np.where(ok, meas, 10.0 * read_noise)
+        brdf = meas / peak_counts * f.max()
+        sigma = np.sqrt(np.maximum(meas, 0.0) + read_noise**2) / meas
+        attrs = {
+            "theta_i": ti, "theta_c": ti, "phi_ref": float(np.radians(phi_ref_deg)), "wavelength": 632.8e-9,
+            "R": ref.R_NOMINAL, "pixel_pitch": ref.PIXEL_PITCH, "step": int(step), "roi": (h0, h1, v0, v1),
+            "detector_n_v": ref.N_V, "detector_n_h": ref.N_H,
+            "model": "brdfjax.reference.solar_cell + floor (independent generator)", "brdfjax_version": "reference",
+        }
+        p = out / f"ti{t:g}.exr"
+        write_frame_exr(p, brdf, ts, ps, omega, attrs, extra_channels={"sigma_rel": sigma, "mask": ok.astype(float)})
+        paths.append(p)
+        clean.append(f)
+    return paths, clean

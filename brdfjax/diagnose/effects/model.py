@@ -79,8 +79,9 @@ class DiffractionEffect(Effect):
         "determined by a near-specular frame).  Initialised in two stages: the band through the peak (orientation psi in 3 deg steps "
         "and half-width |h_x| < 1e-4, 2e-4 or 4e-4 with the largest summed Gaussianised residual), then the "
         "spacing a with the orientation refined: a grid search of psi (+-9 deg, 1.5 deg steps) and a "
-        "(160 values from 1.5 fringes per frame to Nyquist) by the chi^2 of base + bars over a grid of rho "
-        "(c = 0.8 R x half-width), refined to 0.5 deg and 0.2 %.  Signature: the periodogram of the Gaussianised (rank -> normal score), "
+        "(240 values from one fringe per frame to the Nyquist limit along the fringes' direction) by the chi^2 "
+        "of base + bars over a grid of rho (c = 0.8 R x half-width), the best and its harmonics 2a, 3a refined "
+        "to 0.5 deg and 0.2 %; a free in [a0/2, 2 a0] (wider toward the third harmonic).  Signature: the periodogram of the Gaussianised (rank -> normal score), "
         "detrended residual in the band along the transverse axis h_y, |sum g exp(i k h_y)|^2 / n "
         "(exponential under noise, summed over frames), maximised over the bar frequency "
         "k = 2 pi a 2 cos(theta_i) / lambda, with the look-elsewhere factor of that search; the score is "
@@ -135,13 +136,24 @@ class DiffractionEffect(Effect):
                     best = (z, float(psi), vm)
         return best
 
-    def _a_grid(self, cache):
-        c = cache[0]
-        span = float(np.nanmax(np.hypot(c["hx0"], c["hy0"])) * 2)
-        dh = float(np.median(np.abs(np.diff(c["hy0"], axis=0)))) + float(np.median(np.abs(np.diff(c["hx0"], axis=1))))
-        a_lo = 1.0 * c["wl"] / (2 * c["ci"] * span)
-        a_hi = c["wl"] / (2 * c["ci"] * 2.5 * max(dh, 1e-12))
-        return np.geomspace(a_lo, max(a_hi, 1.01 * a_lo), 160)
+    def _a_grid(self, cache, psi=0.0, n=240):
+        """Spacings from one fringe across the widest frame to the Nyquist limit along the fringes' direction.
+
+        The fringes vary along the transverse axis h_y' (the frame turned by phi_ref + psi); a fringe period
+        lambda / (2 cos theta_i a) must span two samples of the grid ALONG h_y': the largest projection on h_y'
+        of one row or one column step (before: the sum of the row and column spacings, which stopped the grid
+        at 1.74 mm for fringes sampled 5.5 pixels a period, true spacing 1.82 mm).
+        """
+        lo, hi = np.inf, 0.0
+        for c in cache:
+            _, hy = self._rot(c, psi)
+            span = float(np.nanmax(hy) - np.nanmin(hy)) or float(np.nanmax(np.hypot(c["hx0"], c["hy0"])) * 2)
+            d_row = float(np.nanmedian(np.abs(np.diff(hy, axis=0)))) if hy.shape[0] > 1 else 0.0
+            d_col = float(np.nanmedian(np.abs(np.diff(hy, axis=1)))) if hy.shape[1] > 1 else 0.0
+            step = max(d_row, d_col, 1e-12)
+            lo = min(lo, 1.0 * c["wl"] / (2 * c["ci"] * max(span, 1e-12)))
+            hi = max(hi, c["wl"] / (2 * c["ci"] * 2.0 * step))
+        return np.geomspace(lo, max(hi, 1.01 * lo), n)
 
     def _periodogram(self, cache, psi, vm, a_grid):
         """Stage 2: |sum g exp(i k h_y)|^2 / n of the Gaussianised, detrended residual in the band (each frame ~Exp(1))."""
@@ -179,7 +191,7 @@ class DiffractionEffect(Effect):
         if not cache:
             return Signature(0.0, 0.0, "no detector frame with enough pixels for a periodogram")
         zb, psi, vm = self._band(cache)
-        a_grid = self._a_grid(cache)
+        a_grid = self._a_grid(cache, psi)
         stat = self._periodogram(cache, psi, vm, a_grid)
         m = int(np.argmax(stat))
         x = float(stat[m])
@@ -197,15 +209,18 @@ class DiffractionEffect(Effect):
         if not cache:
             raise ValueError("diffraction: no detector frame to initialise the bars from")
         _, psi, vm = self._band(cache)
-        a_grid = self._a_grid(cache)
-        # joint grid search of orientation (+-9 deg) and spacing (the whole grid) by chi^2, then a local refinement
+        a_grid = self._a_grid(cache, psi)
+        # joint grid search of orientation (+-9 deg) and spacing (the whole grid, to Nyquist along the fringes) by
+        # chi^2, then the harmonics 2a, 3a of the best (a band whose zero order alone is in the region fits a
+        # sub-harmonic as well: measured 0.35 mm for a true 1.04 mm) and a local refinement of each
         rows = []
         for dpsi in np.deg2rad(np.arange(-9.0, 9.1, 1.5)):
             rows += [(*row, psi + dpsi) for row in self._chi2_a(cache, psi + dpsi, vm, a_grid)]
         _, a1, _, psi1 = min(rows)
         rows = []
-        for dpsi in np.deg2rad(np.arange(-1.5, 1.6, 0.5)):
-            rows += [(*row, psi1 + dpsi) for row in self._chi2_a(cache, psi1 + dpsi, vm, a1 * np.linspace(0.98, 1.02, 21))]
+        for mult in (1.0, 2.0, 3.0):
+            for dpsi in np.deg2rad(np.arange(-1.5, 1.6, 0.5)):
+                rows += [(*row, psi1 + dpsi) for row in self._chi2_a(cache, psi1 + dpsi, vm, mult * a1 * np.linspace(0.98, 1.02, 21))]
         chi, a0, rho0, psi = min(rows)
         distance = 0.325
         c0 = 0.8 * distance * vm
@@ -213,9 +228,11 @@ class DiffractionEffect(Effect):
         term = Oriented(Diffraction(rho=rho0, a=a0, b=a0 / 80.0, c=c0, distance=distance), psi=psi)
         model = with_terms(ctx.model, {**ctx.model.terms, name: term})
         params = dict(ctx.params)
+        # bounds wide enough to leave a bad start (before: +-10 % held a sub-harmonic start); the grid's ends
+        # bound a from below (one fringe) and the harmonic search from above
         params.update({
             f"{name}.rho": Param(rho0, lower=0.0),
-            f"{name}.a": Param(a0, lower=a0 / 1.1, upper=a0 * 1.1),
+            f"{name}.a": Param(a0, lower=min(a0 / 2.0, float(a_grid[0])), upper=max(a0 * 2.0, 3.5 * a1)),
             f"{name}.c": Param(c0, lower=0.0),
             f"{name}.psi": Param(psi, lower=psi - 0.35, upper=psi + 0.35),
         })
@@ -375,6 +392,7 @@ class OffsetNormalPeakEffect(Effect):
 
 
 class LambertianEffect(Effect):
+    generic = True
     name = "lambertian"
     title = "diffuse floor (Lambertian)"
     needs_2d = False
@@ -468,6 +486,7 @@ def inner_specular(term: AbstractTerm) -> Specular:
 
 
 class DistributionShapeEffect(Effect):
+    generic = True
     name = "distribution_shape"
     title = "microfacet distribution shape (swap D)"
     needs_2d = False
