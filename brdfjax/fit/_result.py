@@ -109,6 +109,9 @@ class FitResult:
     residuals: tuple[np.ndarray, ...] = ()  # per block, raw (non-robust) weighted residuals
     weights: tuple[np.ndarray, ...] = ()  # per block, IRLS weights rho'(r)/r
     auto_init: dict[str, Any] = field(default_factory=dict)
+    # Systematic errors as nuisance parameters: their priors and each parameter's conditional sigma
+    # (nuisance held at the optimum); empty without nuisance parameters.
+    nuisance: dict[str, Any] = field(default_factory=dict)
 
     @property
     def chi2_reduced(self) -> float:
@@ -132,8 +135,17 @@ class FitResult:
         return self.parameters[name]
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "parameters": {k: p.natural() for k, p in self.parameters.items()},
+        params = {k: p.natural() for k, p in self.parameters.items()}
+        cond = self.nuisance.get("sigma_conditional", {}) if self.nuisance else {}
+        for k, s in cond.items():
+            f = to_natural(self.parameters[k].unit)
+            params[k]["sigma_conditional"] = _num(s * f)
+            marg = params[k]["sigma"]
+            params[k]["sigma_systematic"] = None if marg is None or not math.isfinite(s) else _num(
+                math.sqrt(max(marg**2 - (s * f) ** 2, 0.0))
+            )
+        out = {
+            "parameters": params,
             "chi2": _num(self.chi2),
             "chi2_reduced": _num(self.chi2_reduced),
             "dof": int(self.dof),
@@ -166,6 +178,12 @@ class FitResult:
             "precision": self.precision,
             "versions": dict(self.versions),
         }
+        if self.nuisance:
+            out["nuisance"] = {
+                "parameters": self.nuisance.get("parameters", {}),
+                "note": self.nuisance.get("note", ""),
+            }
+        return out
 
     def to_json(self, path: str | os.PathLike | None = None, indent: int = 2) -> str:
         """The JSON text; written (atomically) to ``path`` when given."""
@@ -185,6 +203,8 @@ class FitResult:
         for name, p in self.parameters.items():
             d = p.natural()
             sig = "fixed" if d["sigma"] is None and not p.free else f"+- {d['sigma']:.3g}" if d["sigma"] is not None else "+- inf"
-            lines.append(f"  {name:<22s} {d['value']:>14.6g} {sig:<14s} {d['unit']}")
+            cond = (self.nuisance or {}).get("sigma_conditional", {}).get(name)
+            extra = "" if cond is None else f" (without systematics +- {cond * to_natural(p.unit):.3g})"
+            lines.append(f"  {name:<22s} {d['value']:>14.6g} {sig:<14s} {d['unit']}{extra}")
         lines.extend(f"warning: {w}" for w in self.warnings)
         return "\n".join(lines)

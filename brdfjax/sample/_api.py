@@ -40,6 +40,7 @@ _PREPARE_KEYS = (
     "precision",
     "allow_different_detectors",
     "use_footprint",
+    "nuisance",
 )
 
 
@@ -89,6 +90,7 @@ def decimate_frame(data: FrameData, step: int = 1, roi: tuple[int, int, int, int
         wavelength=data.wavelength,
         footprint=fp,
         name=data.name,
+        systematics=data.systematics,
     )
 
 
