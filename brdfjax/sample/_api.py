@@ -17,6 +17,7 @@ from ..fit import FitResult, FrameData, TableData, fit, prepare, versions
 from ..fit.internal import as_param, block_names, get_solver, to_natural
 from ..io import write_json_atomic
 from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
+from ._nuts import NutsDiagnostics, nuts_diagnostics, open_nuts, run_nuts
 from ._outputs import (
     model_at_points,
     plot_corner,
@@ -28,7 +29,10 @@ from ._outputs import (
 from ._posterior import LogPosterior, build_log_posterior, check_walkers, default_walkers, start_ball
 from ._priors import Prior, SampleError
 
-__all__ = ["sample", "PosteriorResult", "decimate_frame", "sampling_record", "start_from_fit_json"]
+__all__ = ["sample", "PosteriorResult", "decimate_frame", "sampling_record", "start_from_fit_json", "SAMPLERS"]
+
+#: The samplers of ``sample(sampler=...)`` / ``[sample] sampler``.
+SAMPLERS = ("emcee", "nuts")
 
 #: Options of :func:`brdfjax.fit.prepare` among a fit's keyword arguments.
 _PREPARE_KEYS = (
@@ -216,6 +220,9 @@ def sample(
     vectorize: bool = True,
     log: Any = None,
     extra_record: Mapping[str, Any] | None = None,
+    sampler: str = "emcee",
+    n_chains: int = 4,
+    n_warmup: int = 500,
 ) -> PosteriorResult:
     """Sample the posterior of ``params`` (as for :func:`brdfjax.fit.fit`) given ``data`` with emcee.
 
@@ -230,6 +237,11 @@ def sample(
     is drawn (``resume=True`` continues it to ``n_steps`` in total) and
     ``posterior.json``, ``corner.png``, ``trace.png`` and
     ``predictive_<frame>.png`` are written there.
+
+    ``sampler``: ``"emcee"`` (the affine-invariant ensemble, ``n_walkers``)
+    or ``"nuts"`` (blackjax's No-U-Turn sampler: ``n_chains`` independent
+    chains after ``n_warmup`` steps of window adaptation; needs blackjax;
+    :mod:`brdfjax.sample._nuts`), same outputs and resume guarantees.
     """
     t_start = time.perf_counter()
     say = log or (lambda msg: None)
@@ -243,6 +255,10 @@ def sample(
         raise SampleError(f"thin must be a positive integer, got {thin!r}")
     if n_steps < 1:
         raise SampleError(f"n_steps must be a positive integer, got {n_steps!r}")
+    if sampler not in SAMPLERS:
+        raise SampleError(f"unknown sampler {sampler!r}; known: {', '.join(map(repr, SAMPLERS))}")
+    if sampler == "nuts" and not (isinstance(n_chains, int | np.integer) and n_chains >= 1 and n_warmup >= 1):
+        raise SampleError(f"NUTS needs n_chains >= 1 and n_warmup >= 1, got {n_chains!r} and {n_warmup!r}")
 
     # the least-squares optimum
     fit_res: FitResult | None = None
@@ -279,8 +295,9 @@ def sample(
     prep = prepare(model, blocks, spec_start, solver=solver, **{k: fit_kwargs[k] for k in _PREPARE_KEYS if k in fit_kwargs})
     post = build_log_posterior(prep, priors, loss=fit_kwargs.get("loss", "linear"))
     ndim = post.ndim
-    nw = default_walkers(ndim) if n_walkers is None else n_walkers
-    check_walkers(nw, ndim)
+    nw = (default_walkers(ndim) if n_walkers is None else n_walkers) if sampler == "emcee" else int(n_chains)
+    if sampler == "emcee":
+        check_walkers(nw, ndim)
 
     if fit_res is not None:
         x0 = np.array([fit_res.value(n) for n in post.names])
@@ -291,40 +308,16 @@ def sample(
         x0 = np.array([e.x0 for e in prep.layout.free])
         s0 = np.full(ndim, np.nan)
 
-    meta = {
-        "units": list(post.units),
-        "seed": int(seed),
-        "n_walkers": int(nw),
-        "ball": float(ball),
-        "priors": post.describe_priors(),
-    }
-    backend, info = open_chain(chain_path, post.names, nw, resume=resume, meta=meta)
-    p0 = None
-    if info is None or info.iteration == 0:
-        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
+    if sampler == "emcee":
+        chain, lp, diag, outcome, seed = _run_emcee(
+            post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, vectorize, progress, stop_when_converged,
+            check_every, burn, thin, say,
+        )
     else:
-        say(f"resuming {chain_path}: {info.iteration} steps present, running to {n_steps}")
-        if info.meta.get("seed") is not None:
-            seed = int(info.meta["seed"])
-    log_prob = post if vectorize else post.log_prob_one
-    outcome = run_chain(
-        log_prob,
-        backend,
-        p0,
-        n_steps,
-        seed=seed,
-        vectorize=vectorize,
-        progress=progress,
-        stop_when_converged=stop_when_converged,
-        check_every=check_every,
-    )
-    if outcome.iterations == 0:
-        raise SampleError("the run was interrupted before the first step was saved; nothing to summarise")
-    chain = backend.get_chain()
-    lp = backend.get_log_prob()
-    diag = diagnose(backend, post.names, burn=burn, thin=thin, check_every=check_every)
-    if outcome.stopped_converged:
-        diag = Diagnostics(**{**diag.__dict__, "converged": True})
+        chain, lp, diag, outcome = _run_nuts_sampler(
+            post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, n_warmup, stop_when_converged, check_every,
+            burn, thin, say,
+        )
     flat = chain[diag.burn :: diag.thin].reshape(-1, ndim)
     flat_nat = post.to_natural(flat)
     i_map = np.unravel_index(int(np.argmax(lp)), lp.shape)
@@ -332,13 +325,19 @@ def sample(
     f = post.factors
     fit_x = x0 * f if (fit_res is not None or start_json is not None) else None
     fit_s = s0 * f if fit_x is not None else None
-    params_summary = summarise(
-        flat_nat, post.names, post.natural_units, diag.tau, diag.ess, x_map * f, fit_x, fit_s, post.describe_priors()
-    )
+    priors_text = post.describe_priors()
+    spec_n = prep.nuisance
+    if spec_n is not None:
+        for name, sg in zip(spec_n.names, spec_n.prior_sigma):
+            priors_text[name] = f"normal(0, {sg:.4g}) in the likelihood (nuisance)"
+    params_summary = summarise(flat_nat, post.names, post.natural_units, diag.tau, diag.ess, x_map * f, fit_x, fit_s, priors_text)
+    if spec_n is not None:
+        _add_conditional(params_summary, flat_nat, post.names, spec_n.names)
     ll_fit = float(post.log_likelihood(x0[None, :])[0])
     corr = np.corrcoef(flat.T) if ndim > 1 else np.ones((1, 1))
     summary: dict[str, Any] = {
         "parameters": params_summary,
+        "sampler": sampler,
         "n_steps": int(diag.n_steps),
         "n_walkers": int(nw),
         "n_dim": int(ndim),
@@ -374,6 +373,24 @@ def sample(
         "new_steps": int(outcome.new_steps),
         "versions": {**versions(), **_versions()},
     }
+    if isinstance(diag, NutsDiagnostics):
+        summary["nuts"] = {
+            "n_chains": int(nw),
+            "n_warmup": int(n_warmup),
+            "rhat": {n: _finite(r) for n, r in zip(post.names, diag.rhat)},
+            "rhat_max": _finite(np.nanmax(diag.rhat)) if np.any(np.isfinite(diag.rhat)) else None,
+            "divergences": int(diag.divergences),
+            "mean_leapfrog_steps": _finite(diag.mean_leapfrog),
+            "step_size": [float(h) for h in diag.step_size],
+            "converged_rule": "R-hat < 1.01 for every parameter and kept chain > 50 tau (tau = n_chains m / ESS)",
+        }
+    if spec_n is not None:
+        summary["nuisance"] = {
+            "parameters": spec_n.describe(),
+            "note": "each parameter's std/q16/q84 is marginalised over the nuisance parameters (systematics "
+            "included); sigma_conditional is its std with the nuisance parameters held fixed (Gaussian "
+            "conditioning of the posterior covariance): the data's own uncertainty",
+        }
     result = PosteriorResult(post, chain, lp, diag, summary, outcome, fit_res)
     if out_dir is not None:
         out = Path(out_dir)
@@ -393,9 +410,87 @@ def sample(
     return result
 
 
+def _finite(x: Any) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _add_conditional(summary: dict[str, Any], flat: np.ndarray, names: Sequence[str], nuisance: Sequence[str]) -> None:
+    """Each physical parameter's std with the nuisance parameters fixed (Gaussian conditioning), beside the marginal."""
+    j = [i for i, n in enumerate(names) if n in nuisance]
+    k = [i for i, n in enumerate(names) if n not in nuisance]
+    if not j or not k or flat.shape[0] < len(names) + 2:
+        return
+    c = np.cov(flat.T)
+    cond = c[np.ix_(k, k)] - c[np.ix_(k, j)] @ np.linalg.pinv(c[np.ix_(j, j)]) @ c[np.ix_(j, k)]
+    for a, i in enumerate(k):
+        summary[names[i]]["sigma_conditional"] = _finite(np.sqrt(max(cond[a, a], 0.0)))
+        summary[names[i]]["sigma_marginal"] = _finite(np.sqrt(c[i, i]))
+
+
+def _run_emcee(post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, vectorize, progress, stop_when_converged,
+               check_every, burn, thin, say):
+    meta = {
+        "units": list(post.units),
+        "seed": int(seed),
+        "n_walkers": int(nw),
+        "ball": float(ball),
+        "priors": post.describe_priors(),
+    }
+    backend, info = open_chain(chain_path, post.names, nw, resume=resume, meta=meta)
+    p0 = None
+    if info is None or info.iteration == 0:
+        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
+    else:
+        say(f"resuming {chain_path}: {info.iteration} steps present, running to {n_steps}")
+        if info.meta.get("seed") is not None:
+            seed = int(info.meta["seed"])
+    log_prob = post if vectorize else post.log_prob_one
+    outcome = run_chain(
+        log_prob,
+        backend,
+        p0,
+        n_steps,
+        seed=seed,
+        vectorize=vectorize,
+        progress=progress,
+        stop_when_converged=stop_when_converged,
+        check_every=check_every,
+    )
+    if outcome.iterations == 0:
+        raise SampleError("the run was interrupted before the first step was saved; nothing to summarise")
+    chain = backend.get_chain()
+    lp = backend.get_log_prob()
+    diag = diagnose(backend, post.names, burn=burn, thin=thin, check_every=check_every)
+    if outcome.stopped_converged:
+        diag = Diagnostics(**{**diag.__dict__, "converged": True})
+    return chain, lp, diag, outcome, seed
+
+
+def _run_nuts_sampler(post, chain_path, x0, s0, n_chains, ball, seed, resume, n_steps, n_warmup, stop_when_converged,
+                      check_every, burn, thin, say):
+    scale = np.asarray(s0, np.float64).copy()
+    bad = ~(np.isfinite(scale) & (scale > 0))
+    scale[bad] = np.where(x0[bad] != 0, 1e-3 * np.abs(x0[bad]), 1e-6)
+    nchain = open_nuts(chain_path, post.names, n_chains, resume=resume, center=x0, scale=scale, seed=seed, n_warmup=n_warmup)
+    z0 = None
+    if nchain.step_size is None:
+        X = start_ball(post, x0, s0, n_chains, ball, np.random.default_rng(seed))
+        z0 = (X - nchain.center) / nchain.scale
+    else:
+        say(f"resuming {chain_path}: {nchain.iteration} NUTS steps per chain present, running to {n_steps}")
+    outcome = run_nuts(post, nchain, z0, n_steps, stop_when_converged=stop_when_converged, check_every=check_every, log=say)
+    if nchain.iteration == 0:
+        raise SampleError("the run was interrupted before the first step was saved; nothing to summarise")
+    diag = nuts_diagnostics(nchain, post.names, burn=0 if burn == "auto" else burn, thin=thin)
+    if outcome.stopped_converged:
+        diag = NutsDiagnostics(**{**diag.__dict__, "converged": True})
+    return nchain.rows["x"], nchain.rows["log_prob"], diag, outcome
+
+
 def _versions() -> dict[str, str]:
     out = {}
-    for pkg in ("emcee", "h5py", "corner"):
+    for pkg in ("emcee", "h5py", "corner", "blackjax"):
         try:
             out[pkg] = importlib.metadata.version(pkg)
         except importlib.metadata.PackageNotFoundError:
