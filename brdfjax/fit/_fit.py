@@ -485,8 +485,11 @@ def fit(
     if not np.all(np.isfinite(r)) and converged:
         converged, status = False, SolveStatus.failed
         message = "not converged: residuals at the solution are not finite"
+    q = 0 if prep.nuisance is None else prep.nuisance.size
+    r_prior = r[r.size - q :]  # the nuisance parameters' prior rows (each balances its parameter in the dof)
+    r = r[: r.size - q]
     n_points = int(r.size)
-    dof = n_points - n_free
+    dof = n_points - (n_free - q)
     chi2 = float(np.sum(r**2))
     chi2_red = chi2 / dof if dof > 0 else math.nan
     if dof <= 0:
@@ -512,6 +515,7 @@ def fit(
         nuisance_report = {
             "parameters": prep.nuisance.describe(),
             "sigma_conditional": {layout.free[i].name: float(cond[i]) for i in range(n_phys)},
+            "chi2_prior": float(np.sum(r_prior**2)),
             "note": "sigma (marginal) includes the systematic errors; sigma_conditional holds the nuisance "
             "parameters at the optimum (the data's own uncertainty)",
         }

@@ -49,7 +49,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
-from pydantic import Field, field_validator
+from pydantic import Field, PrivateAttr, field_validator
 
 from ..config import StrictModel
 from ..instrument.nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, parse_nd_filters
@@ -139,6 +139,14 @@ class NuisanceOptions(StrictModel):
     nonlinearity: bool = Field(True, description="the response curve's common level, shared by every frame")
     nd_tolerance: str = Field("standard", description=f"one of {', '.join(ND_TOLERANCE_KINDS)}")
     nd_tolerances: dict[str, float] = Field(default_factory=dict, description='"OD" = tolerance (+-OD, >= 0)')
+    # the calibration's table (a manifest's [calibration.nd_tolerances] over the seed's), set by with_calibration
+    _calibration: dict[float, float] | None = PrivateAttr(default=None)
+
+    def with_calibration(self, table: Mapping[float, float] | None) -> "NuisanceOptions":
+        """A copy whose tolerances start from ``table`` (nominal OD -> +-OD) instead of the seed's."""
+        out = self.model_copy()
+        out._calibration = None if table is None else {round(float(k), 6): float(v) for k, v in table.items()}
+        return out
 
     @field_validator("nd_tolerance")
     @classmethod
@@ -162,6 +170,7 @@ class NuisanceOptions(StrictModel):
         return v
 
     def tolerance_table(self, base: Mapping[float, float] | None = None) -> dict[float, float]:
+        base = self._calibration if base is None else base
         table = default_nd_tolerances() if base is None else {round(float(k), 6): float(t) for k, t in base.items()}
         table.update({round(float(k), 6): float(t) for k, t in self.nd_tolerances.items()})
         return table
@@ -246,9 +255,9 @@ def build_nuisance(
             present |= {od for od, _ in _filters(s.nd_beam)} | {od for od, _ in _filters(s.nd_sample)}
     for k in options.nd_tolerances:
         if round(float(k), 6) not in present:
-            have = ", ".join(f"{od:g}" for od in sorted(present)) or "none"
+            have = ", ".join(_od_text(od) for od in sorted(present)) or "none"
             raise FitInputError(
-                f'{source}: nuisance.nd_tolerances."{k}": no frame\'s ND stacks have a {float(k):g} OD filter '
+                f'{source}: nuisance.nd_tolerances."{k}": no frame\'s ND stacks have a {_od_text(float(k))} OD filter '
                 f"(the beam and sample stacks have: {have}); remove the entry"
             )
     if options.nd:
@@ -262,10 +271,10 @@ def build_nuisance(
         for key in sorted(coef):
             od = key[0]
             if od not in table:
-                known = ", ".join(f"{x:g}" for x in sorted(table))
+                known = ", ".join(_od_text(x) for x in sorted(table))
                 raise FitInputError(
-                    f'{source}: the {od:g} OD filter has no tolerance (known: {known}); give it in the manifest\'s '
-                    f'[calibration.nd_tolerances] or as nuisance.nd_tolerances."{od:g}"'
+                    f'{source}: the {_od_text(od)} OD filter has no tolerance (known: {known}); give it in the '
+                    f'manifest\'s [calibration.nd_tolerances] or as nuisance.nd_tolerances."{_od_text(od)}"'
                 )
             if table[od] == 0:
                 continue

@@ -150,7 +150,8 @@ class FitResult:
             "chi2_reduced": _num(self.chi2_reduced),
             "dof": int(self.dof),
             "n_points": int(self.n_points),
-            "n_free": len(self.free_names),
+            "n_free": len(self.free_names) - len(self.nuisance.get("parameters", {}) if self.nuisance else {}),
+            "n_nuisance": len(self.nuisance.get("parameters", {}) if self.nuisance else {}),
             "converged": bool(self.converged),
             "status": self.status,
             "message": self.message,
@@ -181,6 +182,7 @@ class FitResult:
         if self.nuisance:
             out["nuisance"] = {
                 "parameters": self.nuisance.get("parameters", {}),
+                "chi2_prior": _num(self.nuisance.get("chi2_prior")),
                 "note": self.nuisance.get("note", ""),
             }
         return out

@@ -863,12 +863,14 @@ def _nuisance_for(cfg: FitConfig, blocks: list[FrameData | TableData], manifests
         msg = str(e).split(": ", 1)[1]
         key, msg = msg.split(": ", 1) if msg.startswith("nuisance.") else ("nuisance", msg)
         raise ConfigError(src, [(key, msg)]) from None
-    if spec is not None:
-        notes.append(
-            "nuisance parameters (systematic errors): "
-            + ", ".join(f"{n} (prior sigma {s:.3g})" for n, s in zip(spec.names, spec.prior_sigma))
-        )
-    return spec
+    if spec is None:
+        return None
+    notes.append(
+        "nuisance parameters (systematic errors): "
+        + ", ".join(f"{n} (prior sigma {s:.3g})" for n, s in zip(spec.names, spec.prior_sigma))
+    )
+    # the options (not the spec): a fit of other blocks (the diagnosis' held-out frames) builds its own
+    return opts.model_copy(update={"enabled": True}).with_calibration(table)
 
 
 # --- running ----------------------------------------------------------------------------------

@@ -303,6 +303,11 @@ def sample(
         x0 = np.array([fit_res.value(n) for n in post.names])
         s0 = np.array([np.nan if fit_res.sigma(n) is None else fit_res.sigma(n) for n in post.names])
     elif start_json is not None:
+        if prep.nuisance is not None:  # a fit without the nuisance parameters: they start at 0, their prior's sigma
+            pars = dict(start_json.get("parameters") or {})
+            for n, sg in zip(prep.nuisance.names, prep.nuisance.prior_sigma):
+                pars.setdefault(n, {"value": 0.0, "sigma": float(sg), "unit": "1", "free": True})
+            start_json = {**start_json, "parameters": pars}
         x0, s0 = start_from_fit_json(start_json, post.names, post.units)
     else:
         x0 = np.array([e.x0 for e in prep.layout.free])
@@ -315,8 +320,8 @@ def sample(
         )
     else:
         chain, lp, diag, outcome = _run_nuts_sampler(
-            post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, n_warmup, stop_when_converged, check_every,
-            burn, thin, say,
+            post, chain_path, x0, s0, _fit_covariance(fit_res, start_json, post.names, s0), nw, ball, seed, resume,
+            n_steps, n_warmup, stop_when_converged, check_every, burn, thin, say,
         )
     flat = chain[diag.burn :: diag.thin].reshape(-1, ndim)
     flat_nat = post.to_natural(flat)
@@ -410,6 +415,18 @@ def sample(
     return result
 
 
+def _fit_covariance(fit_res: FitResult | None, start_json: Mapping[str, Any] | None, names: Sequence[str],
+                    s0: np.ndarray) -> np.ndarray | None:
+    """The fit's covariance of ``names`` (stored units), from a FitResult or its JSON's correlation; None if unknown."""
+    if fit_res is not None and tuple(fit_res.free_names) == tuple(names):
+        return np.asarray(fit_res.covariance, np.float64)
+    corr = (start_json or {}).get("correlation") or {}
+    if list(corr.get("names") or []) == list(names):
+        c = np.array([[np.nan if v is None else v for v in row] for row in corr["matrix"]], np.float64)
+        return c * np.outer(s0, s0)
+    return None
+
+
 def _finite(x: Any) -> float | None:
     x = float(x)
     return x if math.isfinite(x) else None
@@ -467,16 +484,27 @@ def _run_emcee(post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, vector
     return chain, lp, diag, outcome, seed
 
 
-def _run_nuts_sampler(post, chain_path, x0, s0, n_chains, ball, seed, resume, n_steps, n_warmup, stop_when_converged,
-                      check_every, burn, thin, say):
-    scale = np.asarray(s0, np.float64).copy()
-    bad = ~(np.isfinite(scale) & (scale > 0))
-    scale[bad] = np.where(x0[bad] != 0, 1e-3 * np.abs(x0[bad]), 1e-6)
+def _whitening(x0: np.ndarray, s0: np.ndarray, cov: np.ndarray | None) -> np.ndarray:
+    """``L`` with ``x = x0 + L z``: the Cholesky factor of the fit's covariance, else its sigmas on the diagonal."""
+    sig = np.asarray(s0, np.float64).copy()
+    bad = ~(np.isfinite(sig) & (sig > 0))
+    sig[bad] = np.where(x0[bad] != 0, 1e-3 * np.abs(x0[bad]), 1e-6)
+    if cov is not None and not bad.any() and np.all(np.isfinite(cov)):
+        try:
+            return np.linalg.cholesky(np.asarray(cov, np.float64))
+        except np.linalg.LinAlgError:
+            pass
+    return np.diag(sig)
+
+
+def _run_nuts_sampler(post, chain_path, x0, s0, cov, n_chains, ball, seed, resume, n_steps, n_warmup,
+                      stop_when_converged, check_every, burn, thin, say):
+    scale = _whitening(x0, s0, cov)
     nchain = open_nuts(chain_path, post.names, n_chains, resume=resume, center=x0, scale=scale, seed=seed, n_warmup=n_warmup)
     z0 = None
     if nchain.step_size is None:
         X = start_ball(post, x0, s0, n_chains, ball, np.random.default_rng(seed))
-        z0 = (X - nchain.center) / nchain.scale
+        z0 = np.linalg.solve(nchain.scale, (X - nchain.center).T).T
     else:
         say(f"resuming {chain_path}: {nchain.iteration} NUTS steps per chain present, running to {n_steps}")
     outcome = run_nuts(post, nchain, z0, n_steps, stop_when_converged=stop_when_converged, check_every=check_every, log=say)

@@ -6,8 +6,11 @@ against the weights it multiplies) where emcee's stretch move crawls.  This
 module runs ``n_chains`` independent NUTS chains (blackjax's kernel; Stan's
 window adaptation of the step size and a diagonal mass matrix) on the same
 log-posterior as emcee (:mod:`brdfjax.sample._posterior`), in whitened
-coordinates ``z = (x - x_fit) / sigma_fit`` (the fit's optimum and sigmas),
-so the adaptation starts from unit scales.
+coordinates ``x = x_fit + L z`` with ``L`` the Cholesky factor of the fit's
+covariance (the Laplace approximation; its diagonal where it is not
+usable), so the adaptation starts from unit scales and no correlation: a
+weight and the flux-scale nuisance parameters that multiply it form a narrow
+ridge that a diagonal mass matrix would cross in hundreds of leapfrog steps.
 
 Determinism and resume: chain ``c``'s key for its warm-up is
 ``fold_in(fold_in(PRNGKey(seed), c), 0)`` and for step ``i`` (counting from 0
@@ -39,6 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import equinox as eqx
 import h5py
 import jax
 import jax.numpy as jnp
@@ -54,7 +58,7 @@ NUTS_GROUP = "nuts"
 #: Convergence: every parameter's R-hat below this ...
 RHAT_MAX = 1.01
 #: Steps per compiled piece of a run (the file is written after each).
-CHUNK = 50
+CHUNK = 25
 
 
 def have_blackjax() -> bool:
@@ -82,8 +86,8 @@ class NutsChain:
     path: Path | None
     names: tuple[str, ...]
     n_chains: int
-    center: np.ndarray  # x = center + scale * z
-    scale: np.ndarray
+    center: np.ndarray  # x = center + scale @ z
+    scale: np.ndarray  # (ndim, ndim) lower triangular
     seed: int
     n_warmup: int
     step_size: np.ndarray | None = None  # (n_chains,) after warm-up
@@ -97,7 +101,7 @@ class NutsChain:
         return len(self.names)
 
     def to_x(self, z: np.ndarray) -> np.ndarray:
-        return self.center + self.scale * np.asarray(z, np.float64)
+        return self.center + np.asarray(z, np.float64) @ self.scale.T
 
     # -- file ---------------------------------------------------------------------------
     def _write_header(self) -> None:
@@ -232,6 +236,50 @@ def open_nuts(
     return chain
 
 
+def _logdensity(problem: Any, priors: Any, center: Any, scale: Any) -> Callable[[Any], Any]:
+    """The log-posterior in whitened coordinates ``z`` (``x = center + scale @ z``; the Jacobian is constant)."""
+
+    def logdensity(z):
+        lp = _log_posterior_one(center + scale @ z, problem, priors)
+        # -inf outside the support: NUTS rejects the transition (a divergence), never moves there
+        return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
+
+    return logdensity
+
+
+# The problem, priors and whitening are arguments (not closed over), so that a new run of the same shapes -- a
+# resumed chain, another chain, another data set -- reuses the compiled programs.
+@eqx.filter_jit
+def _warmup(problem, priors, center, scale, key, z0, n_warmup: int):
+    bj = _blackjax()
+    warmup = bj.window_adaptation(
+        bj.nuts, _logdensity(problem, priors, center, scale),
+        adaptation_info_fn=bj.adaptation.base.get_filter_adapt_info_fn(),
+    )
+    (state, params), _ = warmup.run(key, z0, num_steps=n_warmup)
+    return state.position, state.logdensity, state.logdensity_grad, params["step_size"], params["inverse_mass_matrix"]
+
+
+@eqx.filter_jit
+def _piece(problem, priors, center, scale, z, ld, grad, step_size, inv_mass, chain_keys, start):
+    """:data:`CHUNK` NUTS steps of every chain from the states ``(z, ld, grad)``; step i's key is fold_in(key, start + i)."""
+    bj = _blackjax()
+    kernel = bj.nuts.build_kernel()
+    logdensity = _logdensity(problem, priors, center, scale)
+
+    def one(state, key, h, m):
+        new, info = kernel(key, state, logdensity, h, m)
+        return new, (new.position, new.logdensity, new.logdensity_grad, info.is_divergent,
+                     info.num_integration_steps, info.acceptance_rate)
+
+    def per_chain(z, ld, grad, h, m, key):
+        keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(start + jnp.arange(CHUNK))
+        _, ys = jax.lax.scan(lambda s, k: one(s, k, h, m), bj.mcmc.hmc.HMCState(z, ld, grad), keys)
+        return ys
+
+    return jax.vmap(per_chain)(z, ld, grad, step_size, inv_mass, chain_keys)
+
+
 def _chain_keys(seed: int, n_chains: int, stream: int) -> jax.Array:
     base = jax.random.PRNGKey(seed)
     return jnp.stack([jax.random.fold_in(jax.random.fold_in(base, c), stream) for c in range(n_chains)])
@@ -249,7 +297,7 @@ def run_nuts(
     log: Callable[[str], None] | None = None,
 ) -> RunOutcome:
     """Warm up (once) and run ``chain`` until it holds ``n_steps`` steps per chain (see the module docstring)."""
-    bj = _blackjax()
+    _blackjax()
     say = log or (lambda m: None)
     t0 = time.perf_counter()
     problem, priors = post.problem, post.priors
@@ -257,52 +305,27 @@ def run_nuts(
     center = jnp.asarray(chain.center, dtype)
     scale = jnp.asarray(chain.scale, dtype)
 
-    def logdensity(z):
-        lp = _log_posterior_one(center + scale * z, problem, priors)
-        # -inf outside the support: NUTS rejects the transition (a divergence), never moves there
-        return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
-
     done0 = chain.iteration
     out = RunOutcome(done0, 0, False, False, 0.0)
     if chain.step_size is None:
         if z0 is None:
             raise SampleError("a new NUTS chain needs its start positions")
         say(f"NUTS: window adaptation, {chain.n_warmup} steps x {chain.n_chains} chains ...")
-        warmup = bj.window_adaptation(
-            bj.nuts, logdensity, adaptation_info_fn=bj.adaptation.base.get_filter_adapt_info_fn(),
-        )
-        run_one = jax.jit(lambda key, z: warmup.run(key, z, num_steps=chain.n_warmup))
         keys = _chain_keys(chain.seed, chain.n_chains, 0)
         zs, lds, grads, steps, imms = [], [], [], [], []
         for c in range(chain.n_chains):
-            (state, params), _ = run_one(keys[c], jnp.asarray(z0[c], dtype))
-            zs.append(np.asarray(state.position, np.float64))
-            lds.append(float(state.logdensity))
-            grads.append(np.asarray(state.logdensity_grad, np.float64))
-            steps.append(float(params["step_size"]))
-            imms.append(np.asarray(params["inverse_mass_matrix"], np.float64))
+            z, ld, grad, h, imm = _warmup(problem, priors, center, scale, keys[c], jnp.asarray(z0[c], dtype), chain.n_warmup)
+            zs.append(np.asarray(z, np.float64))
+            lds.append(float(ld))
+            grads.append(np.asarray(grad, np.float64))
+            steps.append(float(h))
+            imms.append(np.asarray(imm, np.float64))
         chain.save_warmup(np.array(steps), np.stack(imms), np.stack(zs), np.array(lds), np.stack(grads))
         say("NUTS: step sizes " + ", ".join(f"{s:.3g}" for s in steps))
     remaining = int(n_steps) - chain.iteration
     if remaining <= 0:
         out.wall_s = time.perf_counter() - t0
         return out
-    kernel = bj.nuts.build_kernel()
-    HMCState = bj.mcmc.hmc.HMCState
-
-    def one(state, key, step_size, inv_mass):
-        new, info = kernel(key, state, logdensity, step_size, inv_mass)
-        return new, (new.position, new.logdensity, new.logdensity_grad, info.is_divergent,
-                     info.num_integration_steps, info.acceptance_rate)
-
-    @jax.jit
-    def piece(z, ld, grad, step_size, inv_mass, chain_keys, start):
-        def per_chain(z, ld, grad, h, m, key):
-            keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(start + jnp.arange(CHUNK))
-            _, ys = jax.lax.scan(lambda s, k: one(s, k, h, m), HMCState(z, ld, grad), keys)
-            return ys
-
-        return jax.vmap(per_chain)(z, ld, grad, step_size, inv_mass, chain_keys)
 
     keys = _chain_keys(chain.seed, chain.n_chains, 1)
     h = jnp.asarray(chain.step_size, dtype)
@@ -310,7 +333,7 @@ def run_nuts(
     try:
         while chain.iteration < n_steps:
             z, ld, grad = (jnp.asarray(a, dtype) for a in chain.state())
-            ys = piece(z, ld, grad, h, m, keys, jnp.asarray(chain.iteration, jnp.int32))
+            ys = _piece(problem, priors, center, scale, z, ld, grad, h, m, keys, jnp.asarray(chain.iteration, jnp.int32))
             take = min(CHUNK, int(n_steps) - chain.iteration)
             zz, lds, grads, div, nlf, acc = (np.swapaxes(np.asarray(a), 0, 1)[:take] for a in ys)
             zz = zz.astype(np.float64)
