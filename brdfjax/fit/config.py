@@ -52,6 +52,12 @@ file::
     [output]
     figures = true
 
+    [nuisance]                              # systematic errors as nuisance parameters (brdfjax.fit._nuisance)
+    # enabled = true                        # default: on when the frames carry ND stacks (through the instrument)
+    nd = true; flux = true; nonlinearity = true
+    nd_tolerance = "standard"               # or "rectangular" (tolerance / sqrt 3)
+    # nd_tolerances = { "1.0" = 0.06 }      # +-OD, over the manifest's [calibration] and the seed's table
+
 Parameters: names are the model's (``model.params()``) plus the frame
 parameters ``theta_i`` and ``phi_ref`` (per frame by default), with the unit
 suffix of their stored unit (``_deg`` for angles, ``_m`` for lengths);
@@ -65,6 +71,9 @@ Weights of reduced frames (``sigma``): ``"total"`` is the reduction's
 ``sigma_rel`` (frame-wide scale errors included, which per-pixel weights
 would count as independent noise), ``"pixel"`` each pixel's own noise and
 non-linearity (``u_scatter_flux``; the default), ``"noise"`` its noise only.
+With nuisance parameters (``[nuisance]``, on by default for frames through the
+instrument) the frame-wide errors are parameters of the likelihood, so
+``"total"`` is refused (it would count them twice).
 
 :func:`load_fit_config` validates a file strictly (unknown keys, unknown
 parameters, bounds in the wrong order, missing files: :class:`ConfigError`
