@@ -259,6 +259,8 @@ m1 = {{ value = 2.0e-4, lower = 1e-5, upper = 1e-3 }}
 rho_s1 = 0.015
 [output]
 figures = {figures}
+[nuisance]
+enabled = false
 [sample]
 n_walkers = 8
 n_steps = 20

@@ -171,7 +171,7 @@ def _heldout_gap(state: _State, heldout: Sequence[Any] | None, base_blocks: Sequ
         if fp is not None and isinstance(b, FrameData) and b.footprint is None:
             b = dataclasses.replace(b, footprint=fp)
         blocks.append(b)
-    kw = {k: v for k, v in state.fit_kwargs.items() if k in ("precision", "floor", "use_footprint", "allow_different_detectors")}
+    kw = {k: v for k, v in state.fit_kwargs.items() if k in ("precision", "floor", "use_footprint", "allow_different_detectors", "nuisance")}
     kw["allow_different_detectors"] = True
     model = state.result.models[0] if state.result.models else state.model
     params = {}

@@ -61,6 +61,8 @@ class FrameData:
     ``footprint``: the instrument function, a 2-D kernel sampled on the
     grid's pixel spacing (odd sides, centred, normalised to sum 1 by the fit)
     with which the model is convolved before comparison; ``None``: none.
+    ``systematics``: the frame-wide errors a fit may model as nuisance
+    parameters (:mod:`brdfjax.fit._nuisance`); ``None``: none known.
     """
 
     brdf: Any
@@ -73,6 +75,9 @@ class FrameData:
     wavelength: float = 632.8e-9
     footprint: Any = None
     name: str = "frame"
+    # The frame-wide errors of a frame that came through the instrument (ND stacks, incident flux,
+    # non-linearity level; brdfjax.fit._nuisance.FrameSystematics), read from a reduced frame's header.
+    systematics: Any = None
 
     def __post_init__(self):
         owner = f"frame '{self.name}'"

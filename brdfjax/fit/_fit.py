@@ -29,7 +29,8 @@ from ._auto_init import get_initializer
 from ._common import FRAME_PARAMETERS, FitInputError, natural_unit, to_natural
 from ._covariance import covariance
 from ._data import FrameData, TableData
-from ._params import Layout, as_param, build_layout
+from ._nuisance import NuisanceOptions, NuisanceSpec, NuisanceTerms, build_nuisance, conditional_sigma
+from ._params import FreeEntry, Layout, as_param, build_layout
 from ._problem import (
     FrameBlock,
     Problem,
@@ -200,6 +201,7 @@ class Prepared:
     inv_sigma: tuple[np.ndarray, ...]  # per block, at the usable points
     convolved: tuple[bool, ...]
     init_s: float  # time spent in the automatic initialisation
+    nuisance: NuisanceSpec | None = None  # the systematic errors' nuisance parameters (last free entries)
 
 
 def prepare(
@@ -216,6 +218,7 @@ def prepare(
     precision: str | None = None,
     allow_different_detectors: bool = False,
     use_footprint: bool = True,
+    nuisance: NuisanceOptions | Mapping[str, Any] | bool | None = None,
 ) -> "Prepared":
     """Validate the inputs and build the :class:`Problem` (unscaled) and its :class:`Layout`."""
     if not isinstance(model, Model):
@@ -258,6 +261,9 @@ def prepare(
             built.append(_frame_block(b, u, template, frame, fl, use_footprint))
         else:
             built.append(_table_block(b, u, template, fl))
+    spec_n = _nuisance_spec(blocks, names, nuisance)
+    if spec_n is not None:
+        layout = _with_nuisance(layout, spec_n)
     n_free = len(layout.free)
     lo, hi = layout.bounds()
     stacked = can_stack(built)
@@ -274,13 +280,50 @@ def prepare(
         transform_ids=layout.transform_ids(),
         targets=build_targets(layout),
         counts=tuple(int(b.data.shape[0]) for b in built),
+        nuisance=None if spec_n is None else NuisanceTerms.build(
+            spec_n, n_free - spec_n.size, [int(b.data.shape[0]) for b in built], [np.asarray(b.inv_sigma) for b in built]
+        ),
     )
     return Prepared(
         cast(problem, dtype), layout, blocks, names, auto or {}, warnings,
         tuple(np.asarray(b.inv_sigma, np.float64) for b in built),
         tuple(isinstance(b, FrameBlock) and b.kernel is not None for b in built),
         init_s,
+        spec_n,
     )
+
+
+def _nuisance_spec(blocks: Sequence[Data], names: Sequence[str], nuisance: Any) -> NuisanceSpec | None:
+    """The nuisance parameters asked for (``None``/``False``: none; ``True``: the defaults; options or a spec)."""
+    if nuisance is None or nuisance is False:
+        return None
+    if isinstance(nuisance, NuisanceSpec):
+        if nuisance.design.shape[0] != len(blocks):
+            raise FitInputError(f"the nuisance design has {nuisance.design.shape[0]} rows for {len(blocks)} data blocks")
+        return nuisance
+    if nuisance is True:
+        opts = NuisanceOptions()
+    elif isinstance(nuisance, NuisanceOptions):
+        opts = nuisance
+    elif isinstance(nuisance, Mapping):
+        try:
+            opts = NuisanceOptions(**nuisance)
+        except ValueError as e:
+            raise FitInputError(f"nuisance options: {e}") from None
+    else:
+        raise FitInputError(f"nuisance must be None, a bool, NuisanceOptions or a dict of them, got {type(nuisance).__name__}")
+    return build_nuisance(blocks, names, opts)
+
+
+def _with_nuisance(layout: Layout, spec: NuisanceSpec) -> Layout:
+    """The layout with the nuisance parameters appended as free, unbounded entries starting at 0."""
+    taken = set(layout.order)
+    extra = []
+    for j, (name, s) in enumerate(zip(spec.names, spec.prior_sigma)):
+        if name in taken:
+            raise FitInputError(f"nuisance parameter '{name}' clashes with a parameter of the model")
+        extra.append(FreeEntry(name, name, "nuisance", spec.blocks_of(j), "identity", -math.inf, math.inf, "1", 0.0, float(s)))
+    return Layout(layout.free + tuple(extra), layout.fixed, layout.block_names, layout.order + tuple(spec.names))
 
 
 def _scales(problem: Problem, layout: Layout, warnings: list[str]) -> np.ndarray:
@@ -427,6 +470,7 @@ def fit(
     use_footprint: bool = True,
     resolution_check: bool = True,
     progress: Callable[[int, float], None] | None = None,
+    nuisance: NuisanceOptions | Mapping[str, Any] | bool | None = None,
 ) -> FitResult:
     """Fit ``model`` to one or several data blocks (detector frames and/or goniometer tables).
 
@@ -452,6 +496,12 @@ def fit(
     ``progress(k, chi2)`` hears of every residual evaluation of the solver
     (about one per step) with the sum of squared residuals there.
 
+    ``nuisance``: the systematic errors of frames that came through the
+    instrument as nuisance parameters of the likelihood
+    (:mod:`brdfjax.fit._nuisance`; ``True`` or options; default none); the
+    result then reports each parameter's sigma with them (marginal) and
+    without (conditional) in ``FitResult.nuisance``.
+
     A fit that does not converge returns normally with ``converged=False``
     and a message that says why; bad inputs raise
     :class:`~brdfjax.fit.FitInputError`.
@@ -464,7 +514,7 @@ def fit(
     prep = prepare(
         model, data, params, solver=solver_obj, loss=loss, loss_scale=loss_scale, initializer=initializer,
         init_options=init_options, floor=floor, precision=precision,
-        allow_different_detectors=allow_different_detectors, use_footprint=use_footprint,
+        allow_different_detectors=allow_different_detectors, use_footprint=use_footprint, nuisance=nuisance,
     )
     problem, layout, blocks, auto, warnings = prep.problem, prep.layout, prep.blocks, prep.auto, prep.warnings
     precision_name = "float64" if problem.u0.dtype == jnp.float64 else "float32"
@@ -524,8 +574,11 @@ def fit(
     if not np.all(np.isfinite(r)) and converged:
         converged, status = False, SolveStatus.failed
         message = "not converged: residuals at the solution are not finite"
+    q = 0 if prep.nuisance is None else prep.nuisance.size
+    r_prior = r[r.size - q :]  # the nuisance parameters' prior rows (each balances its parameter in the dof)
+    r = r[: r.size - q]
     n_points = int(r.size)
-    dof = n_points - n_free
+    dof = n_points - (n_free - q)
     chi2 = float(np.sum(r**2))
     chi2_red = chi2 / dof if dof > 0 else math.nan
     if dof <= 0:
@@ -556,6 +609,17 @@ def fit(
             )
     else:
         cov = covariance(np.zeros((n_points, 0)), np.zeros(0), chi2_red, absolute)
+    nuisance_report: dict[str, Any] = {}
+    if prep.nuisance is not None and n_free:
+        n_phys = n_free - prep.nuisance.size
+        cond = conditional_sigma(J, scale * layout.jacobian_diag(u), range(n_phys), cov.factor)
+        nuisance_report = {
+            "parameters": prep.nuisance.describe(),
+            "sigma_conditional": {layout.free[i].name: float(cond[i]) for i in range(n_phys)},
+            "chi2_prior": float(np.sum(r_prior**2)),
+            "note": "sigma (marginal) includes the systematic errors; sigma_conditional holds the nuisance "
+            "parameters at the optimum (the data's own uncertainty)",
+        }
     t_cov = time.perf_counter()
     x = layout.natural(u)
     for i, e in enumerate(layout.free):
@@ -641,6 +705,7 @@ def fit(
         residuals=tuple(res_blocks),
         weights=tuple(w_blocks),
         auto_init={kk: (np.asarray(vv).tolist()) for kk, vv in auto.items()},
+        nuisance=nuisance_report,
     )
     if resolution_check and converged and any(isinstance(b, TableData) for b in blocks):
         kwargs = dict(

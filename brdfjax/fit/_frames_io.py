@@ -61,6 +61,7 @@ from ..instrument.synthetic import footprint_kernel
 from ..io import ExrError, header
 from ._common import FitInputError
 from ._data import FrameData
+from ._nuisance import systematics_from_attrs
 
 __all__ = ["frame_data_from_reduced", "read_frame_data", "detector_from_attrs", "SIGMA_CHOICES"]
 
@@ -223,6 +224,7 @@ def frame_data_from_reduced(
         wavelength=float(attrs["wavelength"]),
         footprint=kernel,
         name=name,
+        systematics=systematics_from_attrs(attrs),
     )
 
 

@@ -47,6 +47,7 @@ from ..detector import Detector
 from ..geometry import Directions
 from ..render import Frame, evaluate_pixels
 from ..terms import AbstractTerm, Model
+from ._nuisance import NuisanceTerms
 from ._params import Layout, forward_by_id
 from ._residuals import convolve_same, log_model, robust_residuals_by_id
 
@@ -232,6 +233,9 @@ class Problem(eqx.Module):
     transform_ids: Array  # (n_free,) indices into TRANSFORMS (traced: bounds and kinds do not recompile)
     targets: tuple[tuple[str, str, tuple[int, ...]], ...] = eqx.field(static=True)  # (base, kind, blocks)
     counts: tuple[int, ...] = eqx.field(static=True)  # usable points per block
+    # Systematic errors as nuisance parameters (the last free entries): offsets of every point's log
+    # model and their prior rows after the data's residuals (brdfjax.fit._nuisance).  None: none.
+    nuisance: NuisanceTerms | None = None
 
     @property
     def n_blocks(self) -> int:
@@ -249,7 +253,7 @@ class Problem(eqx.Module):
         mv: Values = {}
         fv: Values = {}
         for i, (base, kind, blocks) in enumerate(self.targets):
-            if k in blocks:
+            if k in blocks and kind != "nuisance":
                 (mv if kind == "model" else fv)[base] = x[i]
         return mv, fv
 
@@ -282,16 +286,22 @@ class Problem(eqx.Module):
         """``(log(f + floor) - log d) / sigma_rel`` at every usable point (softened in a first stage), blocks in order."""
         x = self.natural(v)
         if self.stack is not None:
-            return self.stack.residuals(*self._stacked_values(x), self.soften)
-        out = []
-        for k, block in enumerate(self.blocks):
-            mv, fv = self._block_values(x, k)
-            model, frame = _apply(block.template, block.frame, mv, fv)
-            out.append(block.residuals(model, frame, self.soften))
-        return jnp.concatenate(out)
+            r = self.stack.residuals(*self._stacked_values(x), self.soften)
+        else:
+            out = []
+            for k, block in enumerate(self.blocks):
+                mv, fv = self._block_values(x, k)
+                model, frame = _apply(block.template, block.frame, mv, fv)
+                out.append(block.residuals(model, frame, self.soften))
+            r = jnp.concatenate(out)
+        return r if self.nuisance is None else self.nuisance.apply(r, x)
 
     def residuals(self, v: Array) -> Array:
-        return robust_residuals_by_id(self.loss_index, self.weighted_residuals(v), self.loss_scale)
+        r = self.weighted_residuals(v)
+        if self.nuisance is None:
+            return robust_residuals_by_id(self.loss_index, r, self.loss_scale)
+        n = r.shape[0] - self.nuisance.size  # the prior rows stay quadratic
+        return jnp.concatenate([robust_residuals_by_id(self.loss_index, r[:n], self.loss_scale), r[n:]])
 
 
 def _plain_residuals(v: Array, problem: Problem) -> Array:

@@ -128,6 +128,9 @@ class FitResult:
     neg2_log_likelihood: float = math.nan
     # Parameters the data do not determine (an unresolved peak): name -> {"reason", "range", ...}.
     undetermined: dict[str, Any] = field(default_factory=dict)
+    # Systematic errors as nuisance parameters: their priors and each parameter's conditional sigma
+    # (nuisance held at the optimum); empty without nuisance parameters.
+    nuisance: dict[str, Any] = field(default_factory=dict)
 
     @property
     def chi2_reduced(self) -> float:
@@ -186,13 +189,23 @@ class FitResult:
         return self.parameters[name]
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "parameters": {k: p.natural() for k, p in self.parameters.items()},
+        params = {k: p.natural() for k, p in self.parameters.items()}
+        cond = self.nuisance.get("sigma_conditional", {}) if self.nuisance else {}
+        for k, s in cond.items():
+            f = to_natural(self.parameters[k].unit)
+            params[k]["sigma_conditional"] = _num(s * f)
+            marg = params[k]["sigma"]
+            params[k]["sigma_systematic"] = None if marg is None or not math.isfinite(s) else _num(
+                math.sqrt(max(marg**2 - (s * f) ** 2, 0.0))
+            )
+        out = {
+            "parameters": params,
             "chi2": _num(self.chi2),
             "chi2_reduced": _num(self.chi2_reduced),
             "dof": int(self.dof),
             "n_points": int(self.n_points),
-            "n_free": len(self.free_names),
+            "n_free": len(self.free_names) - len(self.nuisance.get("parameters", {}) if self.nuisance else {}),
+            "n_nuisance": len(self.nuisance.get("parameters", {}) if self.nuisance else {}),
             "converged": bool(self.converged),
             "status": self.status,
             "message": self.message,
@@ -228,6 +241,13 @@ class FitResult:
             "precision": self.precision,
             "versions": dict(self.versions),
         }
+        if self.nuisance:
+            out["nuisance"] = {
+                "parameters": self.nuisance.get("parameters", {}),
+                "chi2_prior": _num(self.nuisance.get("chi2_prior")),
+                "note": self.nuisance.get("note", ""),
+            }
+        return out
 
     def to_json(self, path: str | os.PathLike | None = None, indent: int = 2) -> str:
         """The JSON text; written (atomically) to ``path`` when given."""
@@ -254,6 +274,8 @@ class FitResult:
             if name in self.undetermined:
                 u = self.undetermined[name]
                 sig = f"NOT determined: {u.get('range_text', '')}"
-            lines.append(f"  {name:<22s} {d['value']:>14.6g} {sig:<14s} {d['unit']}")
+            cond = (self.nuisance or {}).get("sigma_conditional", {}).get(name)
+            extra = "" if cond is None else f" (without systematics +- {cond * to_natural(p.unit):.3g})"
+            lines.append(f"  {name:<22s} {d['value']:>14.6g} {sig:<14s} {d['unit']}{extra}")
         lines.extend(f"warning: {w}" for w in self.warnings)
         return "\n".join(lines)

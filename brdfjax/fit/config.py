@@ -52,6 +52,12 @@ file::
     [output]
     figures = true
 
+    [nuisance]                              # systematic errors as nuisance parameters (brdfjax.fit._nuisance)
+    # enabled = true                        # default: on when the frames carry ND stacks (through the instrument)
+    nd = true; flux = true; nonlinearity = true
+    nd_tolerance = "standard"               # or "rectangular" (tolerance / sqrt 3)
+    # nd_tolerances = { "1.0" = 0.06 }      # +-OD, over the manifest's [calibration] and the seed's table
+
 Parameters: names are the model's (``model.params()``) plus the frame
 parameters ``theta_i`` and ``phi_ref`` (per frame by default), with the unit
 suffix of their stored unit (``_deg`` for angles, ``_m`` for lengths);
@@ -67,6 +73,9 @@ would count as independent noise), ``"pixel"`` each pixel's own noise and
 non-linearity (``u_scatter_flux``), ``"noise"`` its noise only; ``"auto"``
 (the default, as in :func:`brdfjax.fit.read_frame_data`) is ``"pixel"`` where
 the frame has ``u_scatter_flux`` and ``"total"`` otherwise.
+With nuisance parameters (``[nuisance]``, on by default for frames through the
+instrument) the frame-wide errors are parameters of the likelihood, so
+``"total"`` is refused (it would count them twice).
 
 :func:`load_fit_config` validates a file strictly (unknown keys, unknown
 parameters, bounds in the wrong order, missing files: :class:`ConfigError`
@@ -113,7 +122,7 @@ from ..config import (
     unknown_key_message,
 )
 from ..detector import Detector
-from ..instrument.raw import RawFormatError
+from ..instrument.raw import RawFormatError, read_manifest
 from ..instrument.reduce import MERGES, ReductionError, reduce_measurement_set
 from ..instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
 from ..io import atomic_output, write_json_atomic
@@ -126,6 +135,7 @@ from ._data import FrameData, TableData
 from ._figures import write_figures
 from ._fit import FIRST_STAGES, _check_detectors, _resolve_precision, block_names, fit
 from ._frames_io import SIGMA_CHOICES, read_frame_data
+from ._nuisance import NuisanceOptions, build_nuisance, check_sigma_choice
 from ._params import SPEC_KEYS, Param, param_problems
 from ._residuals import LOSSES
 from ._result import FitResult
@@ -378,6 +388,9 @@ class FitConfig(StrictModel):
     params: dict[str, Any] = Field(default_factory=dict, description="the [params] table")
     fit: FitSection = Field(default_factory=FitSection, description="the [fit] table")
     output: OutputConfig = Field(default_factory=OutputConfig, description="the [output] table")
+    nuisance: NuisanceOptions = Field(
+        default_factory=NuisanceOptions, description="the [nuisance] table: systematic errors as nuisance parameters"
+    )
 
     _source: Path = PrivateAttr(default=Path("<config>"))
     _sections: dict[str, Any] = PrivateAttr(default_factory=dict)
@@ -719,6 +732,7 @@ def _load_frames(cfg: FitConfig, work_dir: Path | None, notes: list[str], model:
         except (ReductionError, RawFormatError, ValueError, OSError) as e:
             raise ConfigError(str(cfg.source), [("data.manifest", f"cannot reduce the measurement set: {e}")]) from None
         notes.append(f"reduced {len(written)} frame(s) of {cfg.resolve(d.manifest)} into {out}")
+        info.setdefault("manifests", []).append(str(cfg.resolve(d.manifest)))
         entries += [("data.manifest", p) for p in written]
     if d.synthetic is not None:
         s = d.synthetic
@@ -727,6 +741,7 @@ def _load_frames(cfg: FitConfig, work_dir: Path | None, notes: list[str], model:
         )
         paths, w_px = _synthesize(cfg, model, folder, notes)
         info["synthetic_dir"] = str(folder)
+        info.setdefault("manifests", []).append(str(folder / "raw" / "manifest.toml"))
         if footprint is None:
             footprint = w_px
         entries += [("data.synthetic", p) for p in paths]
@@ -851,12 +866,48 @@ def build_fit_job(cfg: FitConfig, *, work_dir: str | os.PathLike | None = None) 
         allow_different_detectors=cfg.data.allow_different_detectors,
         use_footprint=f.use_footprint,
     )
+    fit_kwargs["nuisance"] = _nuisance_for(cfg, blocks, info.pop("manifests", []), notes)
     truth = None
     if cfg.data.synthetic is not None:
         truth = {k: float(np.asarray(v)) for k, v in model.params().items()}
     job = FitJob(model, blocks, dict(cfg.build_params()), fit_kwargs, cfg, notes, truth)
     job.notes.extend(f"{k}: {v}" for k, v in info.items())
     return job
+
+
+def _nuisance_for(cfg: FitConfig, blocks: list[FrameData | TableData], manifests: list[str], notes: list[str]) -> Any:
+    """The nuisance parameters of a config's data (``None``: none): on by default for frames with ND stacks."""
+    opts = cfg.nuisance
+    if opts.enabled is False or not any(getattr(b, "systematics", None) is not None for b in blocks):
+        if opts.enabled:
+            notes.append("nuisance: enabled, but no frame carries ND stacks (frames through the instrument); none added")
+        return None
+    src = str(cfg.source)
+    try:
+        check_sigma_choice(cfg.data.sigma, src)
+    except FitInputError as e:
+        raise ConfigError(src, [("data.sigma", str(e).split(": ", 1)[1])]) from None
+    table = None
+    for m in manifests:
+        try:
+            cal = read_manifest(m, check_files=False).calibration
+        except (RawFormatError, OSError) as e:
+            raise ConfigError(src, [("data", f"cannot read the calibration of {m}: {e}")]) from None
+        table = {**(table or NuisanceOptions().tolerance_table()), **{round(float(k), 6): float(v) for k, v in cal.nd_tolerances.items()}}
+    try:
+        spec = build_nuisance(blocks, block_names(blocks), opts, table, source=src)
+    except FitInputError as e:
+        msg = str(e).split(": ", 1)[1]
+        key, msg = msg.split(": ", 1) if msg.startswith("nuisance.") else ("nuisance", msg)
+        raise ConfigError(src, [(key, msg)]) from None
+    if spec is None:
+        return None
+    notes.append(
+        "nuisance parameters (systematic errors): "
+        + ", ".join(f"{n} (prior sigma {s:.3g})" for n, s in zip(spec.names, spec.prior_sigma))
+    )
+    # the options (not the spec): a fit of other blocks (the diagnosis' held-out frames) builds its own
+    return opts.model_copy(update={"enabled": True}).with_calibration(table)
 
 
 # --- running ----------------------------------------------------------------------------------

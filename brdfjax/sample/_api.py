@@ -18,6 +18,7 @@ from ..fit.internal import as_param, block_names, get_solver, to_natural
 from ..io import write_json_atomic
 from ..io.fingerprint import array_digest, value_digest
 from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
+from ._nuts import NutsDiagnostics, nuts_diagnostics, open_nuts, run_nuts
 from ._outputs import (
     model_at_points,
     plot_corner,
@@ -32,12 +33,16 @@ from ._priors import Prior, SampleError
 __all__ = [
     "sample",
     "PosteriorResult",
+    "SAMPLERS",
     "check_sampling",
     "decimate_frame",
     "problem_fingerprint",
     "sampling_record",
     "start_from_fit_json",
 ]
+
+#: The samplers of ``sample(sampler=...)`` / ``[sample] sampler``.
+SAMPLERS = ("emcee", "nuts")
 
 #: Options of :func:`brdfjax.fit.prepare` among a fit's keyword arguments.
 _PREPARE_KEYS = (
@@ -49,6 +54,7 @@ _PREPARE_KEYS = (
     "precision",
     "allow_different_detectors",
     "use_footprint",
+    "nuisance",
 )
 
 
@@ -98,6 +104,7 @@ def decimate_frame(data: FrameData, step: int = 1, roi: tuple[int, int, int, int
         wavelength=data.wavelength,
         footprint=fp,
         name=data.name,
+        systematics=data.systematics,
     )
 
 
@@ -331,6 +338,9 @@ def sample(
     log: Any = None,
     extra_record: Mapping[str, Any] | None = None,
     extra_fingerprint: Mapping[str, Any] | None = None,
+    sampler: str = "emcee",
+    n_chains: int = 4,
+    n_warmup: int = 500,
 ) -> PosteriorResult:
     """Sample the posterior of ``params`` (as for :func:`brdfjax.fit.fit`) given ``data`` with emcee.
 
@@ -351,6 +361,10 @@ def sample(
     chain drawn under another problem (a prior, a data value, the grid, a
     sigma setting, the walkers ...) is refused naming what differs.  A run
     that fails or is interrupted before its first step leaves no chain file.
+    ``sampler``: ``"emcee"`` (the affine-invariant ensemble, ``n_walkers``)
+    or ``"nuts"`` (blackjax's No-U-Turn sampler: ``n_chains`` independent
+    chains after ``n_warmup`` steps of window adaptation; needs blackjax;
+    :mod:`brdfjax.sample._nuts`), same outputs and resume guarantees.
     """
     t_start = time.perf_counter()
     say = log or (lambda msg: None)
@@ -364,6 +378,10 @@ def sample(
         raise SampleError(f"thin must be a positive integer, got {thin!r}")
     if n_steps < 1:
         raise SampleError(f"n_steps must be a positive integer, got {n_steps!r}")
+    if sampler not in SAMPLERS:
+        raise SampleError(f"unknown sampler {sampler!r}; known: {', '.join(map(repr, SAMPLERS))}")
+    if sampler == "nuts" and not (isinstance(n_chains, int | np.integer) and n_chains >= 1 and n_warmup >= 1):
+        raise SampleError(f"NUTS needs n_chains >= 1 and n_warmup >= 1, got {n_chains!r} and {n_warmup!r}")
 
     # the least-squares optimum
     fit_res: FitResult | None = None
@@ -402,63 +420,38 @@ def sample(
     prep = prepare(model, blocks, spec_start, solver=solver, **{k: fit_kwargs[k] for k in _PREPARE_KEYS if k in fit_kwargs})
     post = build_log_posterior(prep, priors, loss=fit_kwargs.get("loss", "linear"))
     ndim = post.ndim
-    nw = default_walkers(ndim) if n_walkers is None else n_walkers
-    check_walkers(nw, ndim)
+    nw = (default_walkers(ndim) if n_walkers is None else n_walkers) if sampler == "emcee" else int(n_chains)
+    if sampler == "emcee":
+        check_walkers(nw, ndim)
 
     if fit_res is not None:
         x0 = np.array([fit_res.value(n) for n in post.names])
         s0 = np.array([np.nan if fit_res.sigma(n) is None else fit_res.sigma(n) for n in post.names])
     elif start_json is not None:
+        if prep.nuisance is not None:  # a fit without the nuisance parameters: they start at 0, their prior's sigma
+            pars = dict(start_json.get("parameters") or {})
+            for n, sg in zip(prep.nuisance.names, prep.nuisance.prior_sigma):
+                pars.setdefault(n, {"value": 0.0, "sigma": float(sg), "unit": "1", "free": True})
+            start_json = {**start_json, "parameters": pars}
         x0, s0 = start_from_fit_json(start_json, post.names, post.units)
     else:
         x0 = np.array([e.x0 for e in prep.layout.free])
         s0 = np.full(ndim, np.nan)
 
-    meta = {
-        "units": list(post.units),
-        "seed": int(seed),
-        "n_walkers": int(nw),
-        "ball": float(ball),
-        "priors": post.describe_priors(),
-    }
     fingerprint = problem_fingerprint(
-        model, blocks, post, prep.layout, fit_kwargs, n_walkers=nw, seed=seed, ball=ball, extra=extra_fingerprint
+        model, blocks, post, prep.layout, fit_kwargs, n_walkers=nw, seed=seed, ball=ball,
+        extra={**dict(extra_fingerprint or {}), "sampler": sampler, **({"n_warmup": int(n_warmup)} if sampler == "nuts" else {})},
     )
-    p0 = None
-    if not resuming:  # the start is checked before the chain file exists: a refusal leaves nothing behind
-        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
-    backend, info = open_chain(chain_path, post.names, nw, resume=resume, meta=meta, fingerprint=fingerprint)
-    created = chain_path is not None and info is None
-    if info is not None and info.iteration == 0:
-        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
-    elif info is not None:
-        say(f"resuming {chain_path}: {info.iteration} steps present, running to {n_steps}")
-    log_prob = post if vectorize else post.log_prob_one
-    try:
-        outcome = run_chain(
-            log_prob,
-            backend,
-            p0,
-            n_steps,
-            seed=seed,
-            vectorize=vectorize,
-            progress=progress,
-            stop_when_converged=stop_when_converged,
-            check_every=check_every,
+    if sampler == "emcee":
+        chain, lp, diag, outcome, seed = _run_emcee(
+            post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, vectorize, progress, stop_when_converged,
+            check_every, burn, thin, say, fingerprint,
         )
-    except BaseException:
-        if created and int(getattr(backend, "iteration", 0)) == 0:
-            chain_path.unlink(missing_ok=True)  # failed before its first step: nothing to resume, nothing left
-        raise
-    if outcome.iterations == 0:
-        if created:
-            chain_path.unlink(missing_ok=True)
-        raise SampleError("the run was interrupted before the first step was saved; nothing was kept")
-    chain = backend.get_chain()
-    lp = backend.get_log_prob()
-    diag = diagnose(backend, post.names, burn=burn, thin=thin, check_every=check_every)
-    if outcome.stopped_converged:
-        diag = Diagnostics(**{**diag.__dict__, "converged": True})
+    else:
+        chain, lp, diag, outcome = _run_nuts_sampler(
+            post, chain_path, x0, s0, _fit_covariance(fit_res, start_json, post.names, s0), nw, ball, seed, resume,
+            n_steps, n_warmup, stop_when_converged, check_every, burn, thin, say, fingerprint,
+        )
     flat = chain[diag.burn :: diag.thin].reshape(-1, ndim)
     flat_nat = post.to_natural(flat)
     i_map = np.unravel_index(int(np.argmax(lp)), lp.shape)
@@ -466,13 +459,19 @@ def sample(
     f = post.factors
     fit_x = x0 * f if (fit_res is not None or start_json is not None) else None
     fit_s = s0 * f if fit_x is not None else None
-    params_summary = summarise(
-        flat_nat, post.names, post.natural_units, diag.tau, diag.ess, x_map * f, fit_x, fit_s, post.describe_priors()
-    )
+    priors_text = post.describe_priors()
+    spec_n = prep.nuisance
+    if spec_n is not None:
+        for name, sg in zip(spec_n.names, spec_n.prior_sigma):
+            priors_text[name] = f"normal(0, {sg:.4g}) in the likelihood (nuisance)"
+    params_summary = summarise(flat_nat, post.names, post.natural_units, diag.tau, diag.ess, x_map * f, fit_x, fit_s, priors_text)
+    if spec_n is not None:
+        _add_conditional(params_summary, flat_nat, post.names, spec_n.names)
     ll_fit = float(post.log_likelihood(x0[None, :])[0])
     corr = np.corrcoef(flat.T) if ndim > 1 else np.ones((1, 1))
     summary: dict[str, Any] = {
         "parameters": params_summary,
+        "sampler": sampler,
         "n_steps": int(diag.n_steps),
         "n_walkers": int(nw),
         "n_dim": int(ndim),
@@ -515,6 +514,24 @@ def sample(
         "new_steps": int(outcome.new_steps),
         "versions": {**versions(), **_versions()},
     }
+    if isinstance(diag, NutsDiagnostics):
+        summary["nuts"] = {
+            "n_chains": int(nw),
+            "n_warmup": int(n_warmup),
+            "rhat": {n: _finite(r) for n, r in zip(post.names, diag.rhat)},
+            "rhat_max": _finite(np.nanmax(diag.rhat)) if np.any(np.isfinite(diag.rhat)) else None,
+            "divergences": int(diag.divergences),
+            "mean_leapfrog_steps": _finite(diag.mean_leapfrog),
+            "step_size": [float(h) for h in diag.step_size],
+            "converged_rule": "R-hat < 1.01 for every parameter and kept chain > 50 tau (tau = n_chains m / ESS)",
+        }
+    if spec_n is not None:
+        summary["nuisance"] = {
+            "parameters": spec_n.describe(),
+            "note": "each parameter's std/q16/q84 is marginalised over the nuisance parameters (systematics "
+            "included); sigma_conditional is its std with the nuisance parameters held fixed (Gaussian "
+            "conditioning of the posterior covariance): the data's own uncertainty",
+        }
     result = PosteriorResult(post, chain, lp, diag, summary, outcome, fit_res)
     if out_dir is not None:
         out = Path(out_dir)
@@ -534,9 +551,132 @@ def sample(
     return result
 
 
+def _fit_covariance(fit_res: FitResult | None, start_json: Mapping[str, Any] | None, names: Sequence[str],
+                    s0: np.ndarray) -> np.ndarray | None:
+    """The fit's covariance of ``names`` (stored units), from a FitResult or its JSON's correlation; None if unknown."""
+    if fit_res is not None and tuple(fit_res.free_names) == tuple(names):
+        return np.asarray(fit_res.covariance, np.float64)
+    corr = (start_json or {}).get("correlation") or {}
+    if list(corr.get("names") or []) == list(names):
+        c = np.array([[np.nan if v is None else v for v in row] for row in corr["matrix"]], np.float64)
+        return c * np.outer(s0, s0)
+    return None
+
+
+def _finite(x: Any) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _add_conditional(summary: dict[str, Any], flat: np.ndarray, names: Sequence[str], nuisance: Sequence[str]) -> None:
+    """Each physical parameter's std with the nuisance parameters fixed (Gaussian conditioning), beside the marginal."""
+    j = [i for i, n in enumerate(names) if n in nuisance]
+    k = [i for i, n in enumerate(names) if n not in nuisance]
+    if not j or not k or flat.shape[0] < len(names) + 2:
+        return
+    c = np.cov(flat.T)
+    cond = c[np.ix_(k, k)] - c[np.ix_(k, j)] @ np.linalg.pinv(c[np.ix_(j, j)]) @ c[np.ix_(j, k)]
+    for a, i in enumerate(k):
+        summary[names[i]]["sigma_conditional"] = _finite(np.sqrt(max(cond[a, a], 0.0)))
+        summary[names[i]]["sigma_marginal"] = _finite(np.sqrt(c[i, i]))
+
+
+def _run_emcee(post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, vectorize, progress, stop_when_converged,
+               check_every, burn, thin, say, fingerprint):
+    meta = {
+        "units": list(post.units),
+        "seed": int(seed),
+        "n_walkers": int(nw),
+        "ball": float(ball),
+        "priors": post.describe_priors(),
+    }
+    p0 = None
+    if not resume:  # the start is checked before the chain file exists: a refusal leaves nothing behind
+        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
+    backend, info = open_chain(chain_path, post.names, nw, resume=resume, meta=meta, fingerprint=fingerprint)
+    created = chain_path is not None and info is None
+    if info is not None and info.iteration == 0:
+        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
+    elif info is not None:
+        say(f"resuming {chain_path}: {info.iteration} steps present, running to {n_steps}")
+    log_prob = post if vectorize else post.log_prob_one
+    try:
+        outcome = run_chain(
+            log_prob,
+            backend,
+            p0,
+            n_steps,
+            seed=seed,
+            vectorize=vectorize,
+            progress=progress,
+            stop_when_converged=stop_when_converged,
+            check_every=check_every,
+        )
+    except BaseException:
+        if created and int(getattr(backend, "iteration", 0)) == 0:
+            Path(chain_path).unlink(missing_ok=True)  # failed before its first step: nothing to resume, nothing left
+        raise
+    if outcome.iterations == 0:
+        if created:
+            Path(chain_path).unlink(missing_ok=True)
+        raise SampleError("the run was interrupted before the first step was saved; nothing was kept")
+    chain = backend.get_chain()
+    lp = backend.get_log_prob()
+    diag = diagnose(backend, post.names, burn=burn, thin=thin, check_every=check_every)
+    if outcome.stopped_converged:
+        diag = Diagnostics(**{**diag.__dict__, "converged": True})
+    return chain, lp, diag, outcome, seed
+
+
+def _whitening(x0: np.ndarray, s0: np.ndarray, cov: np.ndarray | None) -> np.ndarray:
+    """``L`` with ``x = x0 + L z``: the Cholesky factor of the fit's covariance, else its sigmas on the diagonal."""
+    sig = np.asarray(s0, np.float64).copy()
+    bad = ~(np.isfinite(sig) & (sig > 0))
+    sig[bad] = np.where(x0[bad] != 0, 1e-3 * np.abs(x0[bad]), 1e-6)
+    if cov is not None and not bad.any() and np.all(np.isfinite(cov)):
+        try:
+            return np.linalg.cholesky(np.asarray(cov, np.float64))
+        except np.linalg.LinAlgError:
+            pass
+    return np.diag(sig)
+
+
+def _run_nuts_sampler(post, chain_path, x0, s0, cov, n_chains, ball, seed, resume, n_steps, n_warmup,
+                      stop_when_converged, check_every, burn, thin, say, fingerprint):
+    scale = _whitening(x0, s0, cov)
+    X = None
+    if not resume:  # the start is checked before the chain file exists: a refusal leaves nothing behind
+        X = start_ball(post, x0, s0, n_chains, ball, np.random.default_rng(seed))
+    existed = chain_path is not None and Path(chain_path).exists()
+    nchain = open_nuts(chain_path, post.names, n_chains, resume=resume, center=x0, scale=scale, seed=seed, n_warmup=n_warmup,
+                       fingerprint=fingerprint)
+    created = chain_path is not None and not existed
+    z0 = None
+    if nchain.step_size is None:
+        if X is None:
+            X = start_ball(post, x0, s0, n_chains, ball, np.random.default_rng(seed))
+        z0 = np.linalg.solve(nchain.scale, (X - nchain.center).T).T
+    else:
+        say(f"resuming {chain_path}: {nchain.iteration} NUTS steps per chain present, running to {n_steps}")
+    try:
+        outcome = run_nuts(post, nchain, z0, n_steps, stop_when_converged=stop_when_converged, check_every=check_every, log=say)
+    except BaseException:
+        if created and nchain.iteration == 0:
+            Path(chain_path).unlink(missing_ok=True)  # failed before its first step: nothing to resume, nothing left
+        raise
+    if nchain.iteration == 0:
+        if created:
+            Path(chain_path).unlink(missing_ok=True)
+        raise SampleError("the run was interrupted before the first step was saved; nothing was kept")
+    diag = nuts_diagnostics(nchain, post.names, burn=0 if burn == "auto" else burn, thin=thin)
+    if outcome.stopped_converged:
+        diag = NutsDiagnostics(**{**diag.__dict__, "converged": True})
+    return nchain.rows["x"], nchain.rows["log_prob"], diag, outcome
+
+
 def _versions() -> dict[str, str]:
     out = {}
-    for pkg in ("emcee", "h5py", "corner"):
+    for pkg in ("emcee", "h5py", "corner", "blackjax"):
         try:
             out[pkg] = importlib.metadata.version(pkg)
         except importlib.metadata.PackageNotFoundError:

@@ -4,6 +4,7 @@ The config is a fit config (:mod:`brdfjax.fit.config`: data, model, [params],
 [fit]) plus an optional ``[sample]`` table (:class:`SampleSection`)::
 
     [sample]
+    sampler = "emcee"               # or "nuts" (blackjax's No-U-Turn sampler; n_chains, n_warmup)
     n_walkers = 32                  # default max(32, 4 x free parameters); >= 2 x free parameters, even
     n_steps = 2000                  # total chain length (a resumed run continues to this length)
     burn = "auto"                   # discarded steps: an integer or "auto" (2 x the largest tau, <= half)
@@ -65,7 +66,7 @@ from ..fit.internal import FRAME_PARAMETERS
 from ..io import check_output_dir
 from ..io.fingerprint import file_digest, value_digest
 from ..progress import make_console
-from ._api import check_sampling, sample
+from ._api import SAMPLERS, check_sampling, sample
 from ._priors import PRIOR_KINDS, Prior, SampleError
 
 __all__ = ["SampleSection", "PriorConfig", "add_arguments", "run", "priors_from_config"]
@@ -93,6 +94,9 @@ class PriorConfig(StrictModel):
 class SampleSection(StrictModel):
     """The ``[sample]`` table of a fit config (see the module docstring)."""
 
+    sampler: str = Field("emcee", description=f"the sampler: {quoted_choices(SAMPLERS)}")
+    n_chains: int = Field(4, ge=1, description="NUTS: independent chains (R-hat needs >= 2)")
+    n_warmup: int = Field(500, ge=1, description="NUTS: window-adaptation steps per chain (not kept)")
     n_walkers: int | None = Field(None, ge=2, description="number of walkers, even, >= 2 x the free parameters")
     n_steps: int = Field(2000, ge=1, description="total chain length in steps, >= 1")
     burn: int | Literal["auto"] = Field("auto", description="steps discarded as burn-in: an integer >= 0 or 'auto'")
@@ -107,6 +111,11 @@ class SampleSection(StrictModel):
     roi: list[int] | None = Field(None, min_length=4, max_length=4, description="[h0, h1, v0, v1] seed pixel indices")
     predictive_draws: int = Field(100, ge=0, description="posterior draws for the predictive bands (0: none)")
     priors: dict[str, PriorConfig] = Field(default_factory=dict, description="parameter key -> prior table")
+
+    @field_validator("sampler")
+    @classmethod
+    def _sampler(cls, v: str) -> str:
+        return check_choice("sampler", v, SAMPLERS)
 
     @field_validator("burn")
     @classmethod
@@ -165,7 +174,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _print_summary(console: Any, s: dict[str, Any]) -> None:
     fmt = lambda v: "-" if v is None else f"{v:.5g}"  # noqa: E731
     lines = [
-        f"posterior: {s['n_steps']} steps x {s['n_walkers']} walkers, burn-in {s['burn']}, {s['n_samples']} samples",
+        f"posterior ({s.get('sampler', 'emcee')}): {s['n_steps']} steps x {s['n_walkers']} "
+        f"{'chains' if s.get('sampler') == 'nuts' else 'walkers'}, burn-in {s['burn']}, {s['n_samples']} samples",
         f"{'parameter':<18s} {'median':>12s} {'-1 sigma':>11s} {'+1 sigma':>11s} {'unit':<6s} {'tau':>7s} {'ESS':>8s} {'fit':>12s}",
     ]
     for name, p in s["parameters"].items():
@@ -177,6 +187,12 @@ def _print_summary(console: Any, s: dict[str, Any]) -> None:
         f"acceptance fraction: mean {s['acceptance_fraction_mean']:.3f} (per walker "
         f"{min(s['acceptance_fraction']):.3f} .. {max(s['acceptance_fraction']):.3f}); converged: {s['converged']}"
     )
+    if "nuts" in s:
+        n = s["nuts"]
+        lines.append(f"NUTS: R-hat max {n['rhat_max']}, {n['divergences']} divergences, mean {n['mean_leapfrog_steps']} leapfrog steps")
+    for name, p in s["parameters"].items():
+        if p.get("sigma_conditional") is not None:
+            lines.append(f"{name}: sigma {fmt(p['sigma_marginal'])} with the systematics, {fmt(p['sigma_conditional'])} without")
     lines.extend(f"warning: {w}" for w in s["warnings"])
     console.print("\n".join(lines), markup=False)
 
@@ -285,6 +301,9 @@ def run(args: argparse.Namespace) -> int:
         log=lambda m: console.print(m, markup=False),
         extra_record=record,
         extra_fingerprint=config_fingerprint(cfg),
+        sampler=sec.sampler,
+        n_chains=sec.n_chains,
+        n_warmup=sec.n_warmup,
     )
     _print_summary(console, res.summary)
     console.print(f"wrote {', '.join(sorted(Path(f).name for f in res.files.values()))} in {out}", markup=False)

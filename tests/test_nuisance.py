@@ -1,0 +1,155 @@
+"""Systematic errors as nuisance parameters (brdfjax.fit._nuisance) and the NUTS sampler (brdfjax.sample._nuts).
+
+Data: a small Beckmann peak on a Lambertian floor rendered with 2 % log-normal
+noise (every 8th pixel of a 97 x 97 region), given the ND stacks of a frame that
+came through the instrument and a known OD error of its 1.0 OD filter, so
+that the truth of the flux-scaled weight is known; a cheap model keeps the
+compile times of the fits and of NUTS short.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+import brdfjax as bj
+from brdfjax.config import ConfigError
+from brdfjax.fit import fit, render_noisy_frames
+from brdfjax.fit._common import FitInputError
+from brdfjax.fit._nuisance import (
+    FrameSystematics,
+    NuisanceOptions,
+    build_nuisance,
+    default_nd_tolerances,
+    systematics_from_attrs,
+)
+from brdfjax.instrument.uncertainty import optical_density_uncertainty
+from brdfjax.sample import SampleError, sample
+
+LN10 = math.log(10.0)
+MODEL = bj.Model(
+    terms={"specular": bj.Specular(bj.Beckmann(4e-4), rho_s=0.5, n=1.5, k=0.0), "diffuse": bj.Lambertian(0.05)},
+    aliases=(("m", "specular.m"), ("rho_s", "specular.rho_s")),
+)
+SPEC = {"m": 4.2e-4, "rho_s": 0.45}
+#: The true OD error of the 1.0 OD filter (in the sample stack only): the data read 10^-0.06 = 0.87 times the truth.
+DELTA = 0.06
+
+
+def _syst(beam: str, sample: str, temporal: float = 0.0101) -> FrameSystematics:
+    return FrameSystematics(beam, sample, temporal, 1.8e-4, 0.0)
+
+
+class _Block:
+    def __init__(self, s):
+        self.systematics = s
+
+
+def test_nd_nuisance_design_reproduces_the_seed_budget():
+    """Filters shared by the beam and a sample stack cancel; each frame's combined ND prior is Eq 97's number."""
+    blocks = [_Block(_syst("4.0+1.0+0.2", "4.0+0.3")), _Block(_syst("4.0+1.0+0.2", "4.0+1.0")), _Block(None)]
+    spec = build_nuisance(blocks, ["a", "b", "t"], NuisanceOptions(nonlinearity=False))
+    assert spec.names == ("nd[0.2]", "nd[0.3]", "nd[1.0]", "flux[a]", "flux[b]")
+    d = dict(zip(spec.names, spec.design.T))
+    np.testing.assert_allclose(d["nd[0.2]"], [LN10, LN10, 0.0])  # beam only: in both frames
+    np.testing.assert_allclose(d["nd[0.3]"], [-LN10, 0.0, 0.0])  # sample of a only
+    np.testing.assert_allclose(d["nd[1.0]"], [LN10, 0.0, 0.0])  # cancels in b (beam and sample share it)
+    nd = [i for i, k in enumerate(spec.kinds) if k == "nd"]
+    for k, (beam, samp) in enumerate([("4.0+1.0+0.2", "4.0+0.3"), ("4.0+1.0+0.2", "4.0+1.0")]):
+        combined = math.sqrt(sum((spec.design[k, j] * spec.prior_sigma[j]) ** 2 for j in nd))
+        assert combined == pytest.approx(optical_density_uncertainty(beam, samp), rel=1e-12)
+    assert optical_density_uncertainty("4.0+1.0+0.2", "4.0+0.3") == pytest.approx(0.142, abs=5e-4)  # the seed's 14.2 %
+    assert spec.prior_sigma[spec.names.index("flux[a]")] == pytest.approx(math.hypot(0.0101, 1.8e-4))
+    rect = build_nuisance(blocks, ["a", "b", "t"], NuisanceOptions(nd_tolerance="rectangular", flux=False))
+    assert rect.prior_sigma[0] == pytest.approx(0.01 / math.sqrt(3))
+    # the response curve's level: from the header, scaled by the residual fraction after a correction
+    s = systematics_from_attrs({"nd_beam": "4.0+3.0", "nd_sample": "4.0+1.0", "nonlinearity_curve": "0:-0.0172,1:0.0172",
+                                "nonlinearity_corrected": 1, "u_temporal": 0.0101})
+    assert s.nonlinearity_level == pytest.approx(0.0172 * 0.14 / 1.74)
+    assert systematics_from_attrs({"theta_i": 0.3}) is None
+
+
+def test_bad_nuisance_input_names_the_key():
+    blocks = [_Block(_syst("4.0+3.0", "4.0+1.0"))]
+    with pytest.raises(FitInputError, match=r'cfg.toml: nuisance.nd_tolerances."0.5": no frame\'s ND stacks have a 0.5 OD'):
+        build_nuisance(blocks, ["a"], NuisanceOptions(nd_tolerances={"0.5": 0.02}), source="cfg.toml")
+    with pytest.raises(FitInputError, match=r"the 2.0 OD filter has no tolerance"):
+        build_nuisance([_Block(_syst("4.0+2.0", "4.0"))], ["a"], NuisanceOptions())
+    from brdfjax.fit.config import parse_fit_config
+
+    base = {"data": {"frames": ["x.exr"]}, "model": {"preset": "solar_cell"}}
+    with pytest.raises(ConfigError, match=r'c.toml: nuisance.nd_tolerances: .*"1.0" = -0.1: an OD tolerance must be'):
+        parse_fit_config({**base, "nuisance": {"nd_tolerances": {"1.0": -0.1}}}, source="c.toml")
+    from brdfjax.sample.cli import SampleSection
+
+    with pytest.raises(ConfigError, match=r"c.toml: sample.sampler: unknown sampler 'hmc'; expected 'emcee' or 'nuts'"):
+        parse_fit_config({**base, "sample": {"sampler": "hmc"}}, source="c.toml", sections={"sample": SampleSection})
+
+
+def test_negative_calibration_tolerance_in_a_manifest_names_file_and_key(tmp_path):
+    from brdfjax.instrument.raw import ManifestError, read_manifest
+
+    p = tmp_path / "manifest.toml"
+    p.write_text('[beam]\nfile = "b.exr"\nbackground = "bb.exr"\n[[sample]]\nname = "s"\nfile = "s.exr"\nbackground = "sb.exr"\n[calibration.nd_tolerances]\n"1.0" = -0.06\n')
+    with pytest.raises(ManifestError, match=r'manifest.toml: calibration.nd_tolerances."1.0": must be a number >= 0'):
+        read_manifest(p, check_files=False)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    (f,) = render_noisy_frames(MODEL, [20.0], roi=(-48, 48, -48, 48), step=8, noise_rel=0.02, seed=2, floor=0.05)
+    # through an instrument whose 1.0 OD sample filter is DELTA thicker than nominal: every pixel reads 10^-DELTA low
+    return [dataclasses.replace(f, brdf=np.asarray(f.brdf) * 10 ** -DELTA, systematics=_syst("4.0+3.0", "4.0+1.0", 0.0))]
+
+
+def test_fit_with_nuisance_parameters_covers_the_truth_and_reports_both_sigmas(frames):
+    plain = fit(MODEL, frames, SPEC)
+    with_n = fit(MODEL, frames, SPEC, nuisance=NuisanceOptions(nonlinearity=False, flux=False))
+    rho = 0.5
+    # without the systematics the weight is biased by the OD error and its sigma is the noise's alone
+    assert abs(plain.value("rho_s") - rho * 10**-DELTA) < 3 * plain.sigma("rho_s")
+    assert abs(plain.value("rho_s") - rho) > 20 * plain.sigma("rho_s")
+    # with them: sigma ~ rho x ln(10) x sqrt(0.15^2 + 0.06^2) (Eq 97 for 4.0+3.0 vs 4.0+1.0), the truth inside 2 sigma
+    combined = optical_density_uncertainty("4.0+3.0", "4.0+1.0", default_nd_tolerances())
+    assert with_n.sigma("rho_s") == pytest.approx(with_n.value("rho_s") * combined, rel=0.05)
+    assert abs(with_n.value("rho_s") - rho) < 2 * with_n.sigma("rho_s")
+    d = with_n.to_dict()
+    assert d["parameters"]["rho_s"]["sigma_conditional"] == pytest.approx(plain.sigma("rho_s"), rel=0.05)
+    assert d["parameters"]["m"]["sigma_conditional"] == pytest.approx(d["parameters"]["m"]["sigma"], rel=0.02)
+    assert set(d["nuisance"]["parameters"]) == {"nd[1.0]", "nd[3.0]"}
+    assert d["nuisance"]["parameters"]["nd[3.0]"]["prior_sigma"] == 0.15
+    assert with_n.chi2 == pytest.approx(plain.chi2, rel=0.05)
+
+
+blackjax = pytest.importorskip("blackjax")
+
+
+def test_nuts_resumes_bit_identically_with_diagnostics(frames, tmp_path):
+    opts = NuisanceOptions(nonlinearity=False, flux=False)
+    start = fit(MODEL, frames, SPEC, nuisance=opts)
+    kw = dict(start=start, sampler="nuts", n_chains=2, n_warmup=40, seed=7, figures=False, fit_kwargs={"nuisance": opts})
+    full = sample(MODEL, frames, SPEC, n_steps=20, out_dir=tmp_path / "full", **kw)
+    part = sample(MODEL, frames, SPEC, n_steps=8, out_dir=tmp_path / "part", **kw)
+    resumed = sample(MODEL, frames, SPEC, n_steps=20, out_dir=tmp_path / "part", resume=True, **kw)
+    assert full.chain.shape == (20, 2, 4)
+    assert np.array_equal(resumed.chain[:8], part.chain) and np.array_equal(resumed.chain, full.chain)
+    assert np.array_equal(resumed.log_prob, full.log_prob)
+    s = full.summary
+    assert s["sampler"] == "nuts" and set(s["nuts"]["rhat"]) == {"m", "rho_s", "nd[1.0]", "nd[3.0]"}
+    assert s["nuts"]["divergences"] >= 0 and all(h > 0 for h in s["nuts"]["step_size"])
+    p = s["parameters"]["rho_s"]
+    assert p["ess"] > 0 and p["sigma_conditional"] < 0.2 * p["sigma_marginal"]
+    assert s["nuisance"]["parameters"]["nd[1.0]"]["prior_sigma"] == 0.06
+    # an emcee chain file is not a NUTS chain; a sampler that does not exist is named
+    import h5py
+
+    (tmp_path / "em").mkdir()
+    with h5py.File(tmp_path / "em" / "chain.h5", "w") as f:
+        f.create_group("mcmc")
+    with pytest.raises(SampleError, match=r"em/chain.h5: not a NUTS chain \(no 'nuts' group; an emcee chain\?"):
+        sample(MODEL, frames, SPEC, n_steps=4, out_dir=tmp_path / "em", resume=True, **kw)
+    with pytest.raises(SampleError, match=r"unknown sampler 'hmc'; known: 'emcee', 'nuts'"):
+        sample(MODEL, frames, SPEC, start=start, sampler="hmc")
