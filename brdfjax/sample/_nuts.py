@@ -254,11 +254,11 @@ def open_nuts(
     return chain
 
 
-def _logdensity(problem: Any, priors: Any, center: Any, scale: Any) -> Callable[[Any], Any]:
+def _logdensity(problem: Any, priors: Any, est: Any, center: Any, scale: Any) -> Callable[[Any], Any]:
     """The log-posterior in whitened coordinates ``z`` (``x = center + scale @ z``; the Jacobian is constant)."""
 
     def logdensity(z):
-        lp = _log_posterior_one(center + scale @ z, problem, priors)
+        lp = _log_posterior_one(center + scale @ z, problem, priors, est)
         # -inf outside the support: NUTS rejects the transition (a divergence), never moves there
         return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
 
@@ -268,10 +268,10 @@ def _logdensity(problem: Any, priors: Any, center: Any, scale: Any) -> Callable[
 # The problem, priors and whitening are arguments (not closed over), so that a new run of the same shapes -- a
 # resumed chain, another chain, another data set -- reuses the compiled programs.
 @eqx.filter_jit
-def _warmup(problem, priors, center, scale, key, z0, n_warmup: int):
+def _warmup(problem, priors, est, center, scale, key, z0, n_warmup: int):
     bj = _blackjax()
     warmup = bj.window_adaptation(
-        bj.nuts, _logdensity(problem, priors, center, scale),
+        bj.nuts, _logdensity(problem, priors, est, center, scale),
         adaptation_info_fn=bj.adaptation.base.get_filter_adapt_info_fn(),
     )
     (state, params), _ = warmup.run(key, z0, num_steps=n_warmup)
@@ -279,11 +279,11 @@ def _warmup(problem, priors, center, scale, key, z0, n_warmup: int):
 
 
 @eqx.filter_jit
-def _piece(problem, priors, center, scale, z, ld, grad, step_size, inv_mass, chain_keys, start):
+def _piece(problem, priors, est, center, scale, z, ld, grad, step_size, inv_mass, chain_keys, start):
     """:data:`CHUNK` NUTS steps of every chain from the states ``(z, ld, grad)``; step i's key is fold_in(key, start + i)."""
     bj = _blackjax()
     kernel = bj.nuts.build_kernel()
-    logdensity = _logdensity(problem, priors, center, scale)
+    logdensity = _logdensity(problem, priors, est, center, scale)
 
     def one(state, key, h, m):
         new, info = kernel(key, state, logdensity, h, m)
@@ -318,7 +318,7 @@ def run_nuts(
     _blackjax()
     say = log or (lambda m: None)
     t0 = time.perf_counter()
-    problem, priors = post.problem, post.priors
+    problem, priors, est = post.problem, post.priors, post.est
     dtype = post.dtype
     center = jnp.asarray(chain.center, dtype)
     scale = jnp.asarray(chain.scale, dtype)
@@ -332,7 +332,7 @@ def run_nuts(
         keys = _chain_keys(chain.seed, chain.n_chains, 0)
         zs, lds, grads, steps, imms = [], [], [], [], []
         for c in range(chain.n_chains):
-            z, ld, grad, h, imm = _warmup(problem, priors, center, scale, keys[c], jnp.asarray(z0[c], dtype), chain.n_warmup)
+            z, ld, grad, h, imm = _warmup(problem, priors, est, center, scale, keys[c], jnp.asarray(z0[c], dtype), chain.n_warmup)
             zs.append(np.asarray(z, np.float64))
             lds.append(float(ld))
             grads.append(np.asarray(grad, np.float64))
@@ -351,7 +351,7 @@ def run_nuts(
     try:
         while chain.iteration < n_steps:
             z, ld, grad = (jnp.asarray(a, dtype) for a in chain.state())
-            ys = _piece(problem, priors, center, scale, z, ld, grad, h, m, keys, jnp.asarray(chain.iteration, jnp.int32))
+            ys = _piece(problem, priors, est, center, scale, z, ld, grad, h, m, keys, jnp.asarray(chain.iteration, jnp.int32))
             take = min(CHUNK, int(n_steps) - chain.iteration)
             zz, lds, grads, div, nlf, acc = (np.swapaxes(np.asarray(a), 0, 1)[:take] for a in ys)
             zz = zz.astype(np.float64)

@@ -93,12 +93,18 @@ def single_log_posterior(x: Array, problem: Problem, priors: PriorArrays, est: A
 
 
 def estimated_noise_mask(prepared: Any) -> np.ndarray:
-    """1 at the points of blocks without uncertainties (tables with no sigma: noise profiled), else 0."""
+    """1 at the points of blocks without uncertainties (tables with no sigma: noise profiled), else 0.
+
+    The nuisance parameters' prior rows, which follow the data's residuals
+    (``Problem.nuisance``), have a known unit sigma: 0 there.
+    """
     parts = [
         np.full(int(c), 1.0 if isinstance(b, TableData) and b.sigma_rel is None else 0.0)
         for b, c in zip(prepared.blocks, prepared.problem.counts)
     ]
-    return np.concatenate(parts) if parts else np.zeros(0)
+    nuisance = prepared.problem.nuisance
+    parts.append(np.zeros(0 if nuisance is None else int(nuisance.size)))
+    return np.concatenate(parts)
 
 
 @dataclass(eq=False)
