@@ -64,11 +64,15 @@ class ProgressLine:
             return None
         return (time.perf_counter() - self.t0) / done * max(self.total - done, 0)
 
-    def update(self, done: int, note: str = "") -> None:
+    def update(self, done: int, note: str = "", *, total: int | None = None) -> None:
+        """``done`` items so far (``total``: the total, when it becomes known only now)."""
+        if total is not None:
+            self.total = int(total)
         if not self.enabled:
             return
         if self._bar is not None:
-            self._bar.update(self._task, completed=done, description=f"{self.what}" + (f": {note}" if note else ""))
+            self._bar.update(self._task, completed=done, total=self.total,
+                             description=f"{self.what}" + (f": {note}" if note else ""))
             return
         now = time.perf_counter()
         last = self.total is not None and done >= self.total
