@@ -49,11 +49,8 @@ class ProgressLine:
         quiet = console is None or getattr(console, "quiet", False)
         self.enabled = not quiet
         if self.enabled and getattr(console, "is_terminal", False):
-            cols: list[Any] = [TextColumn("{task.description}"), BarColumn()]
-            if total is not None:
-                cols += [MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()]
-            else:
-                cols += [TimeElapsedColumn()]
+            cols: list[Any] = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                               TextColumn("left"), TimeRemainingColumn()]  # rich shows '?' while the total is unknown
             self._bar = Progress(*cols, console=console, transient=False)
             self._bar.start()
             self._task = self._bar.add_task(what, total=total)
