@@ -168,7 +168,7 @@ def _run_reduce(args: argparse.Namespace) -> int:
     with ProgressLine(console, "reduce", None, unit="sample(s)", min_interval_s=0.0) as bar:
         paths = reduce_measurement_set(
             args.manifest, args.out, merge=args.merge, step=args.step, correct_nonlinearity=args.correct_nonlinearity,
-            progress=lambda done, total, name: (setattr(bar, "total", total), bar.update(done, f"reduced {name}")),
+            progress=lambda done, total, name: bar.update(done, f"reduced {name}", total=total),
         )
     frames = []
     for path in paths:
@@ -257,7 +257,7 @@ def _run_synthesize(args: argparse.Namespace) -> int:
     with ProgressLine(console, "synthesize", None, unit="step(s)", min_interval_s=0.0) as bar:
         manifest = instrument.measure_set(
             args.out, model, frames, nd_filters=args.nd, log=lambda line: console.print(line, markup=False),
-            progress=lambda done, total, what: (setattr(bar, "total", total), bar.update(done, what)),
+            progress=lambda done, total, what: bar.update(done, what, total=total),
         )
     console.print(f"wrote {manifest} ({time.perf_counter() - t0:.1f} s)", markup=False)
     return EXIT_OK

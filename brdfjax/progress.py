@@ -49,11 +49,8 @@ class ProgressLine:
         quiet = console is None or getattr(console, "quiet", False)
         self.enabled = not quiet
         if self.enabled and getattr(console, "is_terminal", False):
-            cols: list[Any] = [TextColumn("{task.description}"), BarColumn()]
-            if total is not None:
-                cols += [MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()]
-            else:
-                cols += [TimeElapsedColumn()]
+            cols: list[Any] = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                               TextColumn("left"), TimeRemainingColumn()]  # rich shows '?' while the total is unknown
             self._bar = Progress(*cols, console=console, transient=False)
             self._bar.start()
             self._task = self._bar.add_task(what, total=total)
@@ -64,11 +61,15 @@ class ProgressLine:
             return None
         return (time.perf_counter() - self.t0) / done * max(self.total - done, 0)
 
-    def update(self, done: int, note: str = "") -> None:
+    def update(self, done: int, note: str = "", *, total: int | None = None) -> None:
+        """``done`` items so far (``total``: the total, when it becomes known only now)."""
+        if total is not None:
+            self.total = int(total)
         if not self.enabled:
             return
         if self._bar is not None:
-            self._bar.update(self._task, completed=done, description=f"{self.what}" + (f": {note}" if note else ""))
+            self._bar.update(self._task, completed=done, total=self.total,
+                             description=f"{self.what}" + (f": {note}" if note else ""))
             return
         now = time.perf_counter()
         last = self.total is not None and done >= self.total
