@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 import types
 from pathlib import Path
@@ -145,9 +146,13 @@ def test_gradient_matches_finite_differences():
         assert g == pytest.approx(fd, rel=1e-5, abs=1e-9)
 
 
-def test_albedo_of_lambertian_and_seed_cell():
+def test_albedo_of_lambertian():
     lam = bj.Model({"d": bj.Lambertian(0.3)})
     assert directional_albedo(lam, 0.5, n_theta=400, n_phi=256) == pytest.approx(0.3, rel=3e-4)
+
+
+@pytest.mark.skipif(os.environ.get("BRDFJAX_SLOW") != "1", reason="the full 5-million-point grid: BRDFJAX_SLOW=1")
+def test_albedo_of_seed_cell():
     # seed cell at normal incidence: centre rho_s1 (F_s+F_p)/2 + offset + bars (0.0278 at 550 nm)
     a = directional_albedo(bj.solar_cell(), 0.0, 550e-9)
     Fs, Fp = bj.fresnel(3.6, 0.0)
@@ -186,6 +191,7 @@ def test_matches_lumos_sat_lambertian_and_phong(tmp_path):
     models = {"cell": Phong(kd, ks, nexp), "bus": bj.Model({"d": bj.Lambertian(0.3)}), "back": bj.Model({"d": bj.Lambertian(0.1)})}
     sat = Satellite(job.facets, tuple(models[n] for n in job.model_names), job.attitude, job.model_of)
     out = facet_flux(sat, job.geometry, SunDisk.point())
+    disk_flux = np.asarray(facet_flux(sat, job.geometry, SunDisk.rings(8))["flux"]).sum(-1)
     g = job.geometry
     ours = np.asarray(out["flux"]).sum(-1) * (np.asarray(g.d_sun) / AU_M) ** 2  # lumos: 1 AU irradiance everywhere
     M = np.asarray(job.attitude.matrix(g.r_hat, g.v_hat))
@@ -193,7 +199,7 @@ def test_matches_lumos_sat_lambertian_and_phong(tmp_path):
     x, y, n = (np.asarray(a) for a in job.facets.frames(jnp.asarray(s_body)))
     brdfs = {"cell": lib.PHONG(kd, ks, nexp), "bus": lib.LAMBERTIAN(0.3), "back": lib.LAMBERTIAN(0.1)}
     r_obs = job.passes.r_obs
-    compared = 0
+    dm, dm_disk = [], []
     for t in range(len(g)):
         if float(out["sunlit"][t]) < 1.0:
             continue
@@ -216,9 +222,12 @@ def test_matches_lumos_sat_lambertian_and_phong(tmp_path):
                                                  include_earthshine=False) / 1360.0
         if lum == 0:
             continue
-        compared += 1
-        assert -2.5 * np.log10(ours[t] / lum) == pytest.approx(0.0, abs=0.01)
-    assert compared >= 10
+        dm.append(-2.5 * np.log10(ours[t] / lum))
+        dm_disk.append(-2.5 * np.log10(disk_flux[t] * (float(g.d_sun[t]) / AU_M) ** 2 / lum))
+    print(f"lumos-sat vs brdfjax: {len(dm)} steps, max |dm| = {np.max(np.abs(dm)):.2e} mag (point Sun), "
+          f"{np.max(np.abs(dm_disk)):.2e} mag (solar disk)")
+    assert len(dm) >= 10
+    assert np.max(np.abs(dm)) < 0.01 and np.max(np.abs(dm_disk)) < 0.01
 
 
 # --- CLI, outputs and bad input ------------------------------------------------------------------------------
@@ -308,13 +317,13 @@ def test_posterior_bands(tmp_path):
     _fake_chain(tmp_path / "chain.h5", ["rho_s2", "rho_s3"], [0.7, 300.0], [0.3, 0.3])
     # the seconds around the shipped pass's diffraction glint, where the array's bars light the observer
     cfg = _small_config(tmp_path, **{'[models.cell]\npreset = "solar_cell"':
-                                     '[models.cell]\npreset = "solar_cell"\nposterior = "chain.h5"\nposterior_samples = 24',
+                                     '[models.cell]\npreset = "solar_cell"\nposterior = "chain.h5"\nposterior_samples = 8',
                                      "start = 2026-12-02T07:15:00Z": "start = 2026-12-02T07:13:38Z",
                                      "stop = 2026-12-02T07:16:00Z": "stop = 2026-12-02T07:13:44Z",
                                      "step_s = 10.0": "step_s = 1.0"})
     assert main(["lightcurve", str(cfg), "--out", str(tmp_path / "out"), "--no-plot"]) == 0
     summary = json.loads((tmp_path / "out" / "lightcurve.json").read_text())
-    assert summary["posterior"] == {"model": "cell", "n_samples": 24}
+    assert summary["posterior"] == {"model": "cell", "n_samples": 8}
     band = {k: np.array(v, float) for k, v in summary["series"]["mag_band"].items()}
     q = np.stack([band[k] for k in ("q025", "q16", "q50", "q84", "q975")])
     assert np.all(np.diff(q, axis=0) >= -1e-12)

@@ -1,1 +1,24 @@
-"""Light curves of satellites made of brdfjax facets (an edge package: it imports the core, config and io)."""
+"""Light curves of satellites made of facets with brdfjax models (an edge package: it imports the core, config, io).
+
+``brdfjax lightcurve CONFIG --out DIR`` (:mod:`.cli`) runs a TOML config
+(:mod:`.config`); :mod:`.ephemeris` places the satellite (SGP4), the Sun and
+the observer; :mod:`.engine` is the JAX forward model (facets, attitude, the
+solar disk, flux and magnitude), differentiable and vmappable over posterior
+draws; :mod:`.models` adds the Phong baseline, the directional albedo and
+models from fits and posteriors; :mod:`.glintmap` maps where a model glints
+against a baseline.  See the README's "Light curves".
+"""
+
+from .config import LightcurveConfig as LightcurveConfig, load_lightcurve_config as load_lightcurve_config
+from .engine import (
+    Attitude as Attitude,
+    Facets as Facets,
+    Geometry as Geometry,
+    Satellite as Satellite,
+    SunDisk as SunDisk,
+    facet_flux as facet_flux,
+    magnitude as magnitude,
+)
+from .glintmap import GlintMap as GlintMap, glint_map as glint_map
+from .models import Phong as Phong, directional_albedo as directional_albedo
+from .run import build_job as build_job, posterior_total_flux as posterior_total_flux, run_lightcurve as run_lightcurve

@@ -27,7 +27,6 @@ from matplotlib.figure import Figure
 from ..config import ConfigError
 from ..io import atomic_output, write_json_atomic
 from ..plotting import save_figure_atomic
-from ..terms import AbstractTerm
 from .config import BuiltModel, LightcurveConfig, build_models
 from .engine import Attitude, Facets, Geometry, Satellite, SunDisk, facet_flux, magnitude, phase_angle, shadow_mask
 from .ephemeris import PassGeometry, parse_tle, pass_geometry, time_grid
@@ -318,12 +317,3 @@ def plot_lightcurve(path: Path, sec: np.ndarray, series: Mapping[str, np.ndarray
         fig.suptitle(title + f"   (glints < {threshold:g} mag shaded)", fontsize=9)
     return save_figure_atomic(fig, path, dpi=110)
 
-
-def total_magnitudes(job: LightcurveJob, models: Mapping[str, AbstractTerm] | None = None) -> np.ndarray:
-    """Total magnitude per visible step with the job's models (optionally replaced by name)."""
-    repl_models = dict(job.models)
-    for k, m in (models or {}).items():
-        repl_models[k] = BuiltModel(m)
-    sat = Satellite(job.facets, tuple(repl_models[n].model for n in job.model_names), job.attitude, job.model_of)
-    fl = facet_flux(sat, job.geometry, job.disk, job.wavelength, chunk=job.cfg.chunk)["flux"]
-    return _mag(np.asarray(fl, np.float64).sum(-1), job.cfg.sun.magnitude)
