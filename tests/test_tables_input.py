@@ -132,3 +132,17 @@ def test_bad_rows_are_reported_with_lines_and_dropped_or_refused(tmp_path):
 
     with pytest.raises(FitInputError, match=r"bad.csv: bad rows: 1 NaN/non-finite angle or BRDF \(lines 5\); 2 at theta = 90 deg"):
         read_table(f, {"theta_i": "ti", "theta_s": "ts", "brdf": "f"}, signed_inplane=True, screen=Screen(on_bad_rows="error"))
+
+
+def test_dropped_rows_are_printed_and_recorded_for_result_json(tmp_path):
+    from brdfjax.fit.config import _describe_block, build_fit_job, load_fit_config
+
+    ts = np.arange(0.0, 91.0, 2.0)
+    rows = [[30.0, t, _lobe(30.0, t)] for t in ts]
+    rows[3][2] = float("nan")
+    _csv(tmp_path / "bad.csv", "ti,ts,f", rows)
+    cfg = _config(tmp_path, 'path = "bad.csv"\ncolumns = { theta_i = "ti", theta_s = "ts", brdf = "f" }\nsigned_inplane = true')
+    job = build_fit_job(load_fit_config(cfg))
+    assert any("dropped 2 of 46 rows: 1 non_finite, 1 theta_90deg" in n for n in job.notes), job.notes
+    doc = _describe_block(job.blocks[0])
+    assert doc["screening"]["dropped"]["non_finite"] == {"count": 1, "lines": [5]} and doc["n_rows"] == 44

@@ -584,14 +584,14 @@ class DistributionShapeEffect(Effect):
             except Exception as e:  # noqa: BLE001 - one family failing leaves the others
                 errors.append(f"{fam}: {type(e).__name__}: {e}")
                 continue
-            chi2 = float(r.chi2)
+            chi2 = float(r.m2ll)  # -2 ln L: chi2 with known sigma, the profile with estimated noise
             if math.isfinite(chi2):
                 tried.append((chi2, fam, swaps, model, warm_params(params, r), n_new))
         if not tried:
             raise ValueError("distribution_shape: nothing to swap" + (f" ({'; '.join(errors)})" if errors else ""))
         tried.sort(key=lambda t: t[0])
         _, fam, swaps, model, params, n_new = tried[0]
-        others = ", ".join(f"{f} chi2={c:.6g}" for c, f, *_ in tried)
+        others = ", ".join(f"{f} -2lnL={c:.6g}" for c, f, *_ in tried)
         return Extension(model, params, n_new, note=f"D -> {fam} for {', '.join(swaps)} (refitted families: {others})")
 
 
