@@ -54,7 +54,7 @@ from brdfjax.detector import Detector  # noqa: E402
 from brdfjax.fit import fit, read_frame_data  # noqa: E402
 from brdfjax.fit._nuisance import NuisanceOptions  # noqa: E402
 from brdfjax.instrument.nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES  # noqa: E402
-from brdfjax.instrument.reduce import reduce_measurement_set  # noqa: E402
+from brdfjax.instrument.reduce import ReductionError, reduce_measurement_set  # noqa: E402
 from brdfjax.instrument.synthetic import InstrumentConfig, SyntheticInstrument  # noqa: E402
 from brdfjax.render import Frame  # noqa: E402
 
@@ -170,6 +170,7 @@ def main(argv=None) -> int:
     rows = [json.loads(line) for line in log.read_text().splitlines()] if log.is_file() else []
     done = {r["i"] for r in rows}
     t0 = time.perf_counter()
+    skipped: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="calib-") as tmp:
         for i in range(args.n):
             if i in done:
@@ -177,7 +178,12 @@ def main(argv=None) -> int:
             if time.perf_counter() - t0 > args.budget_s:
                 print(f"budget reached after {len(rows)} realisations", file=sys.stderr)
                 break
-            row = realise(i, Path(tmp), args.uniform, args.step)
+            try:
+                row = realise(i, Path(tmp), args.uniform, args.step)
+            except ReductionError as e:  # an OD error so large that the beam saturates: the lab would refilter
+                print(f"[{i}] skipped: {e}", file=sys.stderr)
+                skipped.append({"i": i, "why": str(e).split(": ", 1)[-1]})
+                continue
             rows.append(row)
             with open(log, "a") as f:
                 f.write(json.dumps(row) + "\n")
@@ -189,7 +195,7 @@ def main(argv=None) -> int:
             import shutil
 
             shutil.rmtree(Path(tmp) / f"r{i}", ignore_errors=True)
-    summary = {"n_realisations": len(rows), "uniform_nd": bool(args.uniform), "bin": BIN, "step": args.step,
+    summary = {"n_realisations": len(rows), "skipped_this_run": skipped, "uniform_nd": bool(args.uniform), "bin": BIN, "step": args.step,
                "without": coverage(rows, "without"), "with": coverage(rows, "with"),
                "loadavg": os.getloadavg(), "wall_s": time.perf_counter() - t0}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
