@@ -46,7 +46,7 @@ figures = false
 {diagnose}
 """
 SAMPLE = """[sample]
-n_walkers = 8
+n_walkers = 32  # the frame came through the instrument: 2 parameters + its nuisance parameters
 n_steps = 3
 fit_result = "start.json"
 predictive_draws = 0
