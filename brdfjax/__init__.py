@@ -27,6 +27,7 @@ from .render import (
     evaluate_pixels as evaluate_pixels,
     render as render,
     render_geometry as render_geometry,
+    render_sharded as render_sharded,
     sample_directions as sample_directions,
 )
 from .terms import (

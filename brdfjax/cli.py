@@ -30,7 +30,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from . import __version__
+from . import __version__, batch
+from .compile_cache import enable_compilation_cache
 from .config import load_simulate_config
 from .detector import PixelGrid
 from .devices import capture as capture_cli
@@ -301,6 +302,12 @@ COMMANDS: dict[str, Command] = {
         capture_cli.capture_arguments,
         capture_cli.run_capture_command,
     ),
+    "batch": Command(
+        "batch",
+        "run a study: many fit/sample/diagnose/synthesize jobs on Ray or a process pool, one result file each, resumable",
+        batch.add_arguments,
+        batch.run,
+    ),
     "sample": Command(
         "sample",
         "parameter posteriors with emcee from a fit config ([sample] table): chain.h5, posterior.json, corner/trace plots",
@@ -322,6 +329,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="Differentiable near-specular BRDF models and CCD scatterometer frames in JAX.",
     )
     parser.add_argument("--version", action="version", version=f"brdfjax {__version__}")
+    parser.add_argument(
+        "--no-cache", action="store_true",
+        help="do not use the persistent compilation cache (default: on, in ~/.cache/brdfjax/jax; "
+        "also off with BRDFJAX_NO_CACHE=1; folder: BRDFJAX_CACHE_DIR)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for cmd in COMMANDS.values():
         p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
@@ -341,6 +353,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    if not args.no_cache:
+        enable_compilation_cache()  # before any program is compiled: the second run on this machine starts warm
     return run_command(f"brdfjax {args.command}", lambda: args._run(args))
 
 

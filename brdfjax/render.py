@@ -25,7 +25,7 @@ from .fields import check_param, param
 from .geometry import Directions, Rz
 from .terms import AbstractTerm
 
-__all__ = ["Frame", "sample_directions", "evaluate_pixels", "render", "render_geometry", "cast"]
+__all__ = ["Frame", "sample_directions", "evaluate_pixels", "render", "render_sharded", "render_geometry", "cast"]
 
 Precision = Literal["float32", "float64"]
 
@@ -155,6 +155,49 @@ def render(
         jnp.asarray(grid.n_v, dtype),
         rows,
     )
+
+
+def render_sharded(
+    model: AbstractTerm,
+    frame: Frame,
+    detector: Detector | None = None,
+    *,
+    step: int = 1,
+    roi: tuple[int, int, int, int] | None = None,
+    grid: PixelGrid | None = None,
+    precision: Precision = "float32",
+    chunk_pixels: int = 1 << 20,
+    devices: Any = None,
+) -> Array:
+    """:func:`render` with the frame's rows split over ``devices`` (default: every visible device).
+
+    A one-axis :class:`jax.sharding.Mesh` over the devices; ``jax.shard_map``
+    gives each device a contiguous block of rows (the rows are padded to a
+    multiple of the device count by repeating the last one), which it
+    evaluates with the same chunked program as :func:`render`.  The result is
+    a ``(rows, cols)`` array sharded by rows (the same values as
+    :func:`render`: each pixel is computed by the same arithmetic).
+    """
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: PLC0415 -- only the sharded path needs them
+
+    detector, grid, dtype = _prepare(detector, grid, step, roi, precision)
+    devices = list(jax.devices() if devices is None else devices)
+    n_dev = len(devices)
+    n_rows = grid.n_v.size
+    per_device = -(-n_rows // n_dev)
+    n_v = np.asarray(grid.n_v, np.float64)
+    n_v = np.concatenate([n_v, np.full(per_device * n_dev - n_rows, n_v[-1])])
+    mesh = Mesh(np.array(devices), ("rows",))
+    rows = _default_rows(per_device, grid.n_h.size, chunk_pixels)
+    args = cast((model, frame, detector), dtype)
+    n_h = jnp.asarray(grid.n_h, dtype)
+
+    def local(nv_block):
+        return map_rows(_pixel_values, (*args, False), n_h, nv_block, rows)
+
+    fn = jax.jit(jax.shard_map(local, mesh=mesh, in_specs=PartitionSpec("rows"), out_specs=PartitionSpec("rows")))
+    nv = jax.device_put(jnp.asarray(n_v, dtype), NamedSharding(mesh, PartitionSpec("rows")))
+    return fn(nv)[:n_rows]
 
 
 def _geometry_values(args, n_h_row, n_v):

@@ -1,31 +1,33 @@
-"""Time a full solar-cell fit on a full-resolution seed frame and on a 4x-decimated one (issue 4).
+"""brdfjax's fit against a scipy finite-difference fit of the same data, both measured in one run (issue 19).
 
-The data: the seed's solar-cell model rendered on the seed camera
-(3296 x 2472 pixels, no region of interest) at theta_i = 20 deg, times 3 %
-log-normal noise, pixels under 0.1 sr^-1 masked (``render_noisy_frames``).
-The fit: every model parameter but the indices n1, n2 (which one frame
-cannot separate from rho_s1, rho_s2) and phi_ref free from the automatic
-initialisation (11 free parameters),
-Levenberg-Marquardt, float64, as ``fit()`` runs it by default (a softened
-first stage, then the plain log residuals).
+The problem: ``configs/fit_synthetic_solar_cell.toml`` (the solar-cell model
+measured by the synthetic instrument at theta_i = 20, 40, 60 deg, reduced,
+3 frames, footprint convolved, 15 free parameters from the automatic
+initialisation).  The frames are generated once into ``--data`` and reused.
 
-Each configuration runs in its own subprocess (so one's compilation cache or
-memory does not help or hurt the other) and fits the same data twice: the
-first ("cold") fit includes tracing and XLA compilation, the second ("warm")
-reuses the compiled programs.  The residual function and its Jacobian are
-instrumented with ``jax.debug.callback`` counters (the solver runs inside
-``jit``), so the counts are what the solver actually evaluated: residual
-vectors (model evaluations over every usable pixel) and Jacobians (forward
-mode, one column per free parameter).
+Sides, each in its own process, alternating, ``--repeats`` times:
 
+- ``brdfjax``: ``fit()`` as the CLI runs it (cold: the process's first fit,
+  compilation included; warm: the same fit again in the same process).  The
+  warm process also times one residual evaluation and one Jacobian (medians).
+  With ``--cache DIR`` the persistent compilation cache is on (the second
+  process starts warm).
+- ``scipy``: ``scipy.optimize.least_squares(method="trf", jac="2-point",
+  x_scale="jac")`` on a NumPy model of the same residuals: the seed model of
+  ``brdfjax/reference.py`` (float64 NumPy) at each frame's support pixels
+  (scatter angles computed once; they depend on no parameter), convolved
+  with the footprint by ``scipy.signal.fftconvolve``, the same log residuals,
+  weights, floor, bounds and start (the brdfjax side's automatic
+  initialisation, passed over in a file).
+
+Whole-process time includes the interpreter, imports and loading the frames.
 Run::
 
-    python3 experiments/benchmark_fit.py                 # full frame and step 4, on the default JAX device
-    python3 experiments/benchmark_fit.py --steps 4       # decimated only
-    JAX_PLATFORMS=cpu python3 experiments/benchmark_fit.py --json runs/benchmark_fit.json
+    python3 experiments/benchmark_fit.py --repeats 1
+    python3 experiments/benchmark_fit.py --repeats 3 --json runs/benchmark_fit.json
 
-Targets (issue 4, 2-core CPU): a full-frame fit under 2 minutes, a
-4x-decimated one under 20 s.
+Targets (issue 19): brdfjax >= 3x faster whole-process cold, >= 5x warm, the
+same final chi^2; the Jacobian <= 4x a residual evaluation.
 """
 
 from __future__ import annotations
@@ -39,121 +41,210 @@ import tempfile
 import time
 from pathlib import Path
 
-TARGETS_S = {1: 120.0, 4: 20.0}
+T_START = time.perf_counter()
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "configs" / "fit_synthetic_solar_cell.toml"
 
 
-def _child(step: int, theta_i: float, noise: float) -> dict:
+def _job(data: Path):
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    from brdfjax.fit.config import build_fit_job, load_fit_config
 
-    import brdfjax as bj
-    import brdfjax.fit._problem as P
-    from brdfjax.fit import Param, fit, render_noisy_frames
+    return build_fit_job(load_fit_config(CONFIG), work_dir=data)
 
-    counts = {"residuals": 0, "jacobians": 0}
 
-    def bump(key):
-        def cb():
-            counts[key] += 1
+def _brdfjax(data: Path, start_out: Path, first_stage: str) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
 
-        return cb
+    from brdfjax.fit import fit, prepare
+    from brdfjax.fit._problem import jacobian, residuals
+    from brdfjax.fit._solvers import get_solver
 
-    # Instrument the residual function and its Jacobian (looked up by name at trace time).
-    plain, method = P._plain_residuals, P.Problem.residuals
-
-    def counted_plain(v, problem):
-        jax.debug.callback(bump("jacobians"))
-        return plain(v, problem)
-
-    def counted_residuals(self, v):
-        jax.debug.callback(bump("residuals"))
-        return method(self, v)
-
-    P._plain_residuals = counted_plain
-    P.Problem.residuals = counted_residuals
-
-    import resource
-
-    t0 = time.perf_counter()
-    model = bj.solar_cell()
-    frames = render_noisy_frames(model, [theta_i], step=step, noise_rel=noise, floor=0.1, seed=1)
-    t_data = time.perf_counter() - t0
-    # One frame sees the Fresnel factor over a fraction of a degree: n1, n2 are not identifiable from it
-    # (they trade with rho_s1, rho_s2 and the solver walks the valley to max_steps); they stay at their priors.
-    spec = {k: Param("auto") for k in ("m1", "rho_s1", "m2", "rho_s2", "dtheta", "dphi0", "a", "c", "rho_s3")}
-    spec.update(b=Param("auto", lower=1e-6, upper=4e-5), phi_ref=Param("auto"))
+    job = _job(data)
+    t_loaded = time.perf_counter()
+    kw = dict(job.fit_kwargs)
+    if first_stage != "config":
+        kw["first_stage"] = None if first_stage == "none" else first_stage
     runs = []
     for label in ("cold", "warm"):
-        for k in counts:
-            counts[k] = 0
-        t1 = time.perf_counter()
-        res = fit(model, frames, spec)
-        jax.effects_barrier()
-        wall = time.perf_counter() - t1
-        # The Jacobian evaluations call the residual function once inside jacfwd: count model
-        # evaluations as residual vectors that were not part of a Jacobian.
-        runs.append(dict(
-            run=label, wall_s=wall, timings=res.timings, n_steps=res.n_iterations, converged=res.converged,
-            chi2_reduced=res.chi2_reduced, message=res.message, residual_evaluations=counts["residuals"] - counts["jacobians"],
-            jacobian_evaluations=counts["jacobians"],
-            m1_rel_err=(res.value("m1") - bj.SOLAR_CELL_SEED["m1"]) / bj.SOLAR_CELL_SEED["m1"],
-            a_rel_err=(res.value("a") - bj.SOLAR_CELL_SEED["a"]) / bj.SOLAR_CELL_SEED["a"],
-        ))
-    return dict(
-        step=step, grid=list(frames[0].shape), n_points=int(frames[0].usable().sum()), n_free=len(res.free_names),
-        data_s=t_data, device=str(jax.devices()[0]), platform=jax.devices()[0].platform,
-        peak_rss_mib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, runs=runs,
-    )
+        t0 = time.perf_counter()
+        res = fit(job.model, job.blocks, job.params, **kw)
+        runs.append(dict(run=label, fit_s=time.perf_counter() - t0, process_s=time.perf_counter() - T_START,
+                         chi2=res.chi2, steps=res.n_iterations, converged=res.converged, message=res.message))
+    # the start (automatic initialisation) and the layout, for the scipy side
+    prep = prepare(job.model, job.blocks, job.params, solver=get_solver(kw["solver"]), loss=kw["loss"],
+                   initializer=kw["initializer"], precision=kw["precision"], use_footprint=kw["use_footprint"])
+    lay = prep.layout
+    free = [dict(name=e.name, base=e.base, kind=e.kind, blocks=list(e.blocks), x0=float(e.x0), lower=float(e.lower),
+                 upper=float(e.upper)) for e in lay.free]
+    fixed = [dict(base=e.base, kind=e.kind, blocks=list(e.blocks), value=float(e.value)) for e in lay.fixed]
+    start_out.write_text(json.dumps(dict(free=free, fixed=fixed)))
+    # one residual vs one Jacobian (the solver's pieces), medians of alternating calls
+    from brdfjax.fit._fit import _scales, with_scale
+
+    problem = with_scale(prep.problem, lay.u0(), np.ones(len(free)))
+    problem = with_scale(problem, lay.u0(), _scales(problem, lay, []))
+    v = jnp.zeros(len(free))
+    f_r = jax.jit(residuals)
+    jax.block_until_ready(f_r(v, problem))
+    jax.block_until_ready(jacobian(v, problem))
+    tr, tj = [], []
+    for _ in range(7):
+        t = time.perf_counter()
+        jax.block_until_ready(f_r(v, problem))
+        tr.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        jax.block_until_ready(jacobian(v, problem))
+        tj.append(time.perf_counter() - t)
+    return dict(side="brdfjax", load_s=t_loaded - T_START, runs=runs, residual_s=float(np.median(tr)),
+                jacobian_s=float(np.median(tj)), n_free=len(free), n_points=sum(prep.problem.counts),
+                device=str(jax.devices()[0]))
 
 
-def _run_child(step: int, args) -> dict:
+def _scipy(data: Path, start_in: Path) -> dict:
+    import numpy as np
+    from numpy.lib.stride_tricks import sliding_window_view
+    from scipy.optimize import least_squares
+    from scipy.signal import fftconvolve
+
+    from brdfjax import reference as ref
+
+    job = _job(data)
+    t_loaded = time.perf_counter()
+    spec = json.loads(start_in.read_text())
+    free, fixed = spec["free"], spec["fixed"]
+    blocks = []
+    for k, b in enumerate(job.blocks):
+        usable = b.usable()
+        brdf = np.asarray(b.brdf, float)
+        sigma = np.broadcast_to(np.asarray(b.sigma_rel, float), brdf.shape)
+        kern = np.asarray(b.footprint, float)
+        kern = kern / kern.sum()
+        r, c = kern.shape[0] // 2, kern.shape[1] // 2
+        m = np.pad(usable, ((r, r), (0, 0)))
+        m = sliding_window_view(m, 2 * r + 1, axis=0).any(-1)
+        m = np.pad(m, ((0, 0), (c, c)))
+        reach = sliding_window_view(m, 2 * c + 1, axis=1).any(-1)
+        rows, cols = np.nonzero(reach)
+        det = b.arm_detector()
+        ts, ps = (np.asarray(a, float) for a in det.angles(np.asarray(b.grid.n_h, float)[cols],
+                                                           np.asarray(b.grid.n_v, float)[rows],
+                                                           det.arm_angle(np.float64(b.theta_i))))
+        d = brdf[usable]
+        blocks.append(dict(k=k, shape=brdf.shape, reach=reach, ts=ts, ps=ps, kern=kern, usable=usable, d=d,
+                           inv_sigma=1.0 / sigma[usable], floor=1e-6 * d.min(), theta_i=float(b.theta_i),
+                           phi_ref=float(b.phi_ref), wl=float(b.wavelength)))
+    x0 = np.array([f["x0"] for f in free])
+    lo = np.array([f["lower"] for f in free])
+    hi = np.array([f["upper"] for f in free])
+    x0 = np.clip(x0, np.nextafter(lo, np.inf), np.nextafter(hi, -np.inf))
+    base = {e["base"]: e["value"] for e in fixed if e["kind"] == "model"}
+
+    def residuals(x):
+        out = []
+        for blk in blocks:
+            p = dict(base)
+            phi_ref = blk["phi_ref"]
+            for f, xi in zip(free, x):
+                if blk["k"] in f["blocks"]:
+                    if f["kind"] == "model":
+                        p[f["base"]] = xi
+                    elif f["base"] == "phi_ref":
+                        phi_ref = xi
+            p = {k_: v for k_, v in p.items() if k_ in ref.solar_cell.__code__.co_varnames}
+            vals = ref.solar_cell(blk["theta_i"], blk["ts"], blk["ps"], phi_ref, blk["wl"], **p)
+            img = np.zeros(blk["shape"])
+            img[blk["reach"]] = vals
+            g = fftconvolve(img, blk["kern"], mode="same")[blk["usable"]]
+            out.append((np.log(g + blk["floor"]) - np.log(blk["d"])) * blk["inv_sigma"])
+        return np.concatenate(out)
+
+    t0 = time.perf_counter()
+    r0 = residuals(x0)
+    t_res = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sol = least_squares(residuals, x0, bounds=(lo, hi), method="trf", jac="2-point", x_scale="jac")
+    fit_s = time.perf_counter() - t0
+    return dict(side="scipy", load_s=t_loaded - T_START, fit_s=fit_s, process_s=time.perf_counter() - T_START,
+                chi2=float(np.sum(sol.fun**2)), chi2_start=float(np.sum(r0**2)), nfev=int(sol.nfev),
+                njev=int(sol.njev or 0), status=int(sol.status), message=sol.message, residual_s=t_res)
+
+
+def _child(args) -> int:
+    data, io = Path(args.data), Path(args.child_io)
+    if args.child == "brdfjax":
+        out = _brdfjax(data, io, args.first_stage)
+    else:
+        out = _scipy(data, io)
+    out["process_s"] = time.perf_counter() - T_START
+    Path(args.child_out).write_text(json.dumps(out))
+    return 0
+
+
+def _run(side: str, args, start: Path, cache: str | None) -> dict:
+    env = dict(os.environ)
+    env.pop("BRDFJAX_NO_CACHE", None)
+    if side == "brdfjax" and cache:
+        env["BRDFJAX_CACHE_DIR"] = cache
     with tempfile.NamedTemporaryFile("r", suffix=".json") as tmp:
-        cmd = [sys.executable, __file__, "--child", str(step), "--child-out", tmp.name,
-               "--theta-i", str(args.theta_i), "--noise", str(args.noise)]
-        subprocess.run(cmd, check=True)
-        return json.loads(Path(tmp.name).read_text())
+        code = "import runpy, sys; sys.argv = sys.argv[1:]; "
+        if side == "brdfjax" and cache:
+            code += "from brdfjax.compile_cache import enable_compilation_cache; enable_compilation_cache(); "
+        code += "runpy.run_path(sys.argv[0], run_name='__main__')"
+        cmd = [sys.executable, "-c", code, __file__, "--child", side, "--child-out", tmp.name, "--child-io", str(start),
+               "--data", str(args.data), "--first-stage", args.first_stage]
+        t0 = time.perf_counter()
+        subprocess.run(cmd, check=True, env=env)
+        out = json.loads(Path(tmp.name).read_text())
+        out["wall_s"] = time.perf_counter() - t0
+        return out
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--steps", default="1,4", help="grid decimations to time (1: the full frame)")
-    ap.add_argument("--theta-i", type=float, default=20.0)
-    ap.add_argument("--noise", type=float, default=0.03)
-    ap.add_argument("--json", type=Path, default=None, help="also write the figures here (atomically)")
-    ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--data", default=str(ROOT / "runs" / "benchmark_fit_data"), help="synthetic frames (made once)")
+    ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--first-stage", default="config", help="config (the config's: soft), none, soft, huber, cauchy")
+    ap.add_argument("--cache", default=None, help="persistent compilation cache folder for the brdfjax side")
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--child-out", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--child-io", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    if args.child is not None:
-        out = _child(args.child, args.theta_i, args.noise)
-        Path(args.child_out).write_text(json.dumps(out))
-        return 0
-    steps = [int(s) for s in args.steps.split(",")]
-    results = {s: _run_child(s, args) for s in steps}
-    print(f"\nsolar-cell fit, theta_i = {args.theta_i:g} deg, {args.noise:.0%} noise, device "
-          f"{next(iter(results.values()))['device']}, {os.cpu_count()} CPU(s), load {os.getloadavg()[0]:.1f}")
-    hdr = (f"{'grid':>12s} {'points':>9s} {'run':>5s} {'total s':>8s} {'setup+init':>10s} {'solve':>7s} "
-           f"{'cov':>5s} {'steps':>5s} {'f evals':>7s} {'J evals':>7s} {'chi2_red':>8s} {'target':>7s}")
-    print(hdr)
-    for s, r in results.items():
-        for run in r["runs"]:
-            t = run["timings"]
-            ok = "met" if run["wall_s"] < TARGETS_S.get(s, float("inf")) else "MISSED"
-            print(f"{r['grid'][1]:>5d}x{r['grid'][0]:<6d} {r['n_points']:9d} {run['run']:>5s} {run['wall_s']:8.2f} "
-                  f"{t['setup_s']:10.2f} {t['solve_s']:7.2f} {t['covariance_s']:5.2f} {run['n_steps']:5d} "
-                  f"{run['residual_evaluations']:7d} {run['jacobian_evaluations']:7d} {run['chi2_reduced']:8.4f} "
-                  f"{ok + ' (<' + format(TARGETS_S.get(s, float('nan')), 'g') + ' s)':>7s}")
-    if 1 in results and any(s != 1 for s in results):
-        s = max(k for k in results if k != 1)
-        for label, i in (("cold", 0), ("warm", 1)):
-            full, dec = results[1]["runs"][i]["wall_s"], results[s]["runs"][i]["wall_s"]
-            print(f"full frame / step {s} ({label}): {full / dec:.1f}x time for "
-                  f"{results[1]['n_points'] / results[s]['n_points']:.1f}x points")
+    if args.child:
+        return _child(args)
+    import statistics
+
+    start = Path(tempfile.mkdtemp()) / "start.json"
+    rows = {"brdfjax": [], "scipy": []}
+    for _ in range(args.repeats):  # alternating sides
+        rows["brdfjax"].append(_run("brdfjax", args, start, args.cache))
+        rows["scipy"].append(_run("scipy", args, start, args.cache))
+    med = statistics.median
+    bj, sp = rows["brdfjax"], rows["scipy"]
+    cold = med(r["runs"][0]["process_s"] for r in bj)  # process start to the end of its first fit
+    warm = med(r["runs"][1]["fit_s"] for r in bj)
+    sp_wall, sp_fit = med(r["process_s"] for r in sp), med(r["fit_s"] for r in sp)
+    res_s, jac_s = med(r["residual_s"] for r in bj), med(r["jacobian_s"] for r in bj)
+    print(f"\nsynthetic solar-cell fit ({bj[0]['n_points']} points, {bj[0]['n_free']} free), {os.cpu_count()} CPU(s), "
+          f"load {os.getloadavg()[0]:.1f}, device {bj[0]['device']}, medians of {args.repeats}, first stage {args.first_stage}")
+    print(f"{'measure':44s} {'brdfjax':>10s} {'scipy':>10s} {'ratio':>7s} target")
+    print(f"{'whole process, cold fit (s)':44s} {cold:10.2f} {sp_wall:10.2f} {sp_wall / cold:6.2f}x >= 3x")
+    print(f"{'fit in process, warm (s)':44s} {warm:10.2f} {sp_fit:10.2f} {sp_fit / warm:6.2f}x >= 5x")
+    print(f"{'final chi^2':44s} {bj[0]['runs'][1]['chi2']:10.2f} {sp[0]['chi2']:10.2f} "
+          f"{bj[0]['runs'][1]['chi2'] / sp[0]['chi2']:6.4f}  same")
+    print(f"{'steps (brdfjax) / residual evals (scipy)':44s} {bj[0]['runs'][1]['steps']:10d} {sp[0]['nfev']:10d}")
+    print(f"{'one residual (s)':44s} {res_s:10.4f} {sp[0]['residual_s']:10.4f}")
+    print(f"{'one Jacobian (s), / residual':44s} {jac_s:10.4f} {'':>10s} {jac_s / res_s:6.2f}x <= 4x")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=args.json.parent, suffix=".tmp")
         with os.fdopen(fd, "w") as f:
-            json.dump({str(k): v for k, v in results.items()}, f, indent=2)
+            json.dump(dict(rows=rows, load=os.getloadavg()), f, indent=2)
         os.replace(tmp, args.json)
     return 0
 

@@ -38,6 +38,7 @@ from ._residuals import (
     robust_residuals as robust_residuals,
 )
 from ._result import BlockSummary as BlockSummary, FitResult as FitResult, ParameterEstimate as ParameterEstimate
+from ._sharding import shard_problem as shard_problem
 from ._solvers import (
     LBFGSB as LBFGSB,
     SOLVERS as SOLVERS,

@@ -1,0 +1,62 @@
+"""JAX's persistent compilation cache for the command line: compile once per machine, not once per process.
+
+Every ``brdfjax`` process used to trace and compile its programs again (a
+cold synthetic fit spent about a third of its time there).  The CLI turns on
+JAX's persistent compilation cache (``jax_compilation_cache_dir``) before it
+runs a command, so the second process on the same machine loads the compiled
+executables from disk.  Shapes are kept stable across frames (stacked frames
+are padded to a multiple of :data:`brdfjax.fit._problem.PAD_MULTIPLE`,
+renders use fixed-size row chunks), so one executable serves many data sets.
+
+Where: ``$BRDFJAX_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/brdfjax/jax``
+(``~/.cache/brdfjax/jax``).  Off: ``BRDFJAX_NO_CACHE=1`` or ``brdfjax
+--no-cache``.  The library never turns it on by itself (the switch is
+process-wide); call :func:`enable_compilation_cache` to opt in.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+
+__all__ = ["cache_dir", "cache_disabled", "enable_compilation_cache"]
+
+
+def cache_dir() -> Path:
+    """The cache folder (see the module docstring).
+
+    The XDG rule is written out rather than taken from ``platformdirs``: it is
+    three lines, and the cache must land where JAX users look on Linux.
+    """
+    explicit = os.environ.get("BRDFJAX_CACHE_DIR")
+    if explicit:
+        return Path(explicit).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base).expanduser() / "brdfjax" / "jax"
+
+
+def cache_disabled() -> bool:
+    """True when ``BRDFJAX_NO_CACHE`` is set to anything but ``""``/``0``."""
+    return os.environ.get("BRDFJAX_NO_CACHE", "").strip() not in ("", "0")
+
+
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | None:
+    """Turn on JAX's persistent compilation cache in ``path`` (default :func:`cache_dir`).
+
+    Returns the folder, or None when ``BRDFJAX_NO_CACHE`` says no or the
+    folder cannot be created (the run then simply compiles, as without a cache).
+    """
+    if cache_disabled():
+        return None
+    folder = Path(path) if path is not None else cache_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    # Cache every program: the fit's small ones add up, and loading is cheaper than any compile here.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return folder

@@ -1,0 +1,101 @@
+"""``brdfjax batch``: a study of tiny fits through the process pool (and Ray, slow-gated), resumed after a kill."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from brdfjax.batch import StudyError, load_study, run_study
+from brdfjax.cli import main
+from brdfjax.instrument.reduce import reduce_measurement_set
+
+DATA = Path(__file__).parent / "data"
+
+FIT = """
+precision = "float64"
+[data]
+frames = ["{frame}"]
+footprint_w_px = 3.125
+sigma = "noise"
+sigma_floor = 0.0068
+max_sigma_rel = 0.1
+[model]
+preset = "solar_cell"
+[params]
+m1 = {{ value = {m1}, lower = 1e-5, upper = 1e-3 }}
+rho_s1 = 0.02
+[fit]
+first_stage = "none"
+[output]
+figures = false
+"""
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    d = tmp_path_factory.mktemp("study")
+    (frame,) = reduce_measurement_set(DATA / "example_set" / "manifest.toml", d / "reduced", correct_nonlinearity=True)
+    jobs = []
+    for i, m1 in enumerate((1.8e-4, 2.3e-4, 2.6e-4)):
+        (d / f"fit{i}.toml").write_text(FIT.format(frame=Path(frame).as_posix(), m1=m1))
+        jobs.append(f'[[jobs]]\nname = "fit{i}"\ncommand = "fit"\nconfig = "fit{i}.toml"\nargs = ["--no-figures"]\n')
+    path = d / "study.toml"
+    path.write_text('[batch]\nbackend = "process"\nworkers = 2\n\n' + "\n".join(jobs))
+    return path
+
+
+@pytest.fixture
+def warm_cache(monkeypatch, tmp_path_factory):
+    # the jobs are fresh processes: let them share a compilation cache (the first compiles, the rest load)
+    monkeypatch.delenv("BRDFJAX_NO_CACHE", raising=False)
+    monkeypatch.setenv("BRDFJAX_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "jax-cache"))
+
+
+def _results(out: Path) -> dict[str, dict]:
+    return {p.stem: json.loads(p.read_text()) for p in (out / "jobs").glob("*.json")}
+
+
+def test_study_through_the_process_pool_then_resumes_only_unfinished_jobs(study, tmp_path, warm_cache):
+    out = tmp_path / "run"
+    report = run_study(study, out, progress=False)
+    assert report.backend == "process" and sorted(report.ran) == ["fit0", "fit1", "fit2"] and not report.failed
+    results = _results(out)
+    fits = {n: json.loads((out / n / "result.json").read_text()) for n in results}
+    for n, r in fits.items():
+        assert r["converged"], n
+        # the same data from three starts: one answer
+        assert r["parameters"]["m1"]["value"] == pytest.approx(fits["fit0"]["parameters"]["m1"]["value"], rel=1e-4)
+    # a killed study: one job's result never written, another left half-done (a failed record)
+    (out / "jobs" / "fit1.json").unlink()
+    rec = results["fit2"] | {"ok": False, "exit_code": -9}
+    (out / "jobs" / "fit2.json").write_text(json.dumps(rec))
+    mtime0 = (out / "fit0" / "result.json").stat().st_mtime_ns
+    again = run_study(study, out, backend="serial", progress=False)
+    assert again.skipped == ["fit0"] and sorted(again.ran) == ["fit1", "fit2"]
+    assert (out / "fit0" / "result.json").stat().st_mtime_ns == mtime0  # not redone
+    assert all(r["ok"] for r in _results(out).values())
+    summary = json.loads((out / "study.json").read_text())
+    assert summary["skipped"] == ["fit0"] and summary["failed"] == []
+
+
+def test_bad_study_names_file_and_key(tmp_path, capsys):
+    p = tmp_path / "s.toml"
+    p.write_text('[[jobs]]\nname = "a"\ncommand = "fitt"\n')
+    with pytest.raises(StudyError, match=r"s\.toml: jobs\.0\.command: .*one of fit"):
+        load_study(p)
+    p.write_text('[[jobs]]\nname = "a"\ncommand = "fit"\nconfig = "nope.toml"\n')
+    assert main(["batch", str(p), "--out", str(tmp_path / "o")]) == 2
+    assert "jobs[0].config: no such file" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="slow (starts a local Ray instance): set BRDFJAX_SLOW=1")
+def test_study_through_ray(study, tmp_path, warm_cache):
+    pytest.importorskip("ray")
+    out = tmp_path / "ray"
+    report = run_study(study, out, backend="ray", workers=2, progress=False)
+    assert report.backend == "ray" and sorted(report.ran) == ["fit0", "fit1", "fit2"] and not report.failed
+    again = run_study(study, out, backend="ray", workers=2, progress=False)
+    assert sorted(again.skipped) == ["fit0", "fit1", "fit2"] and not again.ran
