@@ -29,7 +29,10 @@ SCRIPT = textwrap.dedent('''
         assert len(two.sharding.device_set) == 2, two.sharding
         two = np.asarray(two)
         assert two.shape == one.shape, (two.shape, one.shape)
-        assert np.array_equal(two, one) or np.max(np.abs(two - one) / np.maximum(np.abs(one), 1e-30)) < 1e-6, precision
+        # the same arithmetic per pixel; XLA may fuse the two programs differently: float rounding
+        rel = np.max(np.abs(two - one) / np.maximum(np.abs(one), 1e-3 * np.max(one)))
+        assert rel < (5e-5 if precision == "float32" else 1e-12), (precision, rel)
+        print(precision, "max relative difference", rel)
     frames = render_noisy_frames(model, [20.0, 40.0], step=16, noise_rel=0.03, floor=0.1, seed=1)
     spec = {k: Param(float(np.asarray(v)) * 1.05) for k, v in model.params().items() if k in ("m1", "rho_s1", "a", "c")}
     prep = prepare(model, frames, spec, solver=get_solver("lm"))
