@@ -29,6 +29,9 @@ def main(argv=None) -> int:
     ap.add_argument("--step", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=20)
     args = ap.parse_args(argv)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # the data in float64, as the CLI reads them; the model in float32
     import numpy as np
 
     import brdfjax as bj
