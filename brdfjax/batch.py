@@ -3,7 +3,7 @@
 A study is a TOML file::
 
     [batch]
-    backend = "auto"      # auto (Ray if installed, else a local process pool), ray, process, serial
+    backend = "auto"      # auto (Ray if installed, else a local pool of job processes), ray, process, serial
     address = ""          # Ray: "" starts a local instance; "auto" or "ray://host:10001" joins a cluster
     workers = 2           # concurrent jobs (the local Ray instance's CPUs, or the pool's processes)
 
@@ -36,7 +36,7 @@ import sys
 import time
 import tomllib
 from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -185,7 +185,9 @@ def _run_ray(specs, workers: int, address: str) -> Iterable[dict[str, Any]]:
 
 
 def _run_pool(specs, workers: int) -> Iterable[dict[str, Any]]:
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    # Every job already is its own process (run_job starts it), so a pool of threads that wait on them is
+    # the process pool: no fork of this (multithreaded, JAX-importing) process, no pickling.
+    with ThreadPoolExecutor(max_workers=workers) as pool:
         for fut in as_completed([pool.submit(run_job, s) for s in specs]):
             yield fut.result()
 
