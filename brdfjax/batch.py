@@ -20,7 +20,11 @@ start-up cheap).  When a job ends, the driver writes ``DIR/jobs/NAME.json``
 atomically: the job, its exit code, wall time and the tail of its output.  A
 study that is run again (after a kill, a crash, a failed job) skips every job
 whose result file says it succeeded with the same job description; the rest
-run again.  Progress is shown as a bar on stderr.
+run again.  Each result file also records the job's problem fingerprint
+(:mod:`brdfjax.io.fingerprint`: the command line and the SHA-256 of its
+config file): a job that succeeded under another config is not silently
+counted as done, the rerun is refused naming the job and what differs.
+Progress is shown as a bar on stderr.
 
 Ray is an optional extra (``pip install brdfjax[cluster]``): on a cluster the
 study folder and the configs must be on a filesystem every node sees.
@@ -46,6 +50,7 @@ from tqdm import tqdm
 
 from .errors import InputError
 from .io import write_json_atomic
+from .io.fingerprint import check_resume, file_digest, value_digest
 
 __all__ = ["StudyError", "Job", "Study", "load_study", "run_study", "add_arguments", "run", "BACKENDS"]
 
@@ -130,7 +135,10 @@ def _describe(job: Job, base: Path, out: Path) -> dict[str, Any]:
     if job.config is not None:
         argv.append(str((base / job.config).resolve()))
     argv += ["--out", str((out / job.name).resolve()), *job.args]
-    return {"name": job.name, "argv": argv}
+    fingerprint = {"argv": value_digest(argv)}
+    if job.config is not None:
+        fingerprint["config_file"] = file_digest(base / job.config)
+    return {"name": job.name, "argv": argv, "fingerprint": fingerprint}
 
 
 def run_job(spec: dict[str, Any]) -> dict[str, Any]:
@@ -148,11 +156,20 @@ def run_job(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 def _done(path: Path, spec: dict[str, Any]) -> bool:
+    """Whether the job's result file says it succeeded with this description; a success under another
+    config (its fingerprint differs) is refused, naming the difference."""
     try:
         old = json.loads(path.read_text())
     except (OSError, ValueError):
         return False
-    return bool(old.get("ok")) and old.get("argv") == spec["argv"]
+    if not (bool(old.get("ok")) and old.get("argv") == spec["argv"]):
+        return False
+    check_resume(
+        path, old.get("fingerprint"), spec["fingerprint"],
+        f"Job '{spec['name']}' finished under another problem: remove {path} to run it again with this one, "
+        "or run the study into another --out.",
+    )
+    return True
 
 
 def _ray():

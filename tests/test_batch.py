@@ -11,6 +11,7 @@ import pytest
 from brdfjax.batch import StudyError, load_study, run_study
 from brdfjax.cli import main
 from brdfjax.instrument.reduce import reduce_measurement_set
+from brdfjax.io.fingerprint import FingerprintMismatch
 
 DATA = Path(__file__).parent / "data"
 
@@ -79,6 +80,16 @@ def test_study_through_the_process_pool_then_resumes_only_unfinished_jobs(study,
     assert all(r["ok"] for r in _results(out).values())
     summary = json.loads((out / "study.json").read_text())
     assert summary["skipped"] == ["fit0"] and summary["failed"] == []
+    # a finished job whose config changed since: refused, naming the job and the file, nothing rerun
+    cfg = study.parent / "fit0.toml"
+    original = cfg.read_text()
+    cfg.write_text(original.replace("rho_s1 = 0.02", "rho_s1 = 0.021"))
+    try:
+        with pytest.raises(FingerprintMismatch, match=r"fit0\.json belongs to another problem .*config_file.*Job 'fit0'"):
+            run_study(study, out, backend="serial", progress=False)
+    finally:
+        cfg.write_text(original)
+    assert (out / "fit0" / "result.json").stat().st_mtime_ns == mtime0
 
 
 def test_bad_study_names_file_and_key(tmp_path, capsys):
