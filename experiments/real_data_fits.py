@@ -15,14 +15,17 @@ configs unless said otherwise):
     Lambertian, Eq 70 (seed normalisation, no shadowing), automatic start;
 (b) ``smith_seed`` / ``smith_ts``: the same with Smith G2 shadowing and the
     seed's or the Torrance-Sparrow normalisation, started from (a);
-(c) ``multi_lobe``: two lobes (spike + halo, GGX and Beckmann tried) sharing
-    the index, Smith G2, the better normalisation of (b), + Lambertian;
-    ``multi_lobe_n``: the same with the index free (paints only);
+(b') ``tail_hc``: one Hyper-Cauchy lobe (free tail exponent gamma > 1.5, where
+    Smith's Lambda is finite) with Smith G2 + Lambertian;
+(c) ``multi_lobe``: two lobes sharing the index (a spike of (a)'s family and a
+    Beckmann or Hyper-Cauchy halo, the better kept), Smith G2, the better
+    normalisation of (b), + Lambertian; ``multi_lobe_no_shadowing``: the same
+    model refitted with G = 1 (the shadowing before/after per angle);
 (d) ``abg``: Harvey-Shack ABg + Lambertian; ``phong``: normalised Phong lobe
     + Lambertian (the lumos-sat PHONG family); both empirical.
 
 Prints a table of log-RMS per incident angle and overall per model, writes
-``experiments/results/real_data_fits.json`` (atomically) and one figure per
+``experiments/results/real_data_fits_<dataset>.json`` (atomically) and one figure per
 dataset, ``experiments/figures/real_data_<dataset>.png`` (in-plane samples,
 data and every model).
 
@@ -35,6 +38,7 @@ Run::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -61,7 +65,7 @@ DATASETS = {
 WIDTH = {"ggx": "alpha", "beckmann": "m"}
 DIST = {"ggx": bj.GGX, "beckmann": bj.Beckmann}
 #: Physically based model names (the rest are empirical).
-PHYSICAL = ("today", "smith_seed", "smith_ts", "multi_lobe", "multi_lobe_n")
+PHYSICAL = ("today", "smith_seed", "smith_ts", "tail_hc", "multi_lobe", "multi_lobe_no_shadowing")
 
 
 def read(name: str):
@@ -121,28 +125,40 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
     for label, norm in (("smith_seed", "seed"), ("smith_ts", "torrance_sparrow")):
         run(label, single_lobe(dname, w0, r0, d0, index, "smith", norm), free1)
     best_norm = "seed" if out["smith_seed"]["log_rms"] <= out["smith_ts"]["log_rms"] else "torrance_sparrow"
-    b = models["smith_seed" if best_norm == "seed" else "smith_ts"].terms["spec"]
-    wb, rb = float(getattr(b.distribution, wname)), float(b.rho_s)
-    db = float(models["smith_seed" if best_norm == "seed" else "smith_ts"].terms["diffuse"].rho_d)
-    # (c) two lobes sharing the index: spike from (b), a halo 4x wider; try both halo families, keep the better
+    b_label = "smith_seed" if best_norm == "seed" else "smith_ts"
+    wb = float(getattr(models[b_label].terms["spec"].distribution, wname))
+    rb = float(models[b_label].terms["spec"].rho_s)
+    db = float(models[b_label].terms["diffuse"].rho_d)
+    # (b') a distribution with a free tail (Hyper-Cauchy), Smith G2 (finite Lambda needs gamma > 1.5)
+    tail = {"value": 2.5, "lower": 1.5, "upper": 30.0}
+    run("tail_hc", bj.Model(terms={
+        "spec": bj.Specular(bj.HyperCauchy(wb, 2.5), rb, shadowing="smith", normalisation=best_norm, **index),
+        "diffuse": bj.Lambertian(db)}),
+        {"spec.sigma": "free", "spec.gamma": tail, "spec.rho_s": "free", "diffuse.rho_d": "free"})
+    # (c) two lobes sharing the index: a spike half as wide as (b) and a halo (Beckmann 5x wider, or
+    # Hyper-Cauchy with a free tail); the better one is "multi_lobe"
     best = None
-    for d2 in ("ggx", "beckmann"):
-        w2 = 4.0 * wb * (1.0 if d2 == dname else (1 / np.sqrt(2) if d2 == "beckmann" else np.sqrt(2)))
-        model = two_lobes(dname, wb, rb, d2, w2, 0.3 * rb, db, index, best_norm)
-        spec = {f"spec.spike.{wname}": "free", "spec.spike.rho_s": "free", f"spec.halo.{WIDTH[d2]}": "free",
-                "spec.halo.rho_s": "free", "diffuse.rho_d": "free"}
-        label = f"multi_lobe_{d2}"
+    for label, halo, hspec in (
+        ("multi_lobe_beckmann", bj.Beckmann(5.0 * wb), {"spec.halo.m": "free"}),
+        ("multi_lobe_hc", bj.HyperCauchy(2.0 * wb, 2.5), {"spec.halo.sigma": "free", "spec.halo.gamma": tail}),
+    ):
+        lobes = {"spike": Lobe(DIST[dname](0.5 * wb), 0.3 * rb), "halo": Lobe(halo, 0.7 * rb)}
+        model = bj.Model(terms={"spec": MultiLobeSpecular(lobes, shadowing="smith", normalisation=best_norm, **index),
+                                "diffuse": bj.Lambertian(db)})
+        spec = {f"spec.spike.{wname}": "free", "spec.spike.rho_s": "free", "spec.halo.rho_s": "free",
+                "diffuse.rho_d": "free", **hspec}
         run(label, model, spec)
         if best is None or out[label]["log_rms"] < out[best]["log_rms"]:
             best = label
-    out["multi_lobe"] = dict(out[best], halo=best.rsplit("_", 1)[1])
+    out["multi_lobe"] = dict(out[best], variant=best)
     models["multi_lobe"] = models[best]
-    if "k" not in index:  # paints: the binder's index free too
-        m = models["multi_lobe"]
-        spec = {k: "free" for k in m.params() if k.startswith("spec.") and not k.endswith(".k")}
-        spec["diffuse.rho_d"] = "free"
-        spec["spec.n"] = {"value": float(m.params()["spec.n"]), "lower": 1.0, "upper": 3.0}
-        run("multi_lobe_n", m, spec)
+    # shadowing before/after: the best multi-lobe model refitted without shadowing (same start, G = 1)
+    m = models["multi_lobe"]
+    bare = dataclasses.replace(m.terms["spec"], shadowing="none")
+    spec = {k: "free" for k in m.params() if k.startswith("spec.") and not k.endswith((".n", ".k"))}
+    spec.update({k: tail for k in spec if k.endswith(".gamma")})
+    spec["diffuse.rho_d"] = "free"
+    run("multi_lobe_no_shadowing", bj.Model(terms={"spec": bare, "diffuse": m.terms["diffuse"]}), spec)
     # (d) empirical families
     peak = float(np.quantile(np.asarray(table.brdf), 0.999))
     g0 = 2.0
@@ -172,7 +188,7 @@ def figure(name: str, models: dict, path: Path) -> None:
     ncol = 4
     nrow = int(np.ceil(len(angles) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 3.2 * nrow), squeeze=False)
-    shown = ("today", "smith_ts", "multi_lobe", "abg", "phong")
+    shown = ("today", "tail_hc", "multi_lobe", "abg", "phong")
     for ax, a in zip(axes.ravel(), angles):
         sel = plane & (np.round(np.degrees(ti), 4) == a) & (f > 0)
         order = np.argsort(signed[sel])
@@ -195,23 +211,24 @@ def figure(name: str, models: dict, path: Path) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
-    p.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "real_data_fits.json")
+    p.add_argument("--out", type=Path, default=ROOT / "experiments" / "results",
+                   help="folder of the results: real_data_fits_<dataset>.json per dataset")
     p.add_argument("--figures", type=Path, default=ROOT / "experiments" / "figures")
     p.add_argument("--no-figures", action="store_true")
     args = p.parse_args(argv)
-    results = {}
     for name in args.datasets:
         print(f"{name}: model, overall log-RMS | per incident angle | wall time", flush=True)
         summary, models = fit_dataset(name)
         physical = min((k for k in summary if k in PHYSICAL), key=lambda k: summary[k]["log_rms"])
         empirical = min(("abg", "phong"), key=lambda k: summary[k]["log_rms"])
-        results[name] = {"fits": summary, "best_physical": physical, "best_empirical": empirical}
+        results = {"dataset": name, "fits": summary, "best_physical": physical, "best_empirical": empirical,
+                   "best_models": {k: {p: float(v) for p, v in models[k].params().items()} for k in (physical, empirical)}}
         print(f"  best physically based: {physical} ({summary[physical]['log_rms']:.3f}); "
               f"best empirical: {empirical} ({summary[empirical]['log_rms']:.3f})", flush=True)
         if not args.no_figures:
             figure(name, models, args.figures / f"real_data_{name}.png")
-    write_json_atomic(args.out, results, allow_nan=False)
-    print(f"wrote {args.out}")
+        path = write_json_atomic(args.out / f"real_data_fits_{name}.json", results, allow_nan=False)
+        print(f"wrote {path}")
     return 0
 
 
