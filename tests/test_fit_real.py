@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax.fit import build_fit_job, fit, load_fit_config, read_cornell_brdf, read_merl_inplane
+from brdfjax.fit import fit, read_cornell_brdf, read_merl_inplane
+from brdfjax.fit.config import build_fit_job, load_fit_config
 from brdfjax.terms import MultiLobeSpecular, Specular
 
 REAL = Path(__file__).resolve().parent / "data" / "real"
