@@ -3,7 +3,7 @@
 Public names are re-exported here from their modules; see the README for a tour.
 """
 
-from . import distributions as distributions
+from . import distributions as distributions, shadowing as shadowing
 from .detector import Detector as Detector, PixelGrid as PixelGrid, incident_direction as incident_direction
 from .distributions import (
     GGX as GGX,
@@ -32,12 +32,16 @@ from .render import (
 )
 from .terms import (
     SOLAR_CELL_SEED as SOLAR_CELL_SEED,
+    ABg as ABg,
     AbstractTerm as AbstractTerm,
     Diffraction as Diffraction,
     Lambertian as Lambertian,
+    Lobe as Lobe,
     Model as Model,
+    MultiLobeSpecular as MultiLobeSpecular,
     OffsetNormal as OffsetNormal,
     Oriented as Oriented,
+    Phong as Phong,
     Specular as Specular,
     solar_cell as solar_cell,
 )

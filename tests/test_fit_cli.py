@@ -199,27 +199,28 @@ def test_shipped_synthetic_config_recovers_the_seed_parameters(tmp_path, n):
     assert len(list(out.glob("fit_ti*.png"))) == 3
 
 
-#: The same fits as tests/test_fit_real.py (Python API) through the configs and the CLI; the Cornell Krylon fit
-#: runs by default, MERL and Cayman with BRDFJAX_SLOW=1 (test_fit_real.py covers their numbers).
+#: The shipped real-data configs (the best physically based model per material of
+#: experiments/real_data_fits.py, started from its fitted values) through the CLI; the Cornell Krylon fit
+#: runs by default, MERL and Cayman with BRDFJAX_SLOW=1.  Bounds: today's log-RMS of the single
+#: microfacet lobe + Lambertian (1.17, 0.48, 1.32) overall, and per incident angle.
 REAL_CASES = [
-    pytest.param("fit_merl_aluminium.toml", "spec.alpha", 1.3, 2.0, marks=slow, id="merl_aluminium"),
-    pytest.param("fit_cornell_krylon_blue.toml", "spec.alpha", 0.55, 1.5, id="cornell_krylon_blue"),
-    pytest.param("fit_cornell_cayman.toml", "spec.m", 1.4, 3.5, marks=slow, id="cornell_cayman"),
+    pytest.param("fit_merl_aluminium.toml", 1.17, 2.0, marks=slow, id="merl_aluminium"),
+    pytest.param("fit_cornell_krylon_blue.toml", 0.48, 1.5, id="cornell_krylon_blue"),
+    pytest.param("fit_cornell_cayman.toml", 1.32, 3.5, marks=slow, id="cornell_cayman"),
 ]
 
 
-@pytest.mark.parametrize("config, width, overall, per_angle", REAL_CASES)
-def test_real_data_configs_fit_through_the_cli(tmp_path, config, width, overall, per_angle):
+@pytest.mark.parametrize("config, overall, per_angle", REAL_CASES)
+def test_real_data_configs_fit_through_the_cli(tmp_path, config, overall, per_angle):
     out = tmp_path / "out"
     assert main(["fit", str(CONFIGS / config), "--out", str(out), "--no-figures"]) == 0
     doc = json.loads((out / "result.json").read_text())
     assert doc["converged"], doc["message"]
     assert doc["covariance_absolute"] is False  # no uncertainties in the files
-    w = doc["parameters"][width]
-    assert 1e-3 < w["value"] < 1.0 and w["sigma"] < 0.2 * w["value"]
+    widths = {k: v for k, v in doc["parameters"].items() if k.endswith((".alpha", ".m", ".sigma"))}
+    assert widths and all(1e-4 < w["value"] < 1.0 for w in widths.values()), widths
     (block,) = doc["blocks"]
     assert block["log_rms"] < overall
     per = {g["theta_i_deg"]: g["log_rms"] for g in block["groups"]}
-    print(f"\n{config}: {width} = {w['value']:.4g} +- {w['sigma']:.2g}, log-RMS {block['log_rms']:.3f}; per theta_i:",
-          {k: round(v, 3) for k, v in per.items()})
+    print(f"\n{config}: log-RMS {block['log_rms']:.3f}; per theta_i:", {k: round(v, 3) for k, v in per.items()})
     assert max(per.values()) < per_angle
