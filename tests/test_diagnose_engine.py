@@ -3,7 +3,8 @@ inadmissible effects are flagged and kept off the path, backward elimination tak
 the final model is written as a config that ``brdfjax fit`` reruns to the same chi^2, and frames written by
 another program (the README's writer) are read with the one ``sigma`` default.
 
-Budget: about 40 s on an idle 2-core box (goniometer tables of 80-120 rows: every refit is small).
+Budget: measured 300 s at load average 9-12 on the shared 2-core box (not measured idle; goniometer tables of
+100 rows: every refit is small, the time is compilation); the reference trial is behind BRDFJAX_SLOW=1.
 """
 
 from __future__ import annotations
