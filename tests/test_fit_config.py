@@ -26,7 +26,7 @@ def reduced_example(tmp_path_factory):
 
 def test_read_frame_data_round_trips_detector_grid_and_channels(reduced_example):
     r = read_reduced_frame(reduced_example)
-    f = read_frame_data(reduced_example)
+    f = read_frame_data(reduced_example)  # sigma "auto": the frame has u_scatter_flux, so "pixel"
     assert f.name == "solar_cell_20deg"
     assert f.detector.shape == (48, 64)
     assert f.detector.theta_c is None  # the arm sat on the peak: it follows theta_i
@@ -35,7 +35,9 @@ def test_read_frame_data_round_trips_detector_grid_and_channels(reduced_example)
     assert f.grid.shape == (48, 64)
     assert (f.grid.n_h[0], f.grid.n_h[-1], f.grid.n_v[0], f.grid.n_v[-1]) == (-31, 32, -23, 24)
     np.testing.assert_array_equal(f.brdf, r.brdf.astype(np.float64))
-    np.testing.assert_array_equal(f.sigma_rel, r.extra["sigma_rel"].astype(np.float64))
+    np.testing.assert_array_equal(f.sigma_rel, r.extra["u_scatter_flux"].astype(np.float64))
+    total = read_frame_data(reduced_example, sigma="total")
+    np.testing.assert_array_equal(total.sigma_rel, r.extra["sigma_rel"].astype(np.float64))
     np.testing.assert_array_equal(f.mask, r.extra["mask"] > 0.5)
     # the rebuilt detector and grid map the pixels to the stored scatter directions
     geom = render_geometry(bj.Frame(f.theta_i, f.phi_ref, f.wavelength), f.arm_detector(), grid=f.grid)

@@ -329,15 +329,15 @@ def _inj_shadowing(rng, sc: Scenario) -> Scenario:
     return sc.replace(truth_model=dataclasses.replace(sc.truth_model, terms=terms), truth={**sc.truth, "shadowing": "smith"})
 
 
-GENERATORS = {
-    "second_lobe": _inj_second_lobe,
-    "shadowing": _inj_shadowing,
+GENERATORS = {  # in EFFECT_LIBRARY's order
     "offset_normal_peak": _inj_offset,
     "diffraction": _inj_diffraction,
     "instrument_function": _inj_footprint,
     "lambertian": _inj_lambertian,
     "anisotropic_roughness": _inj_aniso,
     "distribution_shape": _inj_shape,
+    "second_lobe": _inj_second_lobe,
+    "shadowing": _inj_shadowing,
     "misalignment": _inj_misalignment,
     "flux_scale": _inj_flux,
     "pixel_nonlinearity": _inj_nonlinearity,
