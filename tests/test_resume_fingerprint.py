@@ -40,6 +40,8 @@ m1 = {{ value = 2.0e-4, lower = 1e-5, upper = 1e-3 }}
 rho_s1 = 0.015
 [output]
 figures = false
+[nuisance]
+enabled = false  # two free parameters: these tests are about the fingerprint
 [sample]
 n_walkers = 8
 n_steps = 20

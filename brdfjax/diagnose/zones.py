@@ -224,7 +224,11 @@ def _classify(cx, cy, major, minor, ang, scales, one_d: bool, cover: float = 0.0
     # distance from the peak to the region's major axis line
     ux, uy = np.cos(np.radians(ang)), np.sin(np.radians(ang))
     d_axis = abs((px - cx) * uy - (py - cy) * ux)
-    if not one_d and elong > 3.0 and major > 2 * core and d_axis < max(core, 0.25 * major) and cover < 0.5:
+    # thin across (minor < a quarter of the block's half-size) it is a band even where it holds most of the usable
+    # points: a frame masked to the pixels above the noise keeps little more than the fringes (measured: a bar band
+    # covering 68 % of the usable points, 0.30 x 0.079 deg in a 0.41-deg block, was named far field)
+    if (not one_d and elong > 3.0 and major > 2 * core and d_axis < max(core, 0.25 * major)
+            and (cover < 0.5 or minor < 0.25 * span)):
         return "band", f"a band through the peak oriented {ang:.0f} deg from the plane of incidence ({size}, {where})"
     spread = major > max(2.0 * wings, 0.5 * span) if math.isfinite(span) else False
     if cover >= 0.3 or spread:
