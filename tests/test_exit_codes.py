@@ -279,3 +279,10 @@ def test_partial_saturation_is_counted_and_reported(w, capsys):
     assert fr["saturated_pixels"] >= 0 and fr["partly_saturated_pixels"] > 0
     assert f"{fr['partly_saturated_pixels']} pixel(s) saturated in some exposures" in err
     assert fr["warnings"] and fr["usable_pixels"] > 0
+
+
+def test_sample_refuses_too_few_walkers_before_reading_any_data(w, capsys):
+    # the config's free parameters bound the sampled ones from below: refused before the out folder or the data
+    rc, err = _run(["sample", str(w / "samp.toml"), "--out", str(w / "s_early"), "--walkers", "2"], capsys)
+    assert rc == 2 and "n_walkers = 2 is fewer than twice the 2 free parameters" in err
+    assert not (w / "s_early").exists()

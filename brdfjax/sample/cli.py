@@ -67,6 +67,7 @@ from ..io import check_output_dir
 from ..io.fingerprint import file_digest, value_digest
 from ..progress import make_console
 from ._api import SAMPLERS, check_sampling, sample
+from ._posterior import check_walkers
 from ._priors import PRIOR_KINDS, Prior, SampleError
 
 __all__ = ["SampleSection", "PriorConfig", "add_arguments", "run", "priors_from_config"]
@@ -247,9 +248,13 @@ def run(args: argparse.Namespace) -> int:
         raise SampleError(
             f"{cfg.source}: sample.priors: prior on '{name}', which is held fixed; make it free in [params] to sample it"
         )
+    n_walkers = args.walkers if args.walkers is not None else sec.n_walkers
+    if sec.sampler == "emcee" and n_walkers is not None:
+        # before any data are generated or read: the free parameters the config names are a lower bound on the
+        # sampled ones (frames add per-frame parameters and, through the instrument, nuisance parameters)
+        check_walkers(n_walkers, sum(1 for p in spec.values() if p.free))
     out.mkdir(parents=True, exist_ok=True)
     job = build_fit_job(cfg, work_dir=out)
-    n_walkers = args.walkers if args.walkers is not None else sec.n_walkers
     step_roi = dict(step=sec.step, roi=None if sec.roi is None else tuple(sec.roi))
     # priors on fixed or unknown parameters and the walker count: before the fit
     check_sampling(job.model, job.blocks, job.params, priors=priors, n_walkers=n_walkers,
