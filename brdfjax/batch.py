@@ -38,16 +38,16 @@ import os
 import subprocess
 import sys
 import time
-import tomllib
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import Field, field_validator
 from tqdm import tqdm
 
+from .config import ConfigError, StrictModel, check_choice, read_toml, validate
 from .errors import InputError
 from .io import write_json_atomic
 from .io.fingerprint import check_resume, file_digest, value_digest
@@ -62,11 +62,7 @@ class StudyError(InputError):
     """A study file that cannot be run (the message names the file and the key)."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class Job(_Strict):
+class Job(StrictModel):
     name: str = Field(description="unique job name: its outputs go to DIR/NAME/, its result to DIR/jobs/NAME.json")
     command: str = Field(description="the brdfjax subcommand: " + ", ".join(COMMANDS))
     config: str | None = Field(None, description="the command's config file, relative to the study file")
@@ -82,12 +78,10 @@ class Job(_Strict):
     @field_validator("command")
     @classmethod
     def _command(cls, v: str) -> str:
-        if v not in COMMANDS:
-            raise ValueError(f"one of {', '.join(COMMANDS)}")
-        return v
+        return check_choice("command", v, COMMANDS)
 
 
-class BatchSection(_Strict):
+class BatchSection(StrictModel):
     backend: str = Field("auto", description="auto, ray, process or serial")
     address: str = Field("", description="Ray address ('' = a local instance)")
     workers: int = Field(2, ge=1, description="concurrent jobs")
@@ -95,12 +89,10 @@ class BatchSection(_Strict):
     @field_validator("backend")
     @classmethod
     def _backend(cls, v: str) -> str:
-        if v not in BACKENDS:
-            raise ValueError(f"one of {', '.join(BACKENDS)}")
-        return v
+        return check_choice("backend", v, BACKENDS)
 
 
-class Study(_Strict):
+class Study(StrictModel):
     batch: BatchSection = Field(default_factory=BatchSection)
     jobs: list[Job]
 
@@ -108,17 +100,10 @@ class Study(_Strict):
 def load_study(path: str | os.PathLike) -> tuple[Study, Path]:
     """Read and validate a study file; relative config paths are resolved against its folder."""
     p = Path(path)
-    try:
-        raw = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise StudyError(f"{p}: no such study file") from None
-    except (OSError, ValueError) as e:
-        raise StudyError(f"{p}: not a readable TOML file: {e}") from None
-    try:
-        study = Study.model_validate(raw)
-    except ValidationError as e:
-        lines = [f"{p}: {'.'.join(str(x) for x in err['loc'])}: {err['msg']}" for err in e.errors()]
-        raise StudyError("\n".join(lines)) from None
+    try:  # the project's TOML reader and validation-error describer (file, dotted key, what was expected)
+        study = validate(Study, read_toml(p, "study file"), str(p))
+    except ConfigError as e:
+        raise StudyError(str(e)) from None
     names = [j.name for j in study.jobs]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:

@@ -95,7 +95,10 @@ def test_study_through_the_process_pool_then_resumes_only_unfinished_jobs(study,
 def test_bad_study_names_file_and_key(tmp_path, capsys):
     p = tmp_path / "s.toml"
     p.write_text('[[jobs]]\nname = "a"\ncommand = "fitt"\n')
-    with pytest.raises(StudyError, match=r"s\.toml: jobs\.0\.command: .*one of fit"):
+    with pytest.raises(StudyError, match=r"s\.toml: jobs\[0\]\.command: unknown command 'fitt' \(did you mean 'fit'\?\); expected 'fit'"):
+        load_study(p)
+    p.write_text('[batch]\nworkerz = 2\n[[jobs]]\nname = "a"\ncommand = "fit"\n')
+    with pytest.raises(StudyError, match=r"s\.toml: batch\.workerz: unknown key \(did you mean 'workers'\?\)"):
         load_study(p)
     p.write_text('[[jobs]]\nname = "a"\ncommand = "fit"\nconfig = "nope.toml"\n')
     assert main(["batch", str(p), "--out", str(tmp_path / "o")]) == 2

@@ -51,7 +51,7 @@ import numpy as np
 from jaxtyping import Array
 from pydantic import Field, PrivateAttr, field_validator
 
-from ..config import StrictModel
+from ..config import StrictModel, check_choice
 from ..instrument.nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, parse_nd_filters
 from ..instrument.reduce import SEED_CURVE_RESIDUAL
 from ._common import FitInputError
@@ -151,9 +151,7 @@ class NuisanceOptions(StrictModel):
     @field_validator("nd_tolerance")
     @classmethod
     def _kind(cls, v: str) -> str:
-        if v not in ND_TOLERANCE_KINDS:
-            raise ValueError(f"unknown nd_tolerance {v!r}; expected one of {', '.join(map(repr, ND_TOLERANCE_KINDS))}")
-        return v
+        return check_choice("nd_tolerance", v, ND_TOLERANCE_KINDS)
 
     @field_validator("nd_tolerances")
     @classmethod
