@@ -1,9 +1,13 @@
-"""``brdfjax batch``: a study of tiny fits through the process pool (and Ray, slow-gated), resumed after a kill."""
+"""``brdfjax batch``: a study of tiny fits through the process pool and a local Ray instance, resumed after a kill."""
 
 from __future__ import annotations
 
 import json
 import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -105,11 +109,24 @@ def test_bad_study_names_file_and_key(tmp_path, capsys):
     assert "jobs[0].config: no such file" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="slow (starts a local Ray instance): set BRDFJAX_SLOW=1")
-def test_study_through_ray(study, tmp_path, warm_cache):
+def test_study_through_ray_killed_then_resumed(study, tmp_path, warm_cache):
+    """A local Ray instance of 2 CPUs; the study's process group is SIGKILLed once a job has finished, and the
+    rerun skips exactly the jobs whose records were written, runs the rest and agrees with them."""
     pytest.importorskip("ray")
     out = tmp_path / "ray"
-    report = run_study(study, out, backend="ray", workers=2, progress=False)
-    assert report.backend == "ray" and sorted(report.ran) == ["fit0", "fit1", "fit2"] and not report.failed
+    cmd = [sys.executable, "-m", "brdfjax", "batch", str(study), "--out", str(out), "--backend", "ray", "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None and not list((out / "jobs").glob("*.json")):
+        time.sleep(0.1)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = sorted(n for n, r in _results(out).items() if r["ok"])
+    assert done, "no job finished before the kill"
+    mtimes = {n: (out / n / "result.json").stat().st_mtime_ns for n in done}
     again = run_study(study, out, backend="ray", workers=2, progress=False)
-    assert sorted(again.skipped) == ["fit0", "fit1", "fit2"] and not again.ran
+    assert again.backend == "ray" and sorted(again.skipped) == done and not again.failed
+    assert sorted(again.ran) == sorted({"fit0", "fit1", "fit2"} - set(done))
+    assert {n: (out / n / "result.json").stat().st_mtime_ns for n in done} == mtimes  # not redone
+    m1 = [json.loads((out / n / "result.json").read_text())["parameters"]["m1"]["value"] for n in ("fit0", "fit1", "fit2")]
+    assert m1 == pytest.approx([m1[0]] * 3, rel=1e-4)
