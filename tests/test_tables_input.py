@@ -4,12 +4,14 @@ Every bad input is an exit-2 error of ``brdfjax fit`` that names the file, colum
 
 from __future__ import annotations
 
+import math
 import textwrap
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import brdfjax as bj
 from brdfjax.cli import main
 from brdfjax.fit import FitInputError, read_astm_e1392, read_merl_inplane, read_table
 
@@ -63,13 +65,14 @@ def test_merl_layout_with_other_column_names_through_a_mapping(tmp_path):
     assert len(t) == 70 and float(t.wavelength) == pytest.approx(532e-9)
     k = int(np.argmax(t.brdf[:35]))  # the 20-deg slice peaks at the mirror direction, brdfjax's phi_s = 180 deg
     assert np.degrees(t.theta_s[k]) == pytest.approx(20.0) and np.degrees(t.phi_s[k]) == pytest.approx(180.0)
-    assert t.screening["mirror_check"] == {"slices_with_a_clear_peak": 2, "off_mirror": 0}
+    assert t.screening["mirror_check"] == {"slices_with_a_clear_peak": 2, "off_mirror": 0, "forward_shifted": 0}
 
 
 def test_real_merl_file_passes_the_checks_and_honours_wavelength_nm():
     t = read_merl_inplane(MERL, wavelength=532.0)
     assert len(t) == 1785 and t.screening["dropped"] == {} and float(t.wavelength) == pytest.approx(532e-9)
-    assert t.screening["mirror_check"] == {"slices_with_a_clear_peak": 7, "off_mirror": 0}
+    assert t.screening["mirror_check"]["slices_with_a_clear_peak"] == 7
+    assert t.screening["mirror_check"]["off_mirror"] == 0
 
 
 def test_header_without_the_mapped_column_exits_2(tmp_path, capsys):
@@ -86,6 +89,56 @@ def test_wrong_azimuth_convention_peaks_on_the_backscatter_side_exits_2(tmp_path
         columns = { theta_i = "phi_i", phi_i = "theta_i", theta_s = "phi_o", phi_s = "theta_o" }""")), capsys)
     assert "scan.csv: the BRDF peak of 2 of 2 slices is not at the mirror direction (on the backscatter side" in err
     assert "data.tables[0].azimuth_offset (now -180.0)" in err and "data.tables[0].signed_inplane" in err
+
+
+def _broad_lobe_csv(path: Path, ti: float, m: float = 0.145, sign: float = 1.0, step: float = 1.0) -> Path:
+    """A signed in-plane scan of a Beckmann lobe (seed form) + Lambertian, 2 % scatter (a noise-free Lambertian floor
+    would be identical rows: placeholders); sign -1 puts it on the source side."""
+    model = bj.Model(terms={"s": bj.Specular(bj.Beckmann(m), rho_s=0.5, n=1.5), "d": bj.Lambertian(0.02)})
+    ts = np.arange(-85.0, 86.0, step)
+    t = np.full(ts.shape, math.radians(ti))
+    dirs = bj.Directions.from_angles(t, 0 * t, np.radians(np.abs(ts)), np.where(ts >= 0, math.pi, 0.0))
+    f = np.asarray(model(dirs, 632.8e-9)) * np.exp(0.02 * np.random.default_rng(1).standard_normal(ts.size))
+    path.write_text("ti,ts,f\n" + "".join(f"{ti:g},{sign * a:g},{v:.12e}\n" for a, v in zip(ts, f)))
+    return path
+
+
+COLS = {"theta_i": "ti", "theta_s": "ts", "brdf": "f"}
+
+
+def test_broad_lobe_forward_peak_is_not_refused_but_its_mirror_image_is(tmp_path):
+    # Beckmann m = 0.145 at 60 deg peaks forward of the mirror direction (at ~70 deg, 10 deg off): its
+    # half-maximum region reaches the mirror, so it is a broad lobe's off-specular peak, not a wrong convention.
+    f = _broad_lobe_csv(tmp_path / "rough.csv", 60.0)
+    t = read_table(f, COLS, signed_inplane=True)
+    k = int(np.argmax(t.brdf))
+    assert np.degrees(t.theta_s[k]) >= 69.0 and np.degrees(t.phi_s[k]) == pytest.approx(180.0)
+    assert t.screening["mirror_check"] == {"slices_with_a_clear_peak": 1, "off_mirror": 0, "forward_shifted": 1}
+    # the same lobe on the source side (the wrong sign convention) is still refused, naming the side and the keys
+    bad = _broad_lobe_csv(tmp_path / "flipped.csv", 60.0, sign=-1.0)
+    with pytest.raises(FitInputError, match=r"flipped.csv: the BRDF peak of 1 of 1 slices is not at the mirror "
+                                            r"direction \(on the backscatter side.*signed_inplane \(now true\)"):
+        read_table(bad, COLS, signed_inplane=True)
+
+
+def test_mirror_check_over_lobe_widths_and_incidences(tmp_path):
+    # Every lobe of m <= 0.2 at 20-80 deg passes in the right convention and is refused in the flipped one.
+    for ti in (20.0, 40.0, 60.0, 75.0):
+        for m in (0.05, 0.2):
+            f = _broad_lobe_csv(tmp_path / "ok.csv", ti, m=m, step=2.0)
+            assert read_table(f, COLS, signed_inplane=True).screening["mirror_check"]["off_mirror"] == 0, (ti, m)
+            bad = _broad_lobe_csv(tmp_path / "flip.csv", ti, m=m, sign=-1.0, step=2.0)
+            with pytest.raises(FitInputError, match="backscatter side"):
+                read_table(bad, COLS, signed_inplane=True)
+
+
+def test_narrow_peak_far_forward_of_the_mirror_is_refused(tmp_path):
+    # A narrow peak 30 deg beyond the mirror direction (a zenith mislabelled by 30 deg) is no broad lobe's shift.
+    ts = np.arange(-85.0, 86.0, 1.0)
+    _csv(tmp_path / "shifted.csv", "ti,ts,f", [(30.0, a, _lobe(60.0, a)) for a in ts])
+    with pytest.raises(FitInputError, match=r"shifted.csv: the BRDF peak of 1 of 1 slices is not at the mirror "
+                                            r"direction: e.g. theta_i = 30 deg: peak at theta_s = 60"):
+        read_table(tmp_path / "shifted.csv", COLS, signed_inplane=True)
 
 
 def test_wavelength_that_disagrees_with_the_file_exits_2(tmp_path, capsys):
