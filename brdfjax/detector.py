@@ -157,8 +157,8 @@ class Detector(eqx.Module):
     def _alpha(self, theta_c: ArrayLike) -> Array:
         return theta_c + self.m_h * self.pixel_pitch / self.distance
 
-    def _offset_vector(self, n_h: ArrayLike, n_v: ArrayLike) -> tuple[Array, Array]:
-        """``p = R_CCD r_p + m_v d_v y`` (small) and ``u = p + R z`` for pixels, (..., 3).
+    def _offset_xyz(self, n_h: ArrayLike, n_v: ArrayLike) -> tuple[Array, Array, Array]:
+        """Components of ``p = R_CCD r_p + m_v d_v y`` (small) for pixels (``u = p + R z``).
 
         Written component by component (no stacking, scatter-add or axis
         reductions) so that XLA fuses the whole mapping into one loop.
@@ -167,20 +167,28 @@ class Detector(eqx.Module):
         y = jnp.asarray(n_v) * self.pixel_pitch_v
         M = self._ccd_rotation()
         dy = self.m_v * self.pixel_pitch_v
-        p = (M[0, 0] * x + M[0, 1] * y, M[1, 0] * x + M[1, 1] * y + dy, M[2, 0] * x + M[2, 1] * y)
-        p = jnp.broadcast_arrays(*p)
+        return jnp.broadcast_arrays(M[0, 0] * x + M[0, 1] * y, M[1, 0] * x + M[1, 1] * y + dy, M[2, 0] * x + M[2, 1] * y)
+
+    def _offset_vector(self, n_h: ArrayLike, n_v: ArrayLike) -> tuple[Array, Array]:
+        """``p = R_CCD r_p + m_v d_v y`` (small) and ``u = p + R z`` for pixels, (..., 3)."""
+        p = self._offset_xyz(n_h, n_v)
         u = (p[0], p[1], p[2] + self.distance)
         return jnp.stack(p, -1), jnp.stack(u, -1)
 
-    def _unit_offset(self, n_h, n_v) -> Array:
-        """``e = u / |u| - z`` without cancellation, (..., 3)."""
-        p, _ = self._offset_vector(n_h, n_v)
-        px, py, pz = p[..., 0], p[..., 1], p[..., 2]
+    def _unit_offset_xyz(self, n_h, n_v) -> tuple[Array, Array, Array]:
+        """Components of ``e = u / |u| - z`` without cancellation: one square root, one division."""
+        px, py, pz = self._offset_xyz(n_h, n_v)
         R = self.distance
         q = px * px + py * py + pz * pz + 2.0 * R * pz  # |u|^2 - R^2
         norm_u = safe_sqrt(R * R + q)
-        shrink = -q / (norm_u * (norm_u + R))  # R / |u| - 1
-        return jnp.stack([px / norm_u, py / norm_u, pz / norm_u + shrink], -1)
+        inv = 1.0 / (norm_u * (norm_u + R))
+        # 1/|u| = (|u| + R) inv and R/|u| - 1 = -q inv
+        inv_u = (norm_u + R) * inv
+        return px * inv_u, py * inv_u, pz * inv_u - q * inv
+
+    def _unit_offset(self, n_h, n_v) -> Array:
+        """``e = u / |u| - z`` without cancellation, (..., 3)."""
+        return jnp.stack(self._unit_offset_xyz(n_h, n_v), -1)
 
     def _arm(self, theta_c: ArrayLike | None, theta_i: ArrayLike | None) -> Array:
         if theta_c is not None:
@@ -199,24 +207,24 @@ class Detector(eqx.Module):
 
     @eqx.filter_jit
     def directions(self, n_h: ArrayLike, n_v: ArrayLike, theta_i: ArrayLike) -> Directions:
-        """Incident and scattered directions for pixels, with ``w_i + w_s`` free of cancellation."""
+        """Incident and scattered directions for pixels, with ``w_i + w_s`` free of cancellation.
+
+        Component by component; the incident direction's components keep the
+        shape of ``theta_i`` (one direction per frame, not one per pixel).
+        """
         theta_i = jnp.asarray(theta_i)
         alpha = self._alpha(self._arm(None, theta_i))
-        e_rot = rotate(Ry(alpha), self._unit_offset(n_h, n_v))
-        base_s = jnp.stack([jnp.sin(alpha), jnp.zeros_like(alpha), jnp.cos(alpha)], -1)
-        w_s = base_s + e_rot
-        w_i = jnp.broadcast_to(incident_direction(theta_i), w_s.shape)
+        ex, ey, ez = self._unit_offset_xyz(n_h, n_v)
+        ca, sa = jnp.cos(alpha), jnp.sin(alpha)
+        # Ry(alpha) e
+        erx, erz = ca * ex + sa * ez, ca * ez - sa * ex
+        w_s = (sa + erx, ey, ca + erz)
+        w_i = (-jnp.sin(theta_i), jnp.zeros_like(theta_i), jnp.cos(theta_i))
         half_sum, half_diff = 0.5 * (alpha + theta_i), 0.5 * (alpha - theta_i)
         # sin(alpha) - sin(theta_i) and cos(alpha) + cos(theta_i) as products (no cancellation).
-        base_sum = jnp.stack(
-            [
-                2.0 * jnp.cos(half_sum) * jnp.sin(half_diff),
-                jnp.zeros_like(alpha),
-                2.0 * jnp.cos(half_sum) * jnp.cos(half_diff),
-            ],
-            -1,
-        )
-        return Directions(w_i, w_s, base_sum + e_rot)
+        c2 = 2.0 * jnp.cos(half_sum)
+        w_sum = (c2 * jnp.sin(half_diff) + erx, ey, c2 * jnp.cos(half_diff) + erz)
+        return Directions(w_i, w_s, w_sum)
 
     @eqx.filter_jit
     def angles(self, n_h: ArrayLike, n_v: ArrayLike, theta_c: ArrayLike | None = None) -> tuple[Array, Array]:

@@ -118,9 +118,9 @@ class Beckmann(AbstractDistribution):
         check_param("beckmann", "m", self.m, _positive, "m > 0 (rms slope)")
 
     def __call__(self, tx2, ty2):
-        m2 = jnp.square(self.m)
+        inv_m2 = 1.0 / jnp.square(self.m)  # once per call, not per pixel
         t2 = tx2 + ty2
-        return jnp.exp(-t2 / m2) * jnp.square(1.0 + t2) / (_PI * m2)
+        return jnp.exp(-t2 * inv_m2) * jnp.square(1.0 + t2) * (inv_m2 / _PI)
 
 
 class BeckmannAniso(AbstractDistribution):

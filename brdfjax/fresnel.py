@@ -17,15 +17,21 @@ from .geometry import Directions, safe_hypot, safe_sqrt
 __all__ = ["fresnel", "q_factor"]
 
 
-def _csqrt(a: Array, b: Array) -> tuple[Array, Array]:
-    """Principal square root of ``a + i b`` as (real, imag), stable for either sign of ``a``."""
+def _csqrt_abs2(a: Array, b: Array) -> tuple[Array, Array, Array]:
+    """:func:`_csqrt` of ``a + i b`` and its squared modulus ``|a + i b|``, sharing the hypot."""
     r = safe_hypot(a, b)
-    big = safe_sqrt(0.5 * (r + jnp.abs(a)))  # the larger of |re|, |im| of the root
+    big = safe_sqrt(0.5 * (r + jnp.abs(a)))
     big_safe = jnp.where(big > 0, big, 1.0)
     small = jnp.where(big > 0, 0.5 * b / big_safe, 0.0)
     nonneg = a >= 0
     re = jnp.where(nonneg, big, jnp.abs(small))
     im = jnp.where(nonneg, small, jnp.where(b < 0, -big, big))
+    return re, im, r
+
+
+def _csqrt(a: Array, b: Array) -> tuple[Array, Array]:
+    """Principal square root of ``a + i b`` as (real, imag), stable for either sign of ``a``."""
+    re, im, _ = _csqrt_abs2(a, b)
     return re, im
 
 
@@ -64,34 +70,38 @@ def q_factor(n: ArrayLike, dirs: Directions, k: ArrayLike = 0.0) -> Array:
     undefined, and Q is independent of it (the ss/ps and sp/pp pairs
     combine to ``cos^2 + sin^2``), so ``cos(dphi - pi) = 1`` is used there.
     In the specular direction Q reduces to ``F_s + F_p``.
+
+    Written with the squared projections only (``sin^2 theta``, never
+    ``sin theta``: ``|P cos(dphi - pi) - n^2 sin ti sin ts|^2`` is
+    ``|P d + n^2 si^2 ss^2|^2 / (si^2 ss^2)`` with ``d`` the projections' dot
+    product) and the four terms over one common denominator: two complex
+    square roots and three divisions, of which only those of the scattered
+    direction are per pixel when the incident direction is one per frame.
     """
-    w_i, w_s = dirs.w_i, dirs.w_s
-    ci, cs = w_i[..., 2], w_s[..., 2]
-    si = safe_hypot(w_i[..., 0], w_i[..., 1])
-    ss = safe_hypot(w_s[..., 0], w_s[..., 1])
-    rr = si * ss
-    ok = rr > 0
-    rr_safe = jnp.where(ok, rr, 1.0)
+    (ix, iy, ci), (sx, sy, cs) = dirs.i, dirs.s
+    si2 = ix * ix + iy * iy
+    ss2 = sx * sx + sy * sy
+    rr2 = si2 * ss2
+    ok = rr2 > 0
+    inv_rr2 = 1.0 / jnp.where(ok, rr2, 1.0)
     # cos(dphi) and sin(dphi) from the standard-azimuth projections; dphi - pi flips both signs.
-    dot = w_i[..., 0] * w_s[..., 0] + w_i[..., 1] * w_s[..., 1]
-    crs = w_i[..., 0] * w_s[..., 1] - w_i[..., 1] * w_s[..., 0]
-    cosd = jnp.where(ok, -dot / rr_safe, 1.0)
-    sind2 = jnp.where(ok, jnp.square(crs / rr_safe), 0.0)
+    dot = ix * sx + iy * sy
+    crs = ix * sy - iy * sx
+    cos2 = jnp.where(ok, jnp.square(dot) * inv_rr2, 1.0)
+    sin2 = jnp.where(ok, jnp.square(crs) * inv_rr2, 0.0)
 
     n2r, n2i = _index_squared(n, k)
-    Air, Aii = _csqrt(n2r - jnp.square(si), n2i)
-    Asr, Asi = _csqrt(n2r - jnp.square(ss), n2i)
+    Air, Aii, Ai2 = _csqrt_abs2(n2r - si2, n2i)
+    Asr, Asi, As2 = _csqrt_abs2(n2r - ss2, n2i)
     den_s = _abs2(ci + Air, Aii)  # |cos ti + A(ti)|^2
     den_ss = _abs2(cs + Asr, Asi)  # |cos ts + A(ts)|^2
     den_p = _abs2(n2r * ci + Air, n2i * ci + Aii)  # |n^2 cos ti + A(ti)|^2
     den_ps = _abs2(n2r * cs + Asr, n2i * cs + Asi)  # |n^2 cos ts + A(ts)|^2
     num2 = _abs2(n2r - 1.0, n2i)  # |n^2 - 1|^2
 
-    # |x / y|^2 = |x|^2 / |y|^2
-    q_ss = num2 * jnp.square(cosd) / (den_s * den_ss)
-    q_sp = num2 * _abs2(Asr, Asi) * sind2 / (den_s * den_ps)
-    q_ps = num2 * _abs2(Air, Aii) * sind2 / (den_p * den_ss)
-    pr, pi = _cmul(Air, Aii, Asr, Asi)
-    sis = si * ss
-    q_pp = num2 * _abs2(pr * cosd - n2r * sis, pi * cosd - n2i * sis) / (den_p * den_ps)
-    return q_ss + q_sp + q_ps + q_pp
+    pr, pi = _cmul(Air, Aii, Asr, Asi)  # P = A(ti) A(ts)
+    # |P cos(dphi - pi) - n^2 si ss|^2; with cos(dphi - pi) = -dot / (si ss):
+    pp = jnp.where(ok, _abs2(pr * dot + n2r * rr2, pi * dot + n2i * rr2) * inv_rr2, _abs2(pr, pi))
+    # sum of |x / y|^2 = |x|^2 / |y|^2 over the four terms, on the common denominator
+    numer = (cos2 * den_p + Ai2 * sin2 * den_s) * den_ps + (As2 * sin2 * den_p + pp * den_s) * den_ss
+    return num2 * numer / (den_s * den_ss * den_p * den_ps)

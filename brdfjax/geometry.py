@@ -30,6 +30,7 @@ __all__ = [
     "safe_sqrt",
     "safe_hypot",
     "rotate",
+    "rotate_xyz",
 ]
 
 
@@ -113,8 +114,34 @@ def zenith_azimuth(v: Array) -> tuple[Array, Array]:
     return theta, jnp.mod(phi, 2 * jnp.pi)
 
 
+def rotate_xyz(matrix: Array, x: ArrayLike, y: ArrayLike, z: ArrayLike) -> tuple[Array, Array, Array]:
+    """Apply a (3, 3) rotation to vectors given by their components; returns the three components."""
+    return tuple(matrix[i, 0] * x + matrix[i, 1] * y + matrix[i, 2] * z for i in range(3))
+
+
+def _xyz(v) -> tuple[Array, Array, Array]:
+    """Components of a vector given as an array (..., 3) or as a 3-tuple of arrays."""
+    if isinstance(v, tuple | list):
+        if len(v) != 3:
+            raise ValueError(f"Directions: a vector given by components needs 3 of them, got {len(v)}")
+        return tuple(jnp.asarray(c) for c in v)
+    v = jnp.asarray(v)
+    if v.ndim == 0 or v.shape[-1] != 3:
+        raise ValueError(f"Directions: vectors must have a last axis of length 3, got shape {v.shape}")
+    return v[..., 0], v[..., 1], v[..., 2]
+
+
 class Directions(eqx.Module):
-    """Incident and scattered unit vectors, and their sum, shape (..., 3).
+    """Incident and scattered unit vectors, and their sum.
+
+    Stored component by component (``i = (x, y, z)`` of ``w_i``, ``s`` of
+    ``w_s``, ``t`` of ``w_sum``): every term works on the components, so a
+    compiled frame evaluation never materialises ``(N, 3)`` arrays (XLA
+    would copy and transpose them between fused loops).  ``w_i``, ``w_s``
+    and ``w_sum`` give the ``(..., 3)`` arrays; ``Directions(w_i, w_s,
+    w_sum)`` accepts arrays ``(..., 3)`` or 3-tuples of component arrays.
+    The components of ``w_i`` may have a smaller (broadcastable) shape than
+    those of ``w_s``: a frame's single incident direction stays a scalar.
 
     ``w_sum = w_i + w_s`` is carried separately because near the specular
     direction its x and y components are differences of nearly equal numbers;
@@ -123,9 +150,12 @@ class Directions(eqx.Module):
     :meth:`from_angles`.
     """
 
-    w_i: Array
-    w_s: Array
-    w_sum: Array
+    i: tuple[Array, Array, Array]
+    s: tuple[Array, Array, Array]
+    t: tuple[Array, Array, Array]
+
+    def __init__(self, w_i, w_s, w_sum):
+        self.i, self.s, self.t = _xyz(w_i), _xyz(w_s), _xyz(w_sum)
 
     @classmethod
     def from_vectors(cls, w_i: ArrayLike, w_s: ArrayLike) -> "Directions":
@@ -140,23 +170,64 @@ class Directions(eqx.Module):
         """From zenith/azimuth angles in radians (azimuth from -x)."""
         return cls.from_vectors(direction(theta_i, phi_i), direction(theta_s, phi_s))
 
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Broadcast shape of the directions (without the vector axis)."""
+        return jnp.broadcast_shapes(*(jnp.shape(c) for c in (*self.i, *self.s, *self.t)))
+
+    def _stack(self, comps) -> Array:
+        return jnp.stack(jnp.broadcast_arrays(*comps, jnp.zeros(self.shape, jnp.result_type(*comps)))[:3], -1)
+
+    @property
+    def w_i(self) -> Array:
+        """Incident unit vectors, (..., 3)."""
+        return self._stack(self.i)
+
+    @property
+    def w_s(self) -> Array:
+        """Scattered unit vectors, (..., 3)."""
+        return self._stack(self.s)
+
+    @property
+    def w_sum(self) -> Array:
+        """``w_i + w_s`` (free of cancellation where the producer made it so), (..., 3)."""
+        return self._stack(self.t)
+
     def rotated(self, matrix: Array) -> "Directions":
         """All three vectors expressed in a frame rotated by ``matrix``."""
-        return Directions(rotate(matrix, self.w_i), rotate(matrix, self.w_s), rotate(matrix, self.w_sum))
+        return Directions(rotate_xyz(matrix, *self.i), rotate_xyz(matrix, *self.s), rotate_xyz(matrix, *self.t))
+
+    def rotated_z(self, angle: ArrayLike) -> "Directions":
+        """The directions expressed in a frame rotated by ``Rz(angle)`` (the matrix applied to the vectors).
+
+        The same as ``rotated(Rz(angle))`` with the z components untouched (no multiplications by 0 and 1).
+        """
+        c, s = jnp.cos(angle), jnp.sin(angle)
+
+        def turn(v):
+            return (c * v[0] - s * v[1], s * v[0] + c * v[1], v[2])
+
+        return Directions(turn(self.i), turn(self.s), turn(self.t))
 
     @property
     def cos_theta_i(self) -> Array:
-        return self.w_i[..., 2]
+        return self.i[2]
 
     @property
     def cos_theta_s(self) -> Array:
-        return self.w_s[..., 2]
+        return self.s[2]
+
+    def half_vector_xyz(self) -> tuple[Array, Array, Array]:
+        """Components of the unit half vector ``w_h`` (Eq 52): one square root and one division."""
+        sx, sy, sz = self.t
+        n2 = sx * sx + sy * sy + sz * sz
+        pos = n2 > 0
+        inv = jnp.where(pos, 1.0 / jnp.sqrt(jnp.where(pos, n2, 1.0)), 1.0)
+        return sx * inv, sy * inv, sz * inv
 
     def half_vector(self) -> Array:
         """Unit half vector ``w_h`` (Eq 52), (..., 3)."""
-        sx, sy, sz = self.w_sum[..., 0], self.w_sum[..., 1], self.w_sum[..., 2]
-        norm = safe_sqrt(sx * sx + sy * sy + sz * sz)
-        return self.w_sum / jnp.where(norm > 0, norm, 1.0)[..., None]
+        return jnp.stack(jnp.broadcast_arrays(*self.half_vector_xyz()), -1)
 
     def half_slopes(self) -> tuple[Array, Array, Array]:
         """``(tan^2 theta_h cos^2 phi_h, tan^2 theta_h sin^2 phi_h, upper)``.
@@ -167,9 +238,7 @@ class Directions(eqx.Module):
         True where the half vector lies in the upper hemisphere; elsewhere the
         slopes are set to 0 and callers must zero the distribution.
         """
-        sx, sy, sz = self.w_sum[..., 0], self.w_sum[..., 1], self.w_sum[..., 2]
+        sx, sy, sz = self.t
         upper = sz > 0
-        sz_safe = jnp.where(upper, sz, 1.0)
-        tx2 = jnp.where(upper, jnp.square(sx / sz_safe), 0.0)
-        ty2 = jnp.where(upper, jnp.square(sy / sz_safe), 0.0)
-        return tx2, ty2, upper
+        inv = jnp.where(upper, 1.0 / jnp.where(upper, sz, 1.0), 0.0)
+        return jnp.square(sx * inv), jnp.square(sy * inv), upper

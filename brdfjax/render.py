@@ -22,7 +22,7 @@ from jaxtyping import Array, ArrayLike
 
 from .detector import Detector, PixelGrid
 from .fields import check_param, param
-from .geometry import Directions, Rz
+from .geometry import Directions
 from .terms import AbstractTerm
 
 __all__ = ["Frame", "sample_directions", "evaluate_pixels", "render", "render_sharded", "render_geometry", "cast"]
@@ -52,7 +52,7 @@ class Frame(eqx.Module):
 def sample_directions(detector: Detector, frame: Frame, n_h: ArrayLike, n_v: ArrayLike) -> Directions:
     """Pixel directions in the sample frame (scatter frame rotated by ``-phi_ref`` about z)."""
     dirs = detector.directions(n_h, n_v, frame.theta_i)
-    return dirs.rotated(Rz(-frame.phi_ref))
+    return dirs.rotated_z(-frame.phi_ref)
 
 
 def evaluate_pixels(

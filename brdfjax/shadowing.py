@@ -107,9 +107,17 @@ _SQRT_PI = math.sqrt(math.pi)
 # --- closed forms -------------------------------------------------------------------------------
 
 
+def _comps(w) -> tuple[Array, Array, Array]:
+    """Components of directions given as an array (..., 3) or as a 3-tuple of arrays."""
+    if isinstance(w, tuple | list):
+        return tuple(jnp.asarray(c) for c in w)
+    w = jnp.asarray(w)
+    return w[..., 0], w[..., 1], w[..., 2]
+
+
 def _slope2(w: Array, ax: ArrayLike, ay: ArrayLike) -> tuple[Array, Array]:
-    """``t^2 = alpha(phi)^2 tan^2(theta)`` of directions ``w`` (..., 3), and ``w_z > 0``."""
-    wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
+    """``t^2 = alpha(phi)^2 tan^2(theta)`` of directions ``w`` (..., 3, or components), and ``w_z > 0``."""
+    wx, wy, wz = _comps(w)
     up = wz > 0
     wz_safe = jnp.where(up, wz, 1.0)
     t2 = (jnp.square(ax * wx) + jnp.square(ay * wy)) / jnp.square(wz_safe)
@@ -271,7 +279,7 @@ def _interp_table(table: LambdaTable, mu: Array, phi_index: Array | None) -> Arr
 
 def _lambda_tabulated(table: LambdaTable, w: Array, stretch: tuple[ArrayLike, ArrayLike] | None = None) -> Array:
     """Lambda of directions ``w`` (..., 3) from a table; ``stretch``: widths for a stretched isotropic table."""
-    wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
+    wx, wy, wz = _comps(w)
     if stretch is not None:
         wx, wy = wx * stretch[0], wy * stretch[1]
     rho2 = jnp.square(wx) + jnp.square(wy)
@@ -305,7 +313,6 @@ def smith_lambda(dist: AbstractDistribution, w: ArrayLike, method: str = "auto")
     """
     if method not in ("auto", "table"):
         raise ValueError(f"smith_lambda: unknown method '{method}'; known: auto, table")
-    w = jnp.asarray(w)
     if method == "auto":
         closed = {
             Beckmann: (lambda_beckmann, lambda d: (d.m, d.m)),
@@ -326,7 +333,8 @@ def smith_lambda(dist: AbstractDistribution, w: ArrayLike, method: str = "auto")
 
 def _positive_side(w: Array, w_sum: Array) -> Array:
     """``chi+(w . w_h)`` (the sign of ``w . w_sum``)."""
-    return jnp.sum(w * w_sum, -1) > 0
+    (x, y, z), (sx, sy, sz) = _comps(w), _comps(w_sum)
+    return x * sx + y * sy + z * sz > 0
 
 
 def smith_g1(dist: AbstractDistribution, w: ArrayLike, w_h: ArrayLike, method: str = "auto") -> Array:
@@ -344,23 +352,23 @@ def smith_g2(dist: AbstractDistribution, dirs: Directions, method: str = "auto")
     """
     if method == "auto" and type(dist) not in (Beckmann, BeckmannAniso, GGX, GGXAniso, StudentTAniso):
         table = lambda_table(dist)
-        lam_i = _lambda_tabulated(table, dirs.w_i)
-        lam_s = _lambda_tabulated(table, dirs.w_s)
+        lam_i = _lambda_tabulated(table, dirs.i)
+        lam_s = _lambda_tabulated(table, dirs.s)
     else:
-        lam_i = smith_lambda(dist, dirs.w_i, method)
-        lam_s = smith_lambda(dist, dirs.w_s, method)
-    ok = jnp.isfinite(lam_i) & jnp.isfinite(lam_s) & _positive_side(dirs.w_i, dirs.w_sum) & _positive_side(dirs.w_s, dirs.w_sum)
+        lam_i = smith_lambda(dist, dirs.i, method)
+        lam_s = smith_lambda(dist, dirs.s, method)
+    ok = jnp.isfinite(lam_i) & jnp.isfinite(lam_s) & _positive_side(dirs.i, dirs.t) & _positive_side(dirs.s, dirs.t)
     total = jnp.where(ok, lam_i + lam_s, 0.0)
     return jnp.where(ok, 1.0 / (1.0 + total), 0.0)
 
 
 def v_cavity(dirs: Directions) -> Array:
     """Cook-Torrance V-cavity masking-shadowing ``min(1, 2 h_z c_s / (w_s.h), 2 h_z c_i / (w_s.h))``."""
-    s = dirs.w_sum
-    norm = safe_sqrt(jnp.sum(jnp.square(s), -1))
+    (sx, sy, sz), (wx, wy, wz) = dirs.t, dirs.s
+    norm = safe_sqrt(sx * sx + sy * sy + sz * sz)
     norm_safe = jnp.where(norm > 0, norm, 1.0)
-    hz = s[..., 2] / norm_safe
-    wh = jnp.sum(dirs.w_s * s, -1) / norm_safe  # = w_i . h
+    hz = sz / norm_safe
+    wh = (wx * sx + wy * sy + wz * sz) / norm_safe  # = w_i . h
     wh_safe = jnp.where(wh > 0, wh, 1.0)
     g = jnp.minimum(1.0, 2.0 * hz * jnp.minimum(dirs.cos_theta_i, dirs.cos_theta_s) / wh_safe)
     return jnp.where((wh > 0) & (norm > 0), jnp.maximum(g, 0.0), 0.0)

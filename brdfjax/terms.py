@@ -79,7 +79,7 @@ def _specular_geometry(dirs: Directions, normalisation: str) -> Array:
     """The geometric factor multiplying ``rho_s D G Q``: Eq 70's or Torrance-Sparrow's (``Q/2`` as F)."""
     ci, cs = dirs.cos_theta_i, dirs.cos_theta_s
     if normalisation == "seed":
-        return 1.0 / (2.0 * jnp.square(ci + cs))
+        return 0.5 / jnp.square(ci + cs)
     prod = ci * cs
     return 1.0 / (8.0 * jnp.where(prod > 0, prod, 1.0))
 
@@ -179,7 +179,7 @@ def _sq_distance_from_mirror(dirs: Directions) -> tuple[Array, Array]:
     With the mirror direction ``w_r = (-w_ix, -w_iy, w_iz)``, ``beta - beta0``
     is the in-plane part of ``w_i + w_s`` (no cancellation: ``w_sum``).
     """
-    sx, sy = dirs.w_sum[..., 0], dirs.w_sum[..., 1]
+    sx, sy, _ = dirs.t
     b2 = jnp.square(sx) + jnp.square(sy)
     return b2, b2 + jnp.square(dirs.cos_theta_i - dirs.cos_theta_s)
 
@@ -323,15 +323,16 @@ class Diffraction(AbstractTerm):
             check_param("diffraction", f, getattr(self, f), lambda v: v > 0, f"{f} > 0 (metres)")
 
     def __call__(self, dirs, wavelength):
-        h = dirs.half_vector()
-        hx, hy = h[..., 0], h[..., 1]
+        hx, hy, _ = dirs.half_vector_xyz()
         scale = 2.0 * dirs.cos_theta_i if self.grating_factor else 1.0
-        u = hy * scale / wavelength  # = 2 ybar cos(theta_i) / (lambda zbar) with the grating factor
+        # u = 2 ybar cos(theta_i) / (lambda zbar) = hy * scale / lambda (with the grating factor); the
+        # per-frame factors are combined first so that each pixel does multiplications only.
+        k = scale / wavelength
         f = (
             self.rho
-            * jnp.square(jnp.cos(np.pi * self.a * u))
-            * jnp.square(jnp.sinc(self.b * u))
-            * jnp.exp(-jnp.square(self.distance * hx / self.c))
+            * jnp.square(jnp.cos(hy * (np.pi * self.a * k)))
+            * jnp.square(jnp.sinc(hy * (self.b * k)))
+            * jnp.exp(-jnp.square(hx * (self.distance / self.c)))
         )
         return jnp.where(_both_above(dirs), f, 0.0)
 
