@@ -34,6 +34,7 @@ from .terms import (
     SOLAR_CELL_SEED as SOLAR_CELL_SEED,
     ABg as ABg,
     AbstractTerm as AbstractTerm,
+    Binomial as Binomial,
     Diffraction as Diffraction,
     Lambertian as Lambertian,
     Lobe as Lobe,

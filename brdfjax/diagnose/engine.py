@@ -749,6 +749,18 @@ def model_terms_config(model: Model) -> tuple[dict[str, Any], dict[str, tuple[st
         units = {flat.split(".", 1)[1]: unit for flat, (_, unit) in paths.items() if flat.split(".", 1)[0] == tname}
         keys = parameter_keys(units)
         entry["params"] = {key: values[f"{tname}.{field}"] / scale for key, (field, scale, _) in keys.items()}
+        for opt in ("shadowing", "normalisation"):  # the microfacet options (a shadowing step sets them)
+            val = getattr(inner, opt, None)
+            if isinstance(val, str) and kind in registry.MICROFACET_KINDS:
+                entry[opt] = val
+        if kind == "multi_lobe":
+            for lname, lobe in term.lobes.items():
+                if type(lobe.distribution) not in dist_names:
+                    raise ValueError(f"term '{tname}' lobe '{lname}' has a {type(lobe.distribution).__name__} "
+                                     "distribution, not in the registry")
+            entry["lobes"] = {lname: dist_names[type(lobe.distribution)] for lname, lobe in term.lobes.items()}
+        if kind == "binomial":
+            entry["l1"] = int(term.l1)
         for opt, attr in (("grating_factor", "grating_factor"), ("distance_m", "distance")):
             if kind == "diffraction" and hasattr(term, attr):
                 val = getattr(term, attr)
