@@ -26,6 +26,7 @@ from .render import (
     Frame as Frame,
     evaluate_pixels as evaluate_pixels,
     render as render,
+    render_frame as render_frame,
     render_geometry as render_geometry,
     render_sharded as render_sharded,
     sample_directions as sample_directions,

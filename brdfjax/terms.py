@@ -28,8 +28,8 @@ from jaxtyping import Array, ArrayLike
 
 from .distributions import AbstractDistribution, Beckmann
 from .fields import check_param, param
-from .fresnel import q_factor
-from .geometry import Directions, Ry, Rz
+from .fresnel import q_factor_parts
+from .geometry import Directions, Ry, Rz, fast_cos, fast_sinc
 from .shadowing import SHADOWING, shadowing_factor
 
 __all__ = [
@@ -77,11 +77,24 @@ def _check_options(owner: str, shadowing: str, normalisation: str) -> None:
 
 def _specular_geometry(dirs: Directions, normalisation: str) -> Array:
     """The geometric factor multiplying ``rho_s D G Q``: Eq 70's or Torrance-Sparrow's (``Q/2`` as F)."""
+    num, den = _specular_geometry_parts(dirs, normalisation)
+    return num / den
+
+
+def _specular_geometry_parts(dirs: Directions, normalisation: str) -> tuple[float, Array]:
+    """``(numerator, denominator)`` of :func:`_specular_geometry`."""
     ci, cs = dirs.cos_theta_i, dirs.cos_theta_s
     if normalisation == "seed":
-        return 0.5 / jnp.square(ci + cs)
+        return 0.5, jnp.square(ci + cs)
     prod = ci * cs
-    return 1.0 / (8.0 * jnp.where(prod > 0, prod, 1.0))
+    return 0.125, jnp.where(prod > 0, prod, 1.0)
+
+
+def _q_times_geometry(n, k, dirs: Directions, normalisation: str) -> Array:
+    """``Q * geometry`` with a single per-pixel division."""
+    q_num, q_den = q_factor_parts(n, dirs, k)
+    g_num, g_den = _specular_geometry_parts(dirs, normalisation)
+    return (g_num * q_num) / (q_den * g_den)
 
 
 class Specular(AbstractTerm):
@@ -117,9 +130,8 @@ class Specular(AbstractTerm):
     def __call__(self, dirs, wavelength):
         tx2, ty2, upper = dirs.half_slopes()
         D = jnp.where(upper, self.distribution(tx2, ty2), 0.0)
-        Q = q_factor(self.n, dirs, self.k)
         G = shadowing_factor(self.shadowing, self.distribution, dirs)
-        f = self.rho_s * D * G * Q * _specular_geometry(dirs, self.normalisation)
+        f = self.rho_s * D * G * _q_times_geometry(self.n, self.k, dirs, self.normalisation)
         return jnp.where(_both_above(dirs), f, 0.0)
 
 
@@ -165,7 +177,7 @@ class MultiLobeSpecular(AbstractTerm):
 
     def __call__(self, dirs, wavelength):
         tx2, ty2, upper = dirs.half_slopes()
-        common = q_factor(self.n, dirs, self.k) * _specular_geometry(dirs, self.normalisation)
+        common = _q_times_geometry(self.n, self.k, dirs, self.normalisation)
         total = 0.0
         for lobe in self.lobes.values():
             D = jnp.where(upper, lobe.distribution(tx2, ty2), 0.0)
@@ -330,8 +342,8 @@ class Diffraction(AbstractTerm):
         k = scale / wavelength
         f = (
             self.rho
-            * jnp.square(jnp.cos(hy * (np.pi * self.a * k)))
-            * jnp.square(jnp.sinc(hy * (self.b * k)))
+            * jnp.square(fast_cos(hy * (np.pi * self.a * k)))
+            * jnp.square(fast_sinc(hy * (self.b * k)))
             * jnp.exp(-jnp.square(hx * (self.distance / self.c)))
         )
         return jnp.where(_both_above(dirs), f, 0.0)
