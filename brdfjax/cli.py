@@ -21,32 +21,24 @@ interrupted, 1 an internal error (a bug: the traceback and where to report it).
 from __future__ import annotations
 
 import argparse
+import importlib
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 
-from . import __version__, batch
+from . import __version__
 from .compile_cache import enable_compilation_cache
-from .config import load_simulate_config
-from .detector import PixelGrid
-from .devices import capture as capture_cli
-from .diagnose import cli as diagnose_cli
 from .errors import EXIT_OK, EXIT_REFUSED, InputError, run_command
-from .fit import cli_fit
-from .instrument.nd import parse_nd_filters
-from .instrument.reduce import read_reduced_frame, reduce_measurement_set
-from .instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
-from .io import check_output_dir, detector_from_attrs, frame_from_attrs, write_json_atomic
-from .lightcurve import cli as lightcurve_cli
-from .plotting import plot_frame
 from .progress import ProgressLine, make_console
-from .sample import cli as sample_cli
-from .simulate import run_simulate
+
+# Each subcommand imports what it runs when it runs (a lazy entry below, or imports inside its
+# runner): `brdfjax simulate` does not pay for the fit, sampling, device and instrument stacks
+# (emcee, scipy.stats, ...), which were most of its start-up time.
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
@@ -83,6 +75,11 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_simulate(args: argparse.Namespace) -> int:
+    import jax  # noqa: PLC0415 -- see the note on imports at the top
+
+    from .config import load_simulate_config  # noqa: PLC0415
+    from .io import check_output_dir  # noqa: PLC0415
+    from .simulate import run_simulate  # noqa: PLC0415
 
     cfg = load_simulate_config(args.config)
     if args.step is not None or args.precision is not None:
@@ -156,6 +153,11 @@ def _reduced_summary(path: Path, frame: Any) -> dict[str, Any]:
 
 
 def _run_reduce(args: argparse.Namespace) -> int:
+    from .detector import PixelGrid  # noqa: PLC0415 -- see the note on imports at the top
+    from .instrument.reduce import read_reduced_frame, reduce_measurement_set  # noqa: PLC0415
+    from .io import check_output_dir, detector_from_attrs, frame_from_attrs, write_json_atomic  # noqa: PLC0415
+    from .plotting import plot_frame  # noqa: PLC0415
+
     if args.step < 1:
         raise InputError(f"--step must be a positive integer, got {args.step}")
     if args.correct_nonlinearity and args.merge != "weighted":
@@ -225,6 +227,11 @@ def _synthesize_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_synthesize(args: argparse.Namespace) -> int:
+    from .config import load_simulate_config  # noqa: PLC0415 -- see the note on imports at the top
+    from .instrument.nd import parse_nd_filters  # noqa: PLC0415
+    from .instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config  # noqa: PLC0415
+    from .io import check_output_dir  # noqa: PLC0415
+
     # Everything that can be checked is checked before any frame is rendered or written.
     cfg = load_simulate_config(args.config)
     inst_cfg = load_instrument_config(args.instrument, args.camera_seed)
@@ -264,6 +271,16 @@ def _run_synthesize(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _lazy(module: str, name: str) -> Callable[..., Any]:
+    """``module.name``, imported on first call (the subcommand's stack loads only when it is used)."""
+
+    def call(*args: Any, **kwargs: Any) -> Any:
+        return getattr(importlib.import_module(module, __package__), name)(*args, **kwargs)
+
+    call.__name__ = call.__qualname__ = f"{module.lstrip('.')}.{name}"
+    return call
+
+
 #: Subcommands by name: each is a name, a help line, its argument declarations and its runner.
 COMMANDS: dict[str, Command] = {
     "simulate": Command(
@@ -287,43 +304,45 @@ COMMANDS: dict[str, Command] = {
     "fit": Command(
         "fit",
         "fit a model to frames/tables from a TOML fit config: result.json (parameters, uncertainties, chi2) + figures",
-        cli_fit.add_arguments,
-        cli_fit.run,
+        _lazy(".fit.cli_fit", "add_arguments"),
+        _lazy(".fit.cli_fit", "run"),
     ),
     "diagnose": Command(
         "diagnose",
         "diagnose the gap between a base model and measured frames: where, which effect, how far it shrinks",
-        diagnose_cli.add_arguments,
-        diagnose_cli.run,
+        _lazy(".diagnose.cli", "add_arguments"),
+        _lazy(".diagnose.cli", "run"),
     ),
     "capture": Command(
         "capture",
         "run a capture plan (beam signature, alignment, samples) on the simulated bench or lab hardware: raw set",
-        capture_cli.capture_arguments,
-        capture_cli.run_capture_command,
+        _lazy(".devices.capture", "capture_arguments"),
+        _lazy(".devices.capture", "run_capture_command"),
     ),
     "batch": Command(
         "batch",
         "run a study: many fit/sample/diagnose/synthesize jobs on Ray or a process pool, one result file each, resumable",
-        batch.add_arguments,
-        batch.run,
+        _lazy(".batch", "add_arguments"),
+        _lazy(".batch", "run"),
     ),
     "sample": Command(
         "sample",
         "parameter posteriors with emcee from a fit config ([sample] table): chain.h5, posterior.json, corner/trace plots",
-        sample_cli.add_arguments,
-        sample_cli.run,
+        _lazy(".sample.cli", "add_arguments"),
+        _lazy(".sample.cli", "run"),
     ),
     "lightcurve": Command(
         "lightcurve",
         "a satellite's light curve from facets with brdfjax models along TLE passes: CSV, JSON, magnitude plot",
-        lightcurve_cli.add_arguments,
-        lightcurve_cli.run,
+        _lazy(".lightcurve.cli", "add_arguments"),
+        _lazy(".lightcurve.cli", "run"),
     ),
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser; ``only``: declare the arguments of that subcommand alone (the others are
+    listed with their help line), so that parsing one command imports only its own stack."""
     parser = argparse.ArgumentParser(
         prog="brdfjax",
         description="Differentiable near-specular BRDF models and CCD scatterometer frames in JAX.",
@@ -337,6 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for cmd in COMMANDS.values():
         p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
+        if only is not None and cmd.name != only:
+            continue
         cmd.add_arguments(p)
         if not any("--quiet" in a.option_strings for a in p._actions):
             p.add_argument("--quiet", action="store_true", help="no progress and no status lines (errors still print)")
@@ -351,8 +372,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     bad input or refused, 130 interrupted, 1 internal error); a usage error
     of argparse exits 2 with its message (``SystemExit``).
     """
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    chosen = next((w for w in words if not w.startswith("-")), None)
+    parser = build_parser(chosen if chosen in COMMANDS else None)
+    args = parser.parse_args(words)
     if not args.no_cache:
         enable_compilation_cache()  # before any program is compiled: the second run on this machine starts warm
     return run_command(f"brdfjax {args.command}", lambda: args._run(args))

@@ -14,7 +14,7 @@ from jaxtyping import Array, ArrayLike
 
 from .geometry import Directions, safe_hypot, safe_sqrt
 
-__all__ = ["fresnel", "q_factor"]
+__all__ = ["fresnel", "q_factor", "q_factor_parts"]
 
 
 def _csqrt_abs2(a: Array, b: Array) -> tuple[Array, Array, Array]:
@@ -78,17 +78,29 @@ def q_factor(n: ArrayLike, dirs: Directions, k: ArrayLike = 0.0) -> Array:
     square roots and three divisions, of which only those of the scattered
     direction are per pixel when the incident direction is one per frame.
     """
+    num, den = q_factor_parts(n, dirs, k)
+    return num / den
+
+
+def q_factor_parts(n: ArrayLike, dirs: Directions, k: ArrayLike = 0.0) -> tuple[Array, Array]:
+    """``(numerator, denominator)`` of :func:`q_factor`, so that a caller can fold its own divisor in.
+
+    ``Q = numerator / denominator``; the denominator is positive.  See
+    :func:`q_factor` for how the terms are combined.
+    """
     (ix, iy, ci), (sx, sy, cs) = dirs.i, dirs.s
     si2 = ix * ix + iy * iy
     ss2 = sx * sx + sy * sy
     rr2 = si2 * ss2
     ok = rr2 > 0
-    inv_rr2 = 1.0 / jnp.where(ok, rr2, 1.0)
-    # cos(dphi) and sin(dphi) from the standard-azimuth projections; dphi - pi flips both signs.
+    # cos(dphi) and sin(dphi) from the standard-azimuth projections (dphi - pi flips both signs), times
+    # rr2 = si^2 ss^2, which goes into the denominator; where either projection vanishes Q does not depend
+    # on the azimuth and cos(dphi - pi) = 1 is used.
     dot = ix * sx + iy * sy
     crs = ix * sy - iy * sx
-    cos2 = jnp.where(ok, jnp.square(dot) * inv_rr2, 1.0)
-    sin2 = jnp.where(ok, jnp.square(crs) * inv_rr2, 0.0)
+    rr2_safe = jnp.where(ok, rr2, 1.0)
+    cos2 = jnp.where(ok, jnp.square(dot), 1.0)
+    sin2 = jnp.where(ok, jnp.square(crs), 0.0)
 
     n2r, n2i = _index_squared(n, k)
     Air, Aii, Ai2 = _csqrt_abs2(n2r - si2, n2i)
@@ -100,8 +112,9 @@ def q_factor(n: ArrayLike, dirs: Directions, k: ArrayLike = 0.0) -> Array:
     num2 = _abs2(n2r - 1.0, n2i)  # |n^2 - 1|^2
 
     pr, pi = _cmul(Air, Aii, Asr, Asi)  # P = A(ti) A(ts)
-    # |P cos(dphi - pi) - n^2 si ss|^2; with cos(dphi - pi) = -dot / (si ss):
-    pp = jnp.where(ok, _abs2(pr * dot + n2r * rr2, pi * dot + n2i * rr2) * inv_rr2, _abs2(pr, pi))
+    # |P cos(dphi - pi) - n^2 si ss|^2 si^2 ss^2 = |P dot + n^2 si^2 ss^2|^2 (cos(dphi - pi) = -dot / (si ss))
+    pp = jnp.where(ok, _abs2(pr * dot + n2r * rr2, pi * dot + n2i * rr2), _abs2(pr, pi))
     # sum of |x / y|^2 = |x|^2 / |y|^2 over the four terms, on the common denominator
     numer = (cos2 * den_p + Ai2 * sin2 * den_s) * den_ps + (As2 * sin2 * den_p + pp * den_s) * den_ss
-    return num2 * numer / (den_s * den_ss * den_p * den_ps)
+    # per-frame factors first (one product of scalars when the incident direction is one per frame)
+    return (num2 * numer), ((rr2_safe * (den_s * den_p)) * (den_ss * den_ps))

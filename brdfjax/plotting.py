@@ -51,6 +51,29 @@ def log10_floor(brdf: np.ndarray, decades: float = DECADES) -> tuple[np.ndarray,
     return np.where(np.isfinite(img), np.maximum(img, vmin), vmin), vmin, vmax
 
 
+def _log10_pooled(brdf: np.ndarray, decades: float = DECADES) -> tuple[np.ndarray, float, float]:
+    """``_max_pool(log10_floor(brdf)[0])`` and its ``vmin, vmax``, pooling before the logarithm.
+
+    The clipped ``log10`` is non-decreasing in the BRDF and sends zeros,
+    negatives and non-finite values to its minimum, so the maximum of a pool
+    commutes with it: the same image, with one logarithm per displayed pixel
+    instead of one per detector pixel.
+    """
+    b = np.asarray(brdf)
+    ok = np.isfinite(b) & (b > 0)
+    if not ok.any():
+        return _max_pool(np.zeros(b.shape))[0], -1.0, 0.0
+    pos = np.where(ok, b, 0)
+    vmax = float(np.log10(np.float64(pos.max())))
+    vmin = max(vmax - decades, float(np.log10(np.float64(np.where(ok, b, np.inf).min()))))
+    if vmin >= vmax:
+        vmin = vmax - 1.0
+    pooled = _max_pool(pos.astype(np.float64, copy=False))[0]
+    with np.errstate(divide="ignore"):
+        img = np.where(pooled > 0, np.log10(np.where(pooled > 0, pooled, 1.0)), vmin)
+    return np.maximum(img, vmin), vmin, vmax
+
+
 def _max_pool(img: np.ndarray, limit: int = _MAX_DISPLAY) -> tuple[np.ndarray, int, int]:
     fr, fc = (max(1, -(-n // limit)) for n in img.shape)
     if fr == 1 and fc == 1:
@@ -142,8 +165,7 @@ def plot_frame(
     # An array, not a Python float: the detector's jitted methods would recompile for every new value.
     theta_c = np.asarray(detector.arm_angle(frame.theta_i), dtype=np.float64)
 
-    img, vmin, vmax = log10_floor(b, decades)
-    shown, _, _ = _max_pool(img)
+    shown, vmin, vmax = _log10_pooled(brdf, decades)
 
     fig = Figure(figsize=(13.0, 5.6), layout="constrained")
     ax, ax_col = fig.subplots(1, 2, width_ratios=[1.45, 1.0])

@@ -14,8 +14,10 @@ from typing import Any
 
 from . import distributions as _d, presets as _presets
 from .terms import (
+    _BINOMIAL_KEY as BINOMIAL_KEY,
     ABg,
     AbstractTerm,
+    Binomial,
     Diffraction,
     Lambertian,
     Lobe,
@@ -51,7 +53,7 @@ DISTRIBUTIONS["trowbridge_reitz"] = _d.GGX
 DISTRIBUTIONS["blinn_phong"] = _d.CosineLobe
 
 #: Term kinds.  ``offset_specular`` is a :class:`Specular` inside :class:`OffsetNormal`;
-#: ``multi_lobe`` several microfacet lobes sharing an index; ``abg`` and ``phong`` empirical lobes.
+#: ``multi_lobe`` several microfacet lobes sharing an index; ``abg``, ``phong`` and ``binomial`` empirical lobes.
 TERMS: dict[str, Any] = {
     "specular": Specular,
     "offset_specular": OffsetNormal,
@@ -60,6 +62,7 @@ TERMS: dict[str, Any] = {
     "diffraction": Diffraction,
     "abg": ABg,
     "phong": Phong,
+    "binomial": Binomial,
 }
 
 #: Term kinds built around microfacet distributions, which take the ``shadowing`` and
@@ -111,13 +114,16 @@ def build_term(
     lobes: Mapping[str, str] | None = None,
     shadowing: str | None = None,
     normalisation: str | None = None,
+    l1: int | None = None,
 ) -> AbstractTerm:
     """Build a term from its kind and a flat parameter dict (stored units).
 
     Specular kinds take a distribution name; ``multi_lobe`` takes ``lobes``
     (lobe name -> distribution name) and parameters ``<lobe>.<name>`` plus the
     shared ``n``, ``k``; the microfacet kinds take the ``shadowing`` and
-    ``normalisation`` options (``None``: the seed's defaults).
+    ``normalisation`` options (``None``: the seed's defaults); ``binomial``
+    takes its coefficients ``b<k>_<i>``, ``c<k>_<i>``, ``d`` and the integer ``l1``
+    (default 0).
     """
     cls = lookup("term", kind)
     p = dict(params)
@@ -125,6 +131,8 @@ def build_term(
     if options and kind not in MICROFACET_KINDS:
         raise KeyError(f"{owner}: a '{kind}' term takes no {' or '.join(repr(k) for k in options)} "
                        f"(only {', '.join(MICROFACET_KINDS)} do)")
+    if l1 is not None and kind != "binomial":
+        raise KeyError(f"{owner}: a '{kind}' term takes no 'l1' (only binomial does)")
     if lobes is not None and kind != "multi_lobe":
         raise KeyError(f"{owner}: a '{kind}' term takes no 'lobes' (only multi_lobe does)")
     if kind in ("specular", "offset_specular"):
@@ -152,6 +160,16 @@ def build_term(
             if sub:
                 raise KeyError(f"{owner}: unknown parameter(s) {sorted(f'{lname}.{k}' for k in sub)} for lobe '{lname}'")
         term = MultiLobeSpecular(built, **_take(owner, MultiLobeSpecular, p), **options)
+    elif kind == "binomial":
+        if distribution is not None:
+            raise KeyError(f"{owner}: a 'binomial' term takes no 'distribution'")
+        coefficients = {k: p.pop(k) for k in list(p) if BINOMIAL_KEY.fullmatch(k)}
+        if "d" not in p:
+            raise KeyError(f"{owner}: missing parameter 'd' (specularity constant); needs: d, b0_0, ...")
+        try:
+            term = Binomial(coefficients=coefficients, d=p.pop("d"), l1=0 if l1 is None else l1)
+        except ValueError as e:
+            raise KeyError(f"{owner}: {e}") from None
     else:
         if distribution is not None:
             raise KeyError(f"{owner}: a '{kind}' term takes no 'distribution'")

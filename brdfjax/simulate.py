@@ -10,7 +10,9 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+from collections import deque
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +22,7 @@ import numpy as np
 from . import __version__
 from .io import frame_attrs, write_frame_exr, write_json_atomic
 from .plotting import plot_frame
-from .render import render, render_geometry
+from .render import render_frame
 
 __all__ = ["FrameResult", "run_simulate", "simulate_frame"]
 
@@ -55,16 +57,15 @@ class FrameResult:
 def simulate_frame(model, frame, detector, grid, precision: str = "float32", stem: str = "frame") -> FrameResult:
     """Render ``model`` and the pixel geometry on ``grid``; returns NumPy arrays (blocks until done).
 
-    The BRDF is the sum of the per-term images (the same sum, in the same
-    order, as evaluating the model), so one pass gives both.
+    One compiled program (:func:`brdfjax.render.render_frame`) gives the BRDF
+    (the sum of the per-term images, in the model's order), each term and the
+    pixel geometry.
     """
     t0 = time.perf_counter()
-    per_term = render(model, frame, detector, grid=grid, precision=precision, per_term=True)
-    terms = {k: np.asarray(v) for k, v in per_term.items()}
-    values = list(terms.values())
-    brdf = sum(values[1:], values[0]).copy()
-    geometry = {k: np.asarray(v) for k, v in render_geometry(frame, detector, grid=grid, precision=precision).items()}
-    return FrameResult(stem, frame, grid, brdf, terms, geometry, time.perf_counter() - t0)
+    out = render_frame(model, frame, detector, grid=grid, precision=precision)
+    terms = {k: np.asarray(v) for k, v in out["terms"].items()}
+    geometry = {k: np.asarray(out[k]) for k in ("theta_s", "phi_s", "omega")}
+    return FrameResult(stem, frame, grid, np.asarray(out["brdf"]), terms, geometry, time.perf_counter() - t0)
 
 
 def _frame_attrs(cfg, detector, frame, stem: str) -> dict[str, Any]:
@@ -134,41 +135,70 @@ def run_simulate(
 
     t_start = time.perf_counter()
     entries = []
-    for (stem, frame), fcfg in zip(frames, cfg.frames, strict=True):
-        status = console.status(f"rendering {stem} ({grid.shape[0]} x {grid.shape[1]} pixels)") if console else None
-        if status:
-            status.start()
-        try:
-            res = simulate_frame(model, frame, detector, grid, cfg.precision, stem)
-            t0 = time.perf_counter()
-            exr = write_frame_exr(
-                out / f"{stem}.exr",
-                res.brdf,
-                res.geometry["theta_s"],
-                res.geometry["phi_s"],
-                res.geometry["omega"],
-                _frame_attrs(cfg, detector, frame, stem),
-            )
-            files = {"exr": exr.name}
-            if plot:
-                files["png"] = plot_frame(res.brdf, grid, detector, frame, out / f"{stem}.png").name
-            res = dataclasses.replace(res, files=files, write_s=time.perf_counter() - t0)
-        finally:
-            if status:
-                status.stop()
+
+    def write_exr(res: FrameResult) -> tuple[str, float]:
+        t0 = time.perf_counter()
+        path = write_frame_exr(
+            out / f"{res.stem}.exr",
+            res.brdf,
+            res.geometry["theta_s"],
+            res.geometry["phi_s"],
+            res.geometry["omega"],
+            _frame_attrs(cfg, detector, res.frame, res.stem),
+        )
+        return path.name, time.perf_counter() - t0
+
+    def write_png(res: FrameResult) -> tuple[str, float]:
+        t0 = time.perf_counter()
+        return plot_frame(res.brdf, grid, detector, res.frame, out / f"{res.stem}.png").name, time.perf_counter() - t0
+
+    def finish(res: FrameResult, futures: dict[str, Any], fcfg) -> None:
+        # Wait for this frame's files (an exception in a writer is raised here), then report it.
+        done = {kind: fut.result() for kind, fut in futures.items()}
+        files = {kind: name for kind, (name, _) in done.items()}
+        res = dataclasses.replace(res, files=files, write_s=sum(dt for _, dt in done.values()))
         entry = _frame_summary(cfg, res, fcfg)
         entries.append(entry)
         if console is not None:
             n_h, n_v = entry["max_pixel"]
             console.print(
-                f"[green]done[/] {stem}: {res.brdf.shape[0]} x {res.brdf.shape[1]} px, "
+                f"[green]done[/] {res.stem}: {res.brdf.shape[0]} x {res.brdf.shape[1]} px, "
                 f"max {entry['max_brdf']:.4g} sr^-1 at (n_h, n_v) = ({n_h}, {n_v}), "
                 f"render {res.render_s:.2f} s, write {res.write_s:.2f} s -> {', '.join(files.values())}",
                 highlight=False,
             )
         if on_frame is not None:
             on_frame(res)
-        del res
+
+    # The files of a frame are written by background threads while the next frame renders (JAX,
+    # OpenEXR's compression and most of matplotlib's drawing release the GIL); at most two frames
+    # are held in memory.
+    pending: deque = deque()
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="brdfjax-write") as pool:
+        try:
+            for (stem, frame), fcfg in zip(frames, cfg.frames, strict=True):
+                status = console.status(f"rendering {stem} ({grid.shape[0]} x {grid.shape[1]} pixels)") if console else None
+                if status:
+                    status.start()
+                try:
+                    res = simulate_frame(model, frame, detector, grid, cfg.precision, stem)
+                finally:
+                    if status:
+                        status.stop()
+                futures = {"exr": pool.submit(write_exr, res)}
+                if plot:
+                    futures["png"] = pool.submit(write_png, res)
+                pending.append((res, futures, fcfg))
+                del res
+                while len(pending) > 1:
+                    finish(*pending.popleft())
+            while pending:
+                finish(*pending.popleft())
+        except BaseException:
+            for _, futures, _ in pending:
+                for fut in futures.values():
+                    fut.cancel()
+            raise
 
     summary = {
         "brdfjax_version": __version__,

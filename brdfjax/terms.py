@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import re
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -28,8 +29,8 @@ from jaxtyping import Array, ArrayLike
 
 from .distributions import AbstractDistribution, Beckmann
 from .fields import check_param, param
-from .fresnel import q_factor
-from .geometry import Directions, Ry, Rz
+from .fresnel import q_factor_parts
+from .geometry import Directions, Ry, Rz, fast_cos, fast_sinc
 from .shadowing import SHADOWING, shadowing_factor
 
 __all__ = [
@@ -41,6 +42,7 @@ __all__ = [
     "MultiLobeSpecular",
     "ABg",
     "Phong",
+    "Binomial",
     "OffsetNormal",
     "Oriented",
     "Diffraction",
@@ -77,11 +79,24 @@ def _check_options(owner: str, shadowing: str, normalisation: str) -> None:
 
 def _specular_geometry(dirs: Directions, normalisation: str) -> Array:
     """The geometric factor multiplying ``rho_s D G Q``: Eq 70's or Torrance-Sparrow's (``Q/2`` as F)."""
+    num, den = _specular_geometry_parts(dirs, normalisation)
+    return num / den
+
+
+def _specular_geometry_parts(dirs: Directions, normalisation: str) -> tuple[float, Array]:
+    """``(numerator, denominator)`` of :func:`_specular_geometry`."""
     ci, cs = dirs.cos_theta_i, dirs.cos_theta_s
     if normalisation == "seed":
-        return 0.5 / jnp.square(ci + cs)
+        return 0.5, jnp.square(ci + cs)
     prod = ci * cs
-    return 1.0 / (8.0 * jnp.where(prod > 0, prod, 1.0))
+    return 0.125, jnp.where(prod > 0, prod, 1.0)
+
+
+def _q_times_geometry(n, k, dirs: Directions, normalisation: str) -> Array:
+    """``Q * geometry`` with a single per-pixel division."""
+    q_num, q_den = q_factor_parts(n, dirs, k)
+    g_num, g_den = _specular_geometry_parts(dirs, normalisation)
+    return (g_num * q_num) / (q_den * g_den)
 
 
 class Specular(AbstractTerm):
@@ -117,9 +132,8 @@ class Specular(AbstractTerm):
     def __call__(self, dirs, wavelength):
         tx2, ty2, upper = dirs.half_slopes()
         D = jnp.where(upper, self.distribution(tx2, ty2), 0.0)
-        Q = q_factor(self.n, dirs, self.k)
         G = shadowing_factor(self.shadowing, self.distribution, dirs)
-        f = self.rho_s * D * G * Q * _specular_geometry(dirs, self.normalisation)
+        f = self.rho_s * D * G * _q_times_geometry(self.n, self.k, dirs, self.normalisation)
         return jnp.where(_both_above(dirs), f, 0.0)
 
 
@@ -165,7 +179,7 @@ class MultiLobeSpecular(AbstractTerm):
 
     def __call__(self, dirs, wavelength):
         tx2, ty2, upper = dirs.half_slopes()
-        common = q_factor(self.n, dirs, self.k) * _specular_geometry(dirs, self.normalisation)
+        common = _q_times_geometry(self.n, self.k, dirs, self.normalisation)
         total = 0.0
         for lobe in self.lobes.values():
             D = jnp.where(upper, lobe.distribution(tx2, ty2), 0.0)
@@ -237,6 +251,110 @@ class Phong(AbstractTerm):
         pos = cos_a > 0
         lobe = jnp.where(pos, jnp.exp(self.k * jnp.log(jnp.where(pos, cos_a, 1.0))), 0.0)
         return jnp.where(_both_above(dirs), self.rho * (self.k + 2.0) / (2.0 * np.pi) * lobe, 0.0)
+
+
+_BINOMIAL_KEY = re.compile(r"([bc])(\d+)_(\d+)")
+
+
+def _binomial_coefficients(B: Any, C: Any) -> dict[str, Any]:
+    """``{"b<k>_<i>": B[k, i], "c<k>_<i>": C[k, i]}`` from lumos-sat's matrices (rows: powers of V)."""
+    out: dict[str, Any] = {}
+    for letter, mat in (("b", B), ("c", C)):
+        a = np.asarray(mat, dtype=np.float64) if not isinstance(mat, jax.Array | jax.core.Tracer) else mat
+        if a.ndim != 2:
+            raise ValueError(f"binomial: {letter.upper()} must be a 2-D matrix (powers of V x terms), got shape {a.shape}")
+        for k in range(a.shape[0]):
+            for i in range(a.shape[1]):
+                out[f"{letter}{k}_{i}"] = a[k, i]
+    return out
+
+
+def binomial_shape(names: Any) -> tuple[int, int, int]:
+    """``(n, m, j)`` of a binomial term from its coefficient names ``b<k>_<i>`` / ``c<k>_<i>``.
+
+    ``n`` powers of V (``k < n``), ``m`` powers of D (``b``), ``j`` Gaussian terms (``c``).
+    Raises ``ValueError`` naming a malformed or missing name.
+    """
+    got: dict[str, set[tuple[int, int]]] = {"b": set(), "c": set()}
+    for name in names:
+        hit = _BINOMIAL_KEY.fullmatch(name)
+        if not hit:
+            raise ValueError(f"binomial: coefficient name '{name}' is not b<k>_<i> or c<k>_<i>")
+        got[hit.group(1)].add((int(hit.group(2)), int(hit.group(3))))
+    if not got["b"]:
+        raise ValueError("binomial: needs at least the coefficient b0_0")
+    n = 1 + max(k for s in got.values() for k, _ in s)
+    m = 1 + max(i for _, i in got["b"])
+    j = 1 + max((i for _, i in got["c"]), default=-1)
+    for letter, width in (("b", m), ("c", j)):
+        missing = [f"{letter}{k}_{i}" for k in range(n) for i in range(width) if (k, i) not in got[letter]]
+        if missing:
+            raise ValueError(f"binomial: missing coefficient(s) {', '.join(missing)} (a full {n} x {width} '{letter}' matrix)")
+    return n, m, j
+
+
+class Binomial(AbstractTerm):
+    """Greynolds' binomial empirical BRDF, lumos-sat's ``BINOMIAL`` family (Greynolds 2015).
+
+    ``log10 f = sum_k V^k [ sum_i b_ki D^i + 1/2 sum_i c_ki log10(1 + d^(i + l1) D^2) ]``
+    with ``D = |beta - beta0| = |(w_i + w_s)_xy|`` (as :class:`ABg`) and
+    ``V = beta . beta0 = -(w_i)_xy . (w_s)_xy`` (the projections of the
+    scattered and mirror directions), ``k < n``, ``i < m`` (``b``) or ``< j``
+    (``c``).  The coefficients are parameters named ``b<k>_<i>`` and ``c<k>_<i>``
+    (``B[k, i]``, ``C[k, i]`` of lumos-sat); ``d > 0`` the specularity constant;
+    ``l1`` (an integer, not fitted) the lowest Gaussian index.  Empirical, not
+    normalised; reciprocal (``D`` and ``V`` are symmetric in w_i, w_s); zero
+    below either horizon.  ``10^(b00)`` is the BRDF in the mirror direction at
+    normal incidence.
+    """
+
+    kind: ClassVar[str] = "binomial"
+    coefficients: dict[str, Array] = eqx.field(metadata={"unit_dict": "log10", "doc": "b<k>_<i>, c<k>_<i>: signed coefficients of log10 f"})
+    d: Array = param("1", "specularity constant (> 0)")
+    l1: int = eqx.field(static=True, default=0)
+    shape: tuple[int, int, int] = eqx.field(static=True, init=False, default=(1, 1, 0))
+
+    def __init__(self, B: Any = None, C: Any = None, d: Any = 1.0, l1: int = 0, *, coefficients: Mapping[str, Any] | None = None):
+        if coefficients is None:
+            if B is None:
+                raise ValueError("binomial: give the matrices B and C (lumos-sat's) or coefficients={'b0_0': ...}")
+            coefficients = _binomial_coefficients(B, np.zeros((np.shape(B)[0], 0)) if C is None else C)
+        elif B is not None or C is not None:
+            raise ValueError("binomial: give either B, C or coefficients, not both")
+        self.shape = binomial_shape(coefficients)
+        self.coefficients = {k: v if isinstance(v, jax.Array | jax.core.Tracer) else np.asarray(v, dtype=np.float64)
+                             for k, v in coefficients.items()}
+        self.d = d if isinstance(d, jax.Array | jax.core.Tracer) else np.asarray(d, dtype=np.float64)
+        if int(l1) != l1:
+            raise ValueError(f"binomial: l1 must be an integer, got {l1!r}")
+        self.l1 = int(l1)
+
+    def __check_init__(self):
+        check_param("binomial", "d", self.d, lambda v: v > 0, "d > 0")
+        for name, v in self.coefficients.items():
+            check_param("binomial", name, v, lambda x: np.isfinite(x), "a finite number")
+
+    def __call__(self, dirs, wavelength):
+        b2, _ = _sq_distance_from_mirror(dirs)
+        pos = b2 > 0
+        D = jnp.where(pos, jnp.sqrt(jnp.where(pos, b2, 1.0)), 0.0)
+        V = -(dirs.w_i[..., 0] * dirs.w_s[..., 0] + dirs.w_i[..., 1] * dirs.w_s[..., 1])
+        n, m, j = self.shape
+        c = self.coefficients
+        log_f = 0.0
+        v_pow = 1.0
+        for k in range(n):
+            poly = 0.0
+            d_pow = 1.0
+            for i in range(m):
+                poly = poly + c[f"b{k}_{i}"] * d_pow
+                d_pow = d_pow * D
+            gauss = 0.0
+            for i in range(j):
+                gauss = gauss + c[f"c{k}_{i}"] * jnp.log10(1.0 + self.d ** (i + self.l1) * b2)
+            log_f = log_f + (poly + 0.5 * gauss) * v_pow
+            v_pow = v_pow * V
+        return jnp.where(_both_above(dirs), jnp.power(10.0, log_f), 0.0)
 
 
 class Lambertian(AbstractTerm):
@@ -330,8 +448,8 @@ class Diffraction(AbstractTerm):
         k = scale / wavelength
         f = (
             self.rho
-            * jnp.square(jnp.cos(hy * (np.pi * self.a * k)))
-            * jnp.square(jnp.sinc(hy * (self.b * k)))
+            * jnp.square(fast_cos(hy * (np.pi * self.a * k)))
+            * jnp.square(fast_sinc(hy * (self.b * k)))
             * jnp.exp(-jnp.square(hx * (self.distance / self.c)))
         )
         return jnp.where(_both_above(dirs), f, 0.0)
@@ -380,6 +498,10 @@ def _term_paths(module: eqx.Module, prefix: tuple[str, ...] = ()) -> dict[str, t
                 out[f"{key}.{name}"] = entry
     for f in param_fields(module):
         out[f.name] = (prefix + (f.name,), f.metadata["unit"])
+    for f in dataclasses.fields(module):
+        if "unit_dict" in f.metadata:  # a dict of scalar parameters (Binomial's coefficients): names are the keys
+            for key in getattr(module, f.name):
+                out[key] = (prefix + (f.name, key), f.metadata["unit_dict"])
     return out
 
 

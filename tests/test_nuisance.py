@@ -188,3 +188,27 @@ def test_nuts_resumes_bit_identically_with_diagnostics(frames, tmp_path):
         sample(MODEL, frames, SPEC, n_steps=4, out_dir=tmp_path / "em", resume=True, **kw)
     with pytest.raises(SampleError, match=r"unknown sampler 'hmc'; known: 'emcee', 'nuts'"):
         sample(MODEL, frames, SPEC, start=start, sampler="hmc")
+
+
+def test_samplers_move_the_weights_as_logarithms_from_the_fit_covariance():
+    """With nuisance parameters the weights are sampled as log rho (log-Jacobian included) from walkers started
+    along the fit's covariance: on a Lambertian frame whose rho_d is scaled by two ND filters the ridge is then
+    straight, and a short emcee chain already has the Eq 97 width, ln 10 sqrt(0.15^2 + 0.06^2) = 0.372 in log rho."""
+    model = bj.Model(terms={"diffuse": bj.Lambertian(1.0)}, aliases=(("rho_d", "diffuse.rho_d"),))
+    (f,) = render_noisy_frames(model, [20.0], roi=(-48, 48, -48, 48), step=16, noise_rel=0.02, seed=2, floor=0.05)
+    f = dataclasses.replace(f, brdf=np.asarray(f.brdf) * 10**-DELTA, systematics=_syst("4.0+3.0", "4.0+1.0", 0.0))
+    opts = NuisanceOptions(nonlinearity=False, flux=False)
+    start = fit(model, [f], {"rho_d": 0.9}, nuisance=opts)
+    res = sample(model, [f], {"rho_d": 0.9}, start=start, n_walkers=16, n_steps=800, seed=3, figures=False,
+                 fit_kwargs={"nuisance": opts})
+    post = res.posterior
+    assert res.summary["sampled_as_log"] == ["rho_d"] and res.summary["start"].startswith("fit covariance")
+    x = res.chain[-1]
+    y = post.to_sampler(x)
+    np.testing.assert_allclose(post.from_sampler(y), x, rtol=1e-15)
+    # the sampler's density is the posterior of x plus the log-Jacobian of the logged entry
+    np.testing.assert_allclose(post.sampler_log_prob(y), post(x) + y[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(res.log_prob[-1], post(x), rtol=1e-12)
+    width = float(np.std(np.log(res.flat()[:, 0])))
+    assert width == pytest.approx(LN10 * math.hypot(0.15, 0.06), rel=0.2)
+    assert res.summary["tau_max"] < 100  # linear rho from a diagonal ball: tau about 250 on this posterior

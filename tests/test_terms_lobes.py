@@ -83,7 +83,7 @@ def test_bad_parameters_name_the_term():
         ABg(A=1.0, B=0.0, g=2.0)
     with pytest.raises(ValueError, match=r"multi_lobe: unknown shadowing 'smit'; known: none, smith, v_cavity"):
         MultiLobeSpecular({"a": Lobe(dist.GGX(0.1), 1.0)}, n=1.5, shadowing="smit")
-    with pytest.raises(KeyError, match=r"unknown term 'abgg'; known: abg, diffraction, lambertian, multi_lobe"):
+    with pytest.raises(KeyError, match=r"unknown term 'abgg'; known: abg, binomial, diffraction, lambertian, multi_lobe"):
         registry.lookup("term", "abgg")
 
 
@@ -148,3 +148,16 @@ def test_config_errors_name_the_key(body, where, message):
     msg = str(e.value)
     # ConfigError names the dotted key; pydantic's own errors name it without the 'model.' table
     assert (where in msg or where.removeprefix("model.") in msg) and message in msg, msg
+
+
+def test_diagnosis_config_writer_keeps_lobes_shadowing_and_normalisation():
+    # the final model of a diagnosis (e.g. after its shadowing step) must rebuild from final_model.toml as it was
+    from brdfjax.diagnose.engine import model_terms_config
+
+    model = bj.Model(terms={"spec": _spike_halo(), "glint": Specular(dist.GGX(0.1), 0.3, 1.5, shadowing="smith"),
+                            "d": bj.Lambertian(0.1)})
+    terms, _ = model_terms_config(model)
+    assert terms["spec"]["lobes"] == {"spike": "beckmann", "halo": "ggx"} and terms["glint"]["shadowing"] == "smith"
+    assert terms["spec"]["normalisation"] == "torrance_sparrow" and "shadowing" not in terms["d"]
+    again = build_model("final_model.toml", ModelConfig.model_validate({"terms": terms}))
+    np.testing.assert_allclose(np.asarray(again(SWAP, 5e-7)), np.asarray(model(SWAP, 5e-7)), rtol=1e-12)

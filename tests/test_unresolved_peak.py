@@ -64,4 +64,13 @@ def test_diagnosis_ranks_angular_sampling_and_says_the_peak_is_unresolved(table)
     assert "peak unresolved" in c.signature["detail"] and "peak unresolved" in c.note
     scores = {n: (x.signature.get("score") or 0.0) for n, x in ranked.items()}
     assert max(scores, key=scores.get) == "angular_sampling" and scores["angular_sampling"] > 5
+    # ranked FIRST by its own detection (its refit, an aperture, gains nothing in chi^2), and it says so
+    assert d.ranking[0].effect == "angular_sampling" and d.ranking[0].ranked_by == "detection"
+    assert d.ranking[0].delta_bic < 10 and "ranked by its own detection" in c.note and "not in chi^2" in c.note
+    assert d.to_dict()["ranking"][0]["ranked_by"] == "detection"
+    assert "ranked by its detection: peak unresolved" in d.summary()
+    from brdfjax.diagnose.report import markdown_report
+
+    md = markdown_report(d)
+    assert "| 1 (detected) | angular_sampling |" in md and "Detected (angular_sampling, ranked first" in md
     assert d.gap["sigma_estimated"] and "sigma ESTIMATED" in d.summary()

@@ -78,6 +78,9 @@ class TermConfig(StrictModel):
     lobes: dict[str, str] | None = Field(
         None, description="multi_lobe only: lobe name -> distribution, e.g. {spike = 'beckmann', halo = 'ggx'}"
     )
+    l1: int | None = Field(
+        None, description="binomial only: the lowest Gaussian index l1 (an integer, default 0): d^(i + l1) in the i-th c term"
+    )
     shadowing: str | None = Field(
         None, description=f"microfacet kinds only: masking-shadowing, one of {', '.join(SHADOWING)} (default none)"
     )
@@ -153,6 +156,8 @@ class TermConfig(StrictModel):
             )
         if not specular and self.distribution is not None:
             raise ValueError(f"a '{self.kind}' term takes no 'distribution' (only specular and offset_specular do)")
+        if self.kind != "binomial" and self.l1 is not None:
+            raise ValueError("'l1' applies only to a 'binomial' term")
         if self.kind != "diffraction" and (self.grating_factor is not None or self.distance_m is not None):
             raise ValueError("'grating_factor' and 'distance_m' apply only to a 'diffraction' term")
         return self
@@ -275,9 +280,17 @@ def _class_units(cls: type, prefix: str = "") -> tuple[dict[str, str], set[str]]
 
 
 def _term_units(
-    kind: str, distribution: str | None, lobes: Mapping[str, str] | None = None
+    kind: str, distribution: str | None, lobes: Mapping[str, str] | None = None, given: Any = ()
 ) -> tuple[dict[str, str], set[str]]:
-    """Parameter units of a term kind (and its distribution or lobes), and the required ones."""
+    """Parameter units of a term kind (and its distribution or lobes), and the required ones.
+
+    A ``binomial`` term's coefficients ``b<k>_<i>``, ``c<k>_<i>`` are whatever of ``given`` has that form
+    (the matrix shape follows from them); it needs ``d`` and ``b0_0``.
+    """
+    if kind == "binomial":
+        units = {"d": "1", "b0_0": "log10"}  # the coefficients are signed (unit 'log10': no positive bound)
+        units.update({k: "log10" for k in given if registry.BINOMIAL_KEY.fullmatch(k)})
+        return units, {"d", "b0_0"}
     if kind == "multi_lobe":
         units, required = _class_units(MultiLobeSpecular)
         for lname, dname in (lobes or {}).items():
@@ -306,7 +319,7 @@ def _term_units(
 
 
 def build_term(source: str, loc: str, t: TermConfig) -> AbstractTerm:
-    units, required = _term_units(t.kind, t.distribution, t.lobes)
+    units, required = _term_units(t.kind, t.distribution, t.lobes, t.params)
     keys = parameter_keys(units)
     what = f"a '{t.kind}' term" + (f" with distribution '{t.distribution}'" if t.distribution else "")
     problems = [
@@ -322,7 +335,8 @@ def build_term(source: str, loc: str, t: TermConfig) -> AbstractTerm:
     stored = {keys[k][0]: v * keys[k][1] for k, v in t.params.items()}
     try:
         term = registry.build_term(
-            t.kind, stored, t.distribution, owner=loc, lobes=t.lobes, shadowing=t.shadowing, normalisation=t.normalisation
+            t.kind, stored, t.distribution, owner=loc, lobes=t.lobes, shadowing=t.shadowing, normalisation=t.normalisation,
+            l1=t.l1,
         )
         if isinstance(term, Diffraction) and (t.grating_factor is not None or t.distance_m is not None):
             opts: dict[str, Any] = {}
@@ -366,7 +380,7 @@ def describe_model(m: ModelConfig) -> str:
         dist = f"/{t.distribution}" if t.distribution else ""
         opts = "".join(
             f", {k}={getattr(t, k)}"
-            for k in ("grating_factor", "distance_m", "lobes", "shadowing", "normalisation")
+            for k in ("grating_factor", "distance_m", "lobes", "shadowing", "normalisation", "l1")
             if getattr(t, k) is not None
         )
         parts.append(f"{name}: {t.kind}{dist}({ps}{opts})")

@@ -72,10 +72,11 @@ def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
     )
     out.append(
         (
-            "Which: candidate effects ranked by BIC gain (decreases: positive = explains part of the gap)",
+            "Which: candidate effects ranked by BIC gain (decreases: positive = explains part of the gap); "
+            "a detection (an unresolved peak, marked 'detected') comes first by its own signature",
             ["rank", "effect", "delta BIC", "delta chi2", "new params", "chi2_reduced after", "signature score", "signature"],
             [
-                [str(i + 1), c.effect, _f(c.delta_bic, ".1f"), _f(c.delta_chi2, ".1f"), str(c.n_new), _f(c.gap_after.get("chi2_reduced")),
+                [str(i + 1) + (" (detected)" if c.ranked_by == "detection" else ""), c.effect, _f(c.delta_bic, ".1f"), _f(c.delta_chi2, ".1f"), str(c.n_new), _f(c.gap_after.get("chi2_reduced")),
                  _f(c.signature.get("score"), ".3g"), str(c.signature.get("detail", ""))]
                 for i, c in enumerate(d.ranking)
             ],
@@ -148,6 +149,8 @@ def _headline(d: Diagnosis) -> str:
     sides = (f" Material effects: {', '.join(by['material']) or 'none'}; instrument effects: "
              f"{', '.join(by['instrument']) or 'none'}. The path stopped because {d.stop_reason}.")
     flags = "".join(f" Flag at {_name(s)}: {f}." for s in d.path for f in s.flags)
+    flags += "".join(f" Detected ({c.effect}, ranked first by its own signature, not by a BIC gain): "
+                     f"{c.signature.get('detail', '')}." for c in d.ranking if c.ranked_by == "detection")
     if d.significant:
         return (f"The gap is most likely caused by **{d.explained_by[0]}**. Explanation path (reduced chi^2): {p}.{sides}{flags} "
                 f"{noise_line(d.gap)}.")

@@ -71,6 +71,8 @@ class Candidate:
     gap_after: dict[str, float] = field(default_factory=dict)
     zones_after: dict[str, dict[str, float]] = field(default_factory=dict)
     wall_s: float = 0.0
+    # "delta_bic" (the refit's BIC gain) or "detection" (the effect's own detection, e.g. an unresolved peak)
+    ranked_by: str = "delta_bic"
     # not serialised: the refit's state, to continue the path from it
     state: Any = field(default=None, repr=False)
 
@@ -84,6 +86,7 @@ class Candidate:
                 "side": self.side,
                 "admissible": self.status == "ranked" and not self.flags,
                 "flags": self.flags,
+                "ranked_by": self.ranked_by,
                 "parameters": self.parameters,
                 "delta_chi2": self.delta_chi2,
                 "delta_bic": self.delta_bic,
@@ -214,7 +217,8 @@ class Diagnosis:
         for _k, z in enumerate(self.zones[:6]):
             lines.append(f"  zone {z['label']}: share {z['share']:.1%}, centre {z['center_deg'][0]:+.3g}/{z['center_deg'][1]:+.3g} deg, {z['sign']}")
         for c in self.ranking[:6]:
-            lines.append(f"  {c.effect:<22s} dBIC {c.delta_bic:12.1f}  dchi2 {c.delta_chi2:12.1f}  signature {c.signature.get('score', math.nan):.3g}")
+            by = "  (ranked by its detection: " + str(c.signature.get("detail", "")) + ")" if c.ranked_by == "detection" else ""
+            lines.append(f"  {c.effect:<22s} dBIC {c.delta_bic:12.1f}  dchi2 {c.delta_chi2:12.1f}  signature {c.signature.get('score', math.nan):.3g}{by}")
         lines.append("path: " + " -> ".join(f"{_step_name(s)} ({s.gap['chi2_reduced']:.3g})" for s in self.path))
         by = self.effects_by_side()
         lines.append(f"material effects: {', '.join(by['material']) or 'none'}; instrument effects: {', '.join(by['instrument']) or 'none'}")

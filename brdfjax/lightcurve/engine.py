@@ -31,6 +31,8 @@ parameters and the attitude offsets (``eqx.filter_grad`` of a loss of
 
 from __future__ import annotations
 
+import math
+import warnings
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -42,11 +44,14 @@ from jaxtyping import Array
 from ..geometry import Directions, Rx, Ry, Rz, safe_sqrt
 from ..terms import AbstractTerm
 from .ephemeris import AU_M, EARTH_RADIUS_M
+from .sharp import DEFAULT_TOL, flag_features, term_features
 
 __all__ = [
     "SUN_RADIUS_RAD",
     "SUN_MAGNITUDE_V",
     "SunDisk",
+    "AdaptiveDisk",
+    "light_curve",
     "Facets",
     "Attitude",
     "Satellite",
@@ -120,6 +125,17 @@ class SunDisk(eqx.Module):
     @property
     def n_nodes(self) -> int:
         return int(np.shape(self.weights)[0])
+
+    def mean_cos(self) -> Array:
+        """``sum_k w_k cos(radius rho_k)``: the rule's mean of the cosine of each node's angle from the centre.
+
+        A centre node with this weight integrates ``f cos(theta_i)`` exactly as the
+        full rule does when ``f`` is constant over the disk (the rule is centrally
+        symmetric: the nodes' tangential offsets cancel).
+        """
+        off = jnp.asarray(self.offsets)
+        rho = jnp.sqrt(jnp.sum(off**2, -1))
+        return jnp.sum(jnp.asarray(self.weights) * jnp.cos(self.radius * rho))
 
     def directions(self, s: Array) -> Array:
         """Node directions (..., K, 3) around the unit centre directions ``s`` (..., 3)."""
@@ -202,16 +218,25 @@ class Facets(eqx.Module):
 
     def frames(self, sun_body: Array) -> tuple[Array, Array, Array]:
         """Facet axes ``(x, y, n)`` in the body frame at each time, each (T, J, 3), given the body-frame Sun (T, 3)."""
-        a = self.x_axis  # (J, 3)
-        s = sun_body[:, None, :]  # (T, 1, 3)
-        n_track = _unit(s - _dot(s, a)[..., None] * a) * self.side[:, None]
-        t = self.tracking[:, None]
-        n = t * n_track + (1 - t) * jnp.broadcast_to(self.normal, n_track.shape)
-        a = _unit(a - _dot(a, n)[..., None] * n)
-        c, sn = jnp.cos(self.phi_ref)[:, None], jnp.sin(self.phi_ref)[:, None]
-        x = c * a + sn * jnp.cross(n, a)
-        y = jnp.cross(n, x)
-        return x, y, n
+        return _frames(self.x_axis, self.normal, self.phi_ref, self.tracking, self.side, sun_body[:, None, :])
+
+    def take(self, j: Array) -> tuple[Array, Array, Array, Array, Array]:
+        """The facet parameters ``(x_axis, normal, phi_ref, tracking, side)`` of facets ``j`` (any shape)."""
+        return self.x_axis[j], self.normal[j], self.phi_ref[j], self.tracking[j], self.side[j]
+
+
+def _frames(x_axis: Array, normal: Array, phi_ref: Array, tracking: Array, side: Array, s: Array
+            ) -> tuple[Array, Array, Array]:
+    """Facet axes ``(x, y, n)`` in the body frame; vectors (..., 3) and scalars (...) broadcast against ``s`` (..., 3)."""
+    a = x_axis
+    n_track = _unit(s - _dot(s, a)[..., None] * a) * side[..., None]
+    t = tracking[..., None]
+    n = t * n_track + (1 - t) * jnp.broadcast_to(normal, n_track.shape)
+    a = _unit(a - _dot(a, n)[..., None] * n)
+    c, sn = jnp.cos(phi_ref)[..., None], jnp.sin(phi_ref)[..., None]
+    x = c * a + sn * jnp.cross(n, a)
+    y = jnp.cross(n, x)
+    return x, y, n
 
 
 class Attitude(eqx.Module):
@@ -368,7 +393,7 @@ def _facet_terms(sat: Satellite, g: Geometry, disk: SunDisk, wavelength: float, 
 def facet_flux(
     sat: Satellite,
     geometry: Geometry,
-    disk: SunDisk,
+    disk: "SunDisk | AdaptiveDisk",
     wavelength: float = 550e-9,
     *,
     chunk: int = 512,
@@ -381,7 +406,17 @@ def facet_flux(
     the Sun's centre and of the observer from each facet's normal (rad);
     ``sunlit`` (T,): the fraction of the solar disk seen from the satellite.
     Time steps run in chunks of ``chunk`` (bounded memory).
+
+    With an :class:`AdaptiveDisk` the full rule is used only where a term is
+    sharp over the disk (see there); the dict then also holds ``disk_full``
+    (T,): the (facet, term) pairs integrated with the full rule at each step,
+    ``disk_overflow`` (T,): pairs that needed it but exceeded the capacity
+    (they got the cheap rule; :func:`light_curve` replans and reruns), and
+    ``disk_flagged`` (U,): the flagged pairs of each unit (model term), and
+    ``sunlit`` is the centre's visibility except in the penumbra.
     """
+    if isinstance(disk, AdaptiveDisk):
+        return _adaptive_flux(sat, geometry, disk, wavelength, chunk, earth_radius)
     T = len(geometry)
     size = max(1, min(chunk, T))
     chunks, _ = geometry.chunks(size)
@@ -391,6 +426,256 @@ def facet_flux(
         return a.reshape((-1,) + a.shape[2:])[:T]
 
     return {"flux": flat(flux), "theta_i": flat(ti), "theta_s": flat(ts), "sunlit": flat(lit)}
+
+
+# --- the adaptive solar disk ------------------------------------------------------------------------------
+
+
+class AdaptiveDisk(eqx.Module):
+    """The full disk rule only where it matters: the centre node elsewhere.
+
+    Every (time step, facet, unit) is first integrated by the cheap rule: the
+    disk's centre with weight :meth:`SunDisk.mean_cos` (exact for a term that
+    is constant over the disk, e.g. Lambertian, to rounding).  A unit is one
+    top-level term of a facet's model (the model itself if it is not a
+    :class:`~brdfjax.terms.Model`).  A pair is flagged (:mod:`.sharp`) when
+    the centre half vector is within reach of one of the unit's sharp
+    features (narrow lobes, the diffraction streak), when the facet is within
+    the Sun's radius of its terminator, or when the step is in the penumbra;
+    facets turned from the observer or in full shadow are never flagged.
+    Flagged pairs (at most ``capacity[u]`` per unit: JAX needs static shapes)
+    are gathered over the whole pass, integrated with the ``full`` rule in
+    slices of ``slot_chunk`` pairs, and their cheap value is replaced.  Flags
+    choose the rule and carry no gradient; the values are differentiable in
+    every parameter and the attitude, like the full rule's.
+
+    ``capacity=None``: call :meth:`plan` (or use :func:`light_curve`, which
+    plans, checks ``disk_overflow`` and replans).
+    """
+
+    full: SunDisk
+    capacity: tuple[int, ...] | None = eqx.field(static=True, default=None)
+    tol: float = eqx.field(static=True, default=DEFAULT_TOL)
+    slot_chunk: int = eqx.field(static=True, default=32)
+
+    @property
+    def radius(self) -> float:
+        return self.full.radius
+
+    @property
+    def n_nodes(self) -> int:
+        return self.full.n_nodes
+
+    def with_capacity(self, capacity: Sequence[int]) -> "AdaptiveDisk":
+        return AdaptiveDisk(self.full, tuple(int(c) for c in capacity), self.tol, self.slot_chunk)
+
+    def capacity_for(self, counts: Sequence[int], margin: float = 1.25) -> "AdaptiveDisk":
+        """Capacities covering ``counts`` flagged pairs per unit with a margin, in whole ``slot_chunk`` slices."""
+        sc = self.slot_chunk
+        cap = [0 if c <= 0 else sc * math.ceil((c * margin + 4) / sc) for c in counts]
+        return self.with_capacity(cap)
+
+    def plan(self, sat: Satellite, geometry: Geometry, *, chunk: int = 512, margin: float = 1.25,
+             earth_radius: float = EARTH_RADIUS_M) -> "AdaptiveDisk":
+        """Capacities from the flags of ``sat`` along ``geometry`` (with ``margin`` for parameter changes)."""
+        counts = np.asarray(_flag_counts(sat, geometry, self, chunk, earth_radius))
+        return self.capacity_for(counts.tolist(), margin)
+
+
+def _units(sat: Satellite) -> list[tuple[int, str | None, AbstractTerm]]:
+    """(model index, term name or None, term) of every unit, in a fixed order."""
+    out: list[tuple[int, str | None, AbstractTerm]] = []
+    for m, model in enumerate(sat.models):
+        terms = getattr(model, "terms", None)
+        if isinstance(terms, dict):  # sorted, as jax orders a dict's leaves: the same order inside and outside jit
+            out += [(m, name, terms[name]) for name in sorted(terms)]
+        else:
+            out.append((m, None, model))
+    return out
+
+
+def _model_facets(sat: Satellite, m: int) -> np.ndarray:
+    return np.asarray([j for j in range(len(sat.facets.names)) if sat.model_of[j] == m], int)
+
+
+def _cheap_terms(sat: Satellite, g: Geometry, disk: AdaptiveDisk, wavelength: float, earth_radius: float):
+    """One chunk with the cheap rule: integral (T, J), cos_s (T, J), scale (T,), angles, lit (T,), flags per unit."""
+    s = g.s
+    r_sat = g.r_hat * g.r[:, None]
+    vis_c = shadow_mask(r_sat, g.r, s[:, None, :], earth_radius)[:, 0]  # (T,)
+    # penumbra: the Earth's limb within the Sun's radius of its centre, seen from the satellite
+    alpha_e = jnp.arcsin(jnp.clip(earth_radius / g.r, -1.0, 1.0))
+    beta = jnp.arctan2(safe_sqrt(jnp.sum(jnp.square(jnp.cross(s, -g.r_hat)), -1)), _dot(s, -g.r_hat))
+    penumbra = jnp.abs(beta - alpha_e) <= disk.radius * 1.001 + 1e-12
+    M = sat.attitude.matrix(g.r_hat, g.v_hat)
+    s_b = jnp.einsum("tij,ti->tj", M, s)
+    o_b = jnp.einsum("tij,ti->tj", M, g.o)
+    x, y, n = sat.facets.frames(s_b)
+
+    def to_facet(v):  # (T, 3) -> (T, J, 3)
+        vv = v[:, None]
+        return jnp.stack([_dot(vv, x), _dot(vv, y), _dot(vv, n)], -1)
+
+    w_c, w_s = to_facet(s_b), to_facet(o_b)
+    J = len(sat.facets.names)
+    dtype = w_c.dtype
+    f = [None] * J
+    for m, model in enumerate(sat.models):
+        idx = _model_facets(sat, m)
+        if len(idx) == 0:
+            continue
+        vals = model(Directions.from_vectors(w_c[:, idx], w_s[:, idx]), wavelength)  # (T, Jm)
+        for q, j in enumerate(idx):
+            f[j] = vals[:, q]
+    fv = jnp.stack(f, 1)
+    cos_c = jnp.maximum(w_c[..., 2], 0.0)
+    cos_s = jnp.maximum(w_s[..., 2], 0.0)
+    integral = disk.full.mean_cos().astype(dtype) * vis_c[:, None] * fv * cos_c
+    scale = jnp.square(AU_M / g.d_sun) / jnp.square(g.d_obs)
+    theta_i = jnp.arctan2(safe_sqrt(w_c[..., 0] ** 2 + w_c[..., 1] ** 2), w_c[..., 2])
+    theta_s = jnp.arctan2(safe_sqrt(w_s[..., 0] ** 2 + w_s[..., 1] ** 2), w_s[..., 2])
+    # flags: only where the facet faces the observer and part of the Sun
+    sin_r = np.sin(disk.radius)
+    matters = (w_s[..., 2] > 0) & (w_c[..., 2] > -sin_r) & ((vis_c > 0) | penumbra)[:, None]
+    always = (penumbra[:, None] | (jnp.abs(w_c[..., 2]) <= sin_r * 1.001)) & matters
+    wsum = w_c + w_s
+    norm = safe_sqrt(jnp.sum(wsum * wsum, -1))
+    h = wsum / jnp.where(norm > 0, norm, 1.0)[..., None]
+    delta_h = disk.radius / jnp.maximum(norm, 1e-9)  # r / (2 cos theta_d)
+    flags = []
+    for m, _, term in _units(sat):
+        idx = _model_facets(sat, m)
+        feats = term_features(term, disk.radius, disk.tol)
+        hit = flag_features(feats, jax.lax.stop_gradient(h[:, idx]), jax.lax.stop_gradient(delta_h[:, idx]), disk.radius)
+        flags.append((hit & matters[:, idx]) | always[:, idx])
+    return integral, cos_s, scale, theta_i, theta_s, vis_c, penumbra, tuple(flags)
+
+
+def _cheap_pass(sat: Satellite, geometry: Geometry, disk: AdaptiveDisk, wavelength: float, chunk: int, earth_radius: float):
+    T = len(geometry)
+    size = max(1, min(chunk, T))
+    chunks, _ = geometry.chunks(size)
+    out = jax.lax.map(lambda g: _cheap_terms(sat, g, disk, wavelength, earth_radius), chunks)
+    return jax.tree_util.tree_map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:])[:T], out)
+
+
+@eqx.filter_jit
+def _flag_counts(sat: Satellite, geometry: Geometry, disk: AdaptiveDisk, chunk: int, earth_radius: float) -> Array:
+    flags = _cheap_pass(sat, geometry, disk, 550e-9, chunk, earth_radius)[-1]
+    return jnp.stack([jnp.sum(f) for f in flags]) if flags else jnp.zeros(0, int)
+
+
+def _full_minus_cheap(sat: Satellite, g: Geometry, j: Array, term: AbstractTerm, disk: AdaptiveDisk,
+                      wavelength: float, earth_radius: float) -> Array:
+    """For slots (S,): step rows ``g`` and facets ``j``, the full rule's integral of ``term`` minus the cheap one."""
+    full = disk.full
+    r_sat = g.r_hat * g.r[:, None]
+    nodes = full.directions(g.s)  # (S, K, 3)
+    vis = shadow_mask(r_sat, g.r, nodes, earth_radius)
+    vis_c = shadow_mask(r_sat, g.r, g.s[:, None, :], earth_radius)[:, 0]
+    M = sat.attitude.matrix(g.r_hat, g.v_hat)
+    nodes_b = jnp.einsum("sij,ski->skj", M, nodes)
+    s_b = jnp.einsum("sij,si->sj", M, g.s)
+    o_b = jnp.einsum("sij,si->sj", M, g.o)
+    x, y, n = _frames(*sat.facets.take(j), s_b)  # (S, 3)
+    w_i = jnp.stack([_dot(nodes_b, x[:, None]), _dot(nodes_b, y[:, None]), _dot(nodes_b, n[:, None])], -1)
+    w_c = jnp.stack([_dot(s_b, x), _dot(s_b, y), _dot(s_b, n)], -1)
+    w_s = jnp.stack([_dot(o_b, x), _dot(o_b, y), _dot(o_b, n)], -1)
+    f = term(Directions.from_vectors(w_i, w_s[:, None, :]), wavelength)  # (S, K)
+    wts = jnp.asarray(full.weights, f.dtype)
+    whole = jnp.sum(wts * vis * f * jnp.maximum(w_i[..., 2], 0.0), -1)
+    fc = term(Directions.from_vectors(w_c, w_s), wavelength)
+    cheap = full.mean_cos().astype(f.dtype) * vis_c * fc * jnp.maximum(w_c[..., 2], 0.0)
+    return whole - cheap
+
+
+def _adaptive_flux(sat: Satellite, geometry: Geometry, disk: AdaptiveDisk, wavelength: float, chunk: int,
+                   earth_radius: float) -> dict[str, Array]:
+    units = _units(sat)
+    if disk.capacity is None:
+        raise ValueError("AdaptiveDisk: no capacity; plan it first (disk.plan(satellite, geometry)) or call light_curve()")
+    if len(disk.capacity) != len(units):
+        raise ValueError(f"AdaptiveDisk: {len(disk.capacity)} capacities for {len(units)} units (model terms); "
+                         "plan it for this satellite")
+    integral, cos_s, scale, ti, ts, vis_c, penumbra, flags = _cheap_pass(sat, geometry, disk, wavelength, chunk, earth_radius)
+    T, J = integral.shape
+    n_full = jnp.zeros(T, jnp.int32)
+    n_over = jnp.zeros(T, jnp.int32)
+    counts = []
+    for (m, _, term), cap, fl in zip(units, disk.capacity, flags):
+        idx = _model_facets(sat, m)
+        Jm = len(idx)
+        sc = disk.slot_chunk
+        cap = sc * math.ceil(cap / sc)
+        flat = fl.reshape(-1)
+        counts.append(jnp.sum(flat))
+        rank = jnp.cumsum(flat) - 1
+        fitted = flat & (rank < cap)
+        n_full = n_full + jnp.sum(fitted.reshape(T, Jm), -1).astype(jnp.int32)
+        n_over = n_over + jnp.sum((flat & ~fitted).reshape(T, Jm), -1).astype(jnp.int32)
+        if cap == 0:
+            continue
+        slots = jnp.flatnonzero(flat, size=cap, fill_value=T * Jm)
+        valid = slots < T * Jm
+        t_idx = jnp.where(valid, slots // Jm, 0)
+        jj = jnp.where(valid, slots % Jm, 0)
+        j_idx = jnp.asarray(idx)[jj]
+        g_rows = jax.tree_util.tree_map(lambda a, t=t_idx: a[t], geometry)
+
+        def one(args, term=term):
+            g, j = args
+            return _full_minus_cheap(sat, g, j, term, disk, wavelength, earth_radius)
+
+        shaped = jax.tree_util.tree_map(lambda a, n=cap // sc, c=sc: a.reshape((n, c) + a.shape[1:]), (g_rows, j_idx))
+        delta = jax.lax.map(one, shaped).reshape(cap)
+        integral = integral.at[jnp.where(valid, t_idx, T), j_idx].add(delta, mode="drop")
+    flux = sat.facets.area * integral * cos_s * scale[:, None]
+    lit = jnp.where(penumbra, _lit_fraction(geometry, disk.full, earth_radius, penumbra), vis_c)
+    return {"flux": flux, "theta_i": ti, "theta_s": ts, "sunlit": lit, "disk_full": n_full, "disk_overflow": n_over,
+            "disk_flagged": jnp.stack(counts) if counts else jnp.zeros(0, jnp.int32)}
+
+
+def _lit_fraction(geometry: Geometry, full: SunDisk, earth_radius: float, where: Array, chunk: int = 256) -> Array:
+    """Fraction of the full rule's nodes that see the Sun, at the steps ``where`` (elsewhere 0; chunked)."""
+    T = len(geometry)
+    size = max(1, min(chunk, T))
+    chunks, _ = geometry.chunks(size)
+    pad = (-T) % size
+    w_chunks = jnp.concatenate([where, jnp.zeros(pad, bool)]).reshape(-1, size)
+
+    def f(args):
+        g, w = args
+
+        def compute(_):
+            nodes = full.directions(g.s)
+            vis = shadow_mask(g.r_hat * g.r[:, None], g.r, nodes, earth_radius)
+            return jnp.sum(jnp.asarray(full.weights, vis.dtype) * vis, -1)
+
+        return jax.lax.cond(jnp.any(w), compute, lambda _: jnp.zeros(size, g.s.dtype), None)
+
+    return jax.lax.map(f, (chunks, w_chunks)).reshape(-1)[:T]
+
+
+def light_curve(sat: Satellite, geometry: Geometry, disk: "SunDisk | AdaptiveDisk", wavelength: float = 550e-9, *,
+                chunk: int = 512, earth_radius: float = EARTH_RADIUS_M, margin: float = 1.25) -> dict[str, Array]:
+    """:func:`facet_flux`, planning an unplanned :class:`AdaptiveDisk` and replanning once if it overflows.
+
+    Not for use under ``jit``/``grad`` (it reads the overflow count); there, plan
+    the disk first and check ``disk_overflow`` yourself.
+    """
+    if not isinstance(disk, AdaptiveDisk):
+        return facet_flux(sat, geometry, disk, wavelength, chunk=chunk, earth_radius=earth_radius)
+    if disk.capacity is None:
+        disk = disk.plan(sat, geometry, chunk=chunk, margin=margin, earth_radius=earth_radius)
+    out = facet_flux(sat, geometry, disk, wavelength, chunk=chunk, earth_radius=earth_radius)
+    over = int(jnp.sum(out["disk_overflow"]))
+    if over:
+        warnings.warn(f"adaptive solar disk: {over} flagged (step, facet, term) pairs exceeded the capacity "
+                      f"{disk.capacity}; replanning with the counts {np.asarray(out['disk_flagged']).tolist()}",
+                      RuntimeWarning, stacklevel=2)
+        disk = disk.capacity_for(np.asarray(out["disk_flagged"]).tolist(), margin)
+        out = facet_flux(sat, geometry, disk, wavelength, chunk=chunk, earth_radius=earth_radius)
+    return out
 
 
 def phase_angle(geometry: Geometry) -> Array:

@@ -341,6 +341,8 @@ def sample(
     sampler: str = "emcee",
     n_chains: int = 4,
     n_warmup: int = 500,
+    log_weights: bool | None = None,
+    start_covariance: bool | None = None,
 ) -> PosteriorResult:
     """Sample the posterior of ``params`` (as for :func:`brdfjax.fit.fit`) given ``data`` with emcee.
 
@@ -365,6 +367,16 @@ def sample(
     or ``"nuts"`` (blackjax's No-U-Turn sampler: ``n_chains`` independent
     chains after ``n_warmup`` steps of window adaptation; needs blackjax;
     :mod:`brdfjax.sample._nuts`), same outputs and resume guarantees.
+
+    ``log_weights``: the samplers move the weights (free parameters named
+    ``rho*`` with a lower bound >= 0) as their logarithms, with the
+    log-Jacobian in the density (the same posterior): a flux-scale nuisance
+    parameter multiplies them, so in their logarithms the ridge it forms is
+    straight.  ``start_covariance``: emcee's walkers (NUTS's chains) start
+    in a ball of ``ball`` times the fit's full covariance (its Cholesky
+    factor), not of its sigmas: on the ridge, not across it.  Both default
+    (``None``) to on when the likelihood has nuisance parameters.  Outputs
+    are in stored units either way.
     """
     t_start = time.perf_counter()
     say = log or (lambda msg: None)
@@ -419,6 +431,11 @@ def sample(
     solver = get_solver(fit_kwargs.get("solver", "levenberg_marquardt"), **dict(fit_kwargs.get("solver_options") or {}))
     prep = prepare(model, blocks, spec_start, solver=solver, **{k: fit_kwargs[k] for k in _PREPARE_KEYS if k in fit_kwargs})
     post = build_log_posterior(prep, priors, loss=fit_kwargs.get("loss", "linear"))
+    has_nuisance = prep.nuisance is not None
+    use_log = has_nuisance if log_weights is None else bool(log_weights)
+    use_cov = has_nuisance if start_covariance is None else bool(start_covariance)
+    if use_log:
+        post = post.with_log(weight_mask(post))
     ndim = post.ndim
     nw = (default_walkers(ndim) if n_walkers is None else n_walkers) if sampler == "emcee" else int(n_chains)
     if sampler == "emcee":
@@ -440,17 +457,21 @@ def sample(
 
     fingerprint = problem_fingerprint(
         model, blocks, post, prep.layout, fit_kwargs, n_walkers=nw, seed=seed, ball=ball,
-        extra={**dict(extra_fingerprint or {}), "sampler": sampler, **({"n_warmup": int(n_warmup)} if sampler == "nuts" else {})},
+        extra={**dict(extra_fingerprint or {}), "sampler": sampler, **({"n_warmup": int(n_warmup)} if sampler == "nuts" else {}),
+               **({"sampler.log": ", ".join(n for n, m in zip(post.names, post.logged) if m)} if post.logged.any() else {}),
+               **({"sampler.start": "covariance"} if use_cov else {})},
     )
+    cov = _fit_covariance(fit_res, start_json, post.names, s0)
+    chol = _cholesky(cov) if use_cov else None
     if sampler == "emcee":
         chain, lp, diag, outcome, seed = _run_emcee(
             post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, vectorize, progress, stop_when_converged,
-            check_every, burn, thin, say, fingerprint,
+            check_every, burn, thin, say, fingerprint, chol,
         )
     else:
         chain, lp, diag, outcome = _run_nuts_sampler(
-            post, chain_path, x0, s0, _fit_covariance(fit_res, start_json, post.names, s0), nw, ball, seed, resume,
-            n_steps, n_warmup, stop_when_converged, check_every, burn, thin, say, fingerprint,
+            post, chain_path, x0, s0, cov, nw, ball, seed, resume,
+            n_steps, n_warmup, stop_when_converged, check_every, burn, thin, say, fingerprint, chol,
         )
     flat = chain[diag.burn :: diag.thin].reshape(-1, ndim)
     flat_nat = post.to_natural(flat)
@@ -508,6 +529,8 @@ def sample(
         "sampling": {**sampling_record(blocks, step, roi), **dict(extra_record or {})},
         "seed": int(seed),
         "ball_sigma": float(ball),
+        "start": "fit covariance (Cholesky)" if chol is not None else "fit sigmas (diagonal)",
+        "sampled_as_log": [n for n, m in zip(post.names, post.logged) if m],
         "vectorized": bool(vectorize),
         "wall_s": None,
         "run_wall_s": float(outcome.wall_s),
@@ -581,8 +604,22 @@ def _add_conditional(summary: dict[str, Any], flat: np.ndarray, names: Sequence[
         summary[names[i]]["sigma_marginal"] = _finite(np.sqrt(c[i, i]))
 
 
+def weight_mask(post: LogPosterior) -> np.ndarray:
+    """The weights (free parameters whose base is named ``rho*``, lower bound >= 0): what a flux scale multiplies."""
+    return np.array([b.split(".")[-1].startswith("rho") and float(lo) >= 0 for b, lo in zip(post.bases, post.lower)], bool)
+
+
+def _cholesky(cov: np.ndarray | None) -> np.ndarray | None:
+    if cov is None or not np.all(np.isfinite(cov)):
+        return None
+    try:
+        return np.linalg.cholesky(np.asarray(cov, np.float64))
+    except np.linalg.LinAlgError:
+        return None
+
+
 def _run_emcee(post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, vectorize, progress, stop_when_converged,
-               check_every, burn, thin, say, fingerprint):
+               check_every, burn, thin, say, fingerprint, chol=None):
     meta = {
         "units": list(post.units),
         "seed": int(seed),
@@ -592,14 +629,15 @@ def _run_emcee(post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, vector
     }
     p0 = None
     if not resume:  # the start is checked before the chain file exists: a refusal leaves nothing behind
-        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
+        p0 = post.to_sampler(start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed), chol=chol))
     backend, info = open_chain(chain_path, post.names, nw, resume=resume, meta=meta, fingerprint=fingerprint)
     created = chain_path is not None and info is None
     if info is not None and info.iteration == 0:
-        p0 = start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed))
+        p0 = post.to_sampler(start_ball(post, x0, s0, nw, ball, np.random.default_rng(seed), chol=chol))
     elif info is not None:
         say(f"resuming {chain_path}: {info.iteration} steps present, running to {n_steps}")
-    log_prob = post if vectorize else post.log_prob_one
+    # the chain file holds the sampler's coordinates (log of the weights when post.logged)
+    log_prob = post.sampler_log_prob if vectorize else post.sampler_log_prob_one
     try:
         outcome = run_chain(
             log_prob,
@@ -620,8 +658,9 @@ def _run_emcee(post, chain_path, x0, s0, nw, ball, seed, resume, n_steps, vector
         if created:
             Path(chain_path).unlink(missing_ok=True)
         raise SampleError("the run was interrupted before the first step was saved; nothing was kept")
-    chain = backend.get_chain()
-    lp = backend.get_log_prob()
+    chain = post.from_sampler(backend.get_chain())
+    # the log-density of the sampler's coordinates includes the log-Jacobian; report the posterior of x
+    lp = backend.get_log_prob() - np.sum(np.log(chain[..., post.logged]), axis=-1)
     diag = diagnose(backend, post.names, burn=burn, thin=thin, check_every=check_every)
     if outcome.stopped_converged:
         diag = Diagnostics(**{**diag.__dict__, "converged": True})
@@ -642,20 +681,23 @@ def _whitening(x0: np.ndarray, s0: np.ndarray, cov: np.ndarray | None) -> np.nda
 
 
 def _run_nuts_sampler(post, chain_path, x0, s0, cov, n_chains, ball, seed, resume, n_steps, n_warmup,
-                      stop_when_converged, check_every, burn, thin, say, fingerprint):
-    scale = _whitening(x0, s0, cov)
+                      stop_when_converged, check_every, burn, thin, say, fingerprint, chol=None):
+    # whitened in the sampler's coordinates y (log of the weights when post.logged): dy/dx = 1/x there
+    g = np.where(post.logged, 1.0 / np.where(x0 != 0, x0, 1.0), 1.0)
+    y0 = post.to_sampler(x0)
+    scale = _whitening(y0, s0 * np.abs(g), None if cov is None else np.asarray(cov) * np.outer(g, g))
     X = None
     if not resume:  # the start is checked before the chain file exists: a refusal leaves nothing behind
-        X = start_ball(post, x0, s0, n_chains, ball, np.random.default_rng(seed))
+        X = start_ball(post, x0, s0, n_chains, ball, np.random.default_rng(seed), chol=chol)
     existed = chain_path is not None and Path(chain_path).exists()
-    nchain = open_nuts(chain_path, post.names, n_chains, resume=resume, center=x0, scale=scale, seed=seed, n_warmup=n_warmup,
+    nchain = open_nuts(chain_path, post.names, n_chains, resume=resume, center=y0, scale=scale, seed=seed, n_warmup=n_warmup,
                        fingerprint=fingerprint)
     created = chain_path is not None and not existed
     z0 = None
     if nchain.step_size is None:
         if X is None:
-            X = start_ball(post, x0, s0, n_chains, ball, np.random.default_rng(seed))
-        z0 = np.linalg.solve(nchain.scale, (X - nchain.center).T).T
+            X = start_ball(post, x0, s0, n_chains, ball, np.random.default_rng(seed), chol=chol)
+        z0 = np.linalg.solve(nchain.scale, (post.to_sampler(X) - nchain.center).T).T
     else:
         say(f"resuming {chain_path}: {nchain.iteration} NUTS steps per chain present, running to {n_steps}")
     try:

@@ -51,7 +51,7 @@ import numpy as np
 
 from ..io.fingerprint import check_resume
 from ._chain import N_TAU, Diagnostics, RunOutcome
-from ._posterior import LogPosterior, _log_posterior_one
+from ._posterior import LogPosterior, _log_posterior_sampler
 from ._priors import SampleError
 
 __all__ = ["NUTS_GROUP", "NutsChain", "have_blackjax", "open_nuts", "run_nuts", "nuts_diagnostics", "RHAT_MAX"]
@@ -255,11 +255,12 @@ def open_nuts(
     return chain
 
 
-def _logdensity(problem: Any, priors: Any, est: Any, center: Any, scale: Any) -> Callable[[Any], Any]:
-    """The log-posterior in whitened coordinates ``z`` (``x = center + scale @ z``; the Jacobian is constant)."""
+def _logdensity(problem: Any, priors: Any, est: Any, center: Any, scale: Any, log_mask: Any) -> Callable[[Any], Any]:
+    """The log-posterior in whitened coordinates ``z``: ``y = center + scale @ z`` (a constant Jacobian), and
+    ``x = exp(y)`` where ``log_mask`` (the log-Jacobian added), else ``x = y``."""
 
     def logdensity(z):
-        lp = _log_posterior_one(center + scale @ z, problem, priors, est)
+        lp = _log_posterior_sampler(center + scale @ z, problem, priors, est, log_mask)
         # -inf outside the support: NUTS rejects the transition (a divergence), never moves there
         return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
 
@@ -269,10 +270,10 @@ def _logdensity(problem: Any, priors: Any, est: Any, center: Any, scale: Any) ->
 # The problem, priors and whitening are arguments (not closed over), so that a new run of the same shapes -- a
 # resumed chain, another chain, another data set -- reuses the compiled programs.
 @eqx.filter_jit
-def _warmup(problem, priors, est, center, scale, key, z0, n_warmup: int):
+def _warmup(problem, priors, est, center, scale, log_mask, key, z0, n_warmup: int):
     bj = _blackjax()
     warmup = bj.window_adaptation(
-        bj.nuts, _logdensity(problem, priors, est, center, scale),
+        bj.nuts, _logdensity(problem, priors, est, center, scale, log_mask),
         adaptation_info_fn=bj.adaptation.base.get_filter_adapt_info_fn(),
     )
     (state, params), _ = warmup.run(key, z0, num_steps=n_warmup)
@@ -280,7 +281,7 @@ def _warmup(problem, priors, est, center, scale, key, z0, n_warmup: int):
 
 
 @eqx.filter_jit
-def _piece(problem, priors, est, center, scale, z, ld, grad, step_size, inv_mass, key, start):
+def _piece(problem, priors, est, center, scale, log_mask, z, ld, grad, step_size, inv_mass, key, start):
     """:data:`CHUNK` NUTS steps of one chain from the state ``(z, ld, grad)``; step i's key is fold_in(key, start + i).
 
     One chain per call (not vmapped over chains): under ``vmap`` the NUTS trajectory's while loops take a batched
@@ -288,7 +289,7 @@ def _piece(problem, priors, est, center, scale, z, ld, grad, step_size, inv_mass
     """
     bj = _blackjax()
     kernel = bj.nuts.build_kernel()
-    logdensity = _logdensity(problem, priors, est, center, scale)
+    logdensity = _logdensity(problem, priors, est, center, scale, log_mask)
 
     def one(state, k):
         new, info = kernel(k, state, logdensity, step_size, inv_mass)
@@ -324,6 +325,8 @@ def run_nuts(
     dtype = post.dtype
     center = jnp.asarray(chain.center, dtype)
     scale = jnp.asarray(chain.scale, dtype)
+    logged = post.logged
+    log_mask = jnp.asarray(logged)  # an array (never None): one compiled program with and without logs
 
     done0 = chain.iteration
     out = RunOutcome(done0, 0, False, False, 0.0)
@@ -334,7 +337,8 @@ def run_nuts(
         keys = _chain_keys(chain.seed, chain.n_chains, 0)
         zs, lds, grads, steps, imms = [], [], [], [], []
         for c in range(chain.n_chains):
-            z, ld, grad, h, imm = _warmup(problem, priors, est, center, scale, keys[c], jnp.asarray(z0[c], dtype), chain.n_warmup)
+            z, ld, grad, h, imm = _warmup(problem, priors, est, center, scale, log_mask, keys[c], jnp.asarray(z0[c], dtype),
+                                   chain.n_warmup)
             zs.append(np.asarray(z, np.float64))
             lds.append(float(ld))
             grads.append(np.asarray(grad, np.float64))
@@ -355,17 +359,20 @@ def run_nuts(
             z, ld, grad = (jnp.asarray(a, dtype) for a in chain.state())
             start = jnp.asarray(chain.iteration, jnp.int32)
             per = [
-                [np.asarray(a) for a in _piece(problem, priors, est, center, scale, z[c], ld[c], grad[c], h[c], m[c], keys[c], start)]
+                [np.asarray(a) for a in _piece(problem, priors, est, center, scale, log_mask, z[c], ld[c], grad[c], h[c], m[c], keys[c],
+                                                  start)]
                 for c in range(chain.n_chains)
             ]
             take = min(CHUNK, int(n_steps) - chain.iteration)
             # (steps, chains, ...) like the file's rows
             zz, lds, grads, div, nlf, acc = (np.stack([p[j] for p in per], axis=1)[:take] for j in range(6))
             zz = zz.astype(np.float64)
-            x = chain.to_x(zz)
+            x = post.from_sampler(chain.to_x(zz))  # stored units
+            lds = lds.astype(np.float64)
             chain.append({
-                "z": zz, "logdensity": lds.astype(np.float64), "grad": grads.astype(np.float64), "x": x,
-                "log_prob": lds.astype(np.float64), "diverging": div.astype(np.int8), "n_leapfrog": nlf.astype(np.int32),
+                "z": zz, "logdensity": lds, "grad": grads.astype(np.float64), "x": x,
+                # the posterior density of x (the sampler's includes the log-Jacobian of the logged entries)
+                "log_prob": lds - np.sum(np.log(x[..., logged]), axis=-1), "diverging": div.astype(np.int8), "n_leapfrog": nlf.astype(np.int32),
                 "accept": acc.astype(np.float64),
             })
             out.iterations, out.new_steps = chain.iteration, chain.iteration - done0

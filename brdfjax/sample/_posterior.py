@@ -29,7 +29,7 @@ iterated element by element).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import equinox as eqx
@@ -73,6 +73,21 @@ def _log_posterior_one(x: Array, problem: Problem, priors: PriorArrays, est: Arr
     x_safe = jnp.where(jnp.isfinite(lp), x, jnp.clip(x, priors.lower, priors.upper))
     ll = _log_likelihood_one(x_safe, problem, est)
     return jnp.where(jnp.isfinite(lp), lp + ll, -jnp.inf)
+
+
+def _log_posterior_sampler(y: Array, problem: Problem, priors: PriorArrays, est: Array, log_mask: Array) -> Array:
+    """The log-posterior density of the sampler's coordinates ``y``: ``x = exp(y)`` where ``log_mask``, else ``y``.
+
+    The log-Jacobian ``sum y`` over the logged entries makes it the density of ``y`` (the same posterior of ``x``).
+    """
+    x = jnp.where(log_mask, jnp.exp(y), y)
+    return _log_posterior_one(x, problem, priors, est) + jnp.sum(jnp.where(log_mask, y, 0.0))
+
+
+@eqx.filter_jit
+def batch_log_posterior_sampler(Y: Array, problem: Problem, priors: PriorArrays, est: Array, log_mask: Array) -> Array:
+    """:func:`_log_posterior_sampler` of every walker, ``Y``: ``(n_walkers, p)``."""
+    return jax.vmap(_log_posterior_sampler, in_axes=(0, None, None, None, None))(Y, problem, priors, est, log_mask)
 
 
 @eqx.filter_jit
@@ -124,6 +139,45 @@ class LogPosterior:
     loss: str
     dtype: Any = field(default=None)
     est: Any = None  # (n_points,) 1 where the noise is estimated (profiled), else 0
+    # (p,) bool: the entries the sampler moves as their logarithm (sample(log_weights=...)); None: none
+    log_mask: Any = None
+
+    @property
+    def logged(self) -> np.ndarray:
+        return np.zeros(self.ndim, bool) if self.log_mask is None else np.asarray(self.log_mask, bool)
+
+    def with_log(self, mask: Any) -> "LogPosterior":
+        """The same posterior whose sampler moves the entries of ``mask`` as their logarithm."""
+        m = np.asarray(mask, bool)
+        return replace(self, log_mask=jnp.asarray(m) if m.any() else None)
+
+    def to_sampler(self, X: Any) -> np.ndarray:
+        """Stored units -> the sampler's coordinates (log where :attr:`logged`)."""
+        X = np.array(X, np.float64)
+        m = self.logged
+        if m.any():
+            with np.errstate(divide="ignore", invalid="ignore"):
+                X[..., m] = np.log(X[..., m])
+        return X
+
+    def from_sampler(self, Y: Any) -> np.ndarray:
+        """The sampler's coordinates -> stored units."""
+        Y = np.array(Y, np.float64)
+        m = self.logged
+        if m.any():
+            Y[..., m] = np.exp(Y[..., m])
+        return Y
+
+    def sampler_log_prob(self, Y: Any) -> np.ndarray:
+        """Vectorised log-density of the sampler's coordinates (emcee ``vectorize=True``): ``(n, p)`` -> ``(n,)``."""
+        if self.log_mask is None:
+            return self(Y)
+        return np.asarray(
+            batch_log_posterior_sampler(self._as_batch(Y), self.problem, self.priors, self.est, self.log_mask), np.float64
+        )
+
+    def sampler_log_prob_one(self, y: Any) -> float:
+        return float(self.sampler_log_prob(np.asarray(y, np.float64)[None, :])[0])
 
     @property
     def ndim(self) -> int:
@@ -232,8 +286,12 @@ def start_ball(
     ball: float,
     rng: np.random.Generator,
     max_tries: int = 100,
+    chol: np.ndarray | None = None,
 ) -> np.ndarray:
     """``n_walkers`` starts ``x0 + ball * sigma * N(0, 1)`` inside the support with a finite log-posterior.
+
+    With ``chol`` (a Cholesky factor of the fit's covariance) the starts are
+    ``x0 + ball * chol @ N(0, 1)`` instead: correlated as the fit says.
 
     ``x0`` outside the prior's support is an error naming the parameter;
     where ``sigma`` is not a positive finite number, 1e-4 of ``|x0|`` (or
@@ -263,13 +321,18 @@ def start_ball(
     # keep the ball well inside a bounded support
     width = hi - lo
     s = np.where(np.isfinite(width), np.minimum(s, 0.05 * width / max(ball, 1e-12)), s)
-    X = x0 + ball * s * rng.standard_normal((n_walkers, x0.size))
+    if chol is None:
+        draw = lambda k, b: b * s * rng.standard_normal((k, x0.size))  # noqa: E731
+    else:  # along the fit's correlations: the walkers start on a ridge, not across it
+        L = np.asarray(chol, np.float64)
+        draw = lambda k, b: b * rng.standard_normal((k, x0.size)) @ L.T  # noqa: E731
+    X = x0 + draw(n_walkers, ball)
     for _ in range(max_tries):
         lp = post(X)
         need = ~np.isfinite(lp)
         if not need.any():
             return X
-        X[need] = x0 + 0.5 * ball * s * rng.standard_normal((int(need.sum()), x0.size))
+        X[need] = x0 + draw(int(need.sum()), 0.5 * ball)
     raise SampleError(
         f"could not place {n_walkers} walkers with a finite log-posterior around the starting point "
         f"(ball {ball} sigma); the optimum may sit on a bound of the prior: widen the prior or reduce 'ball'"

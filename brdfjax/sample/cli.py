@@ -17,6 +17,8 @@ The config is a fit config (:mod:`brdfjax.fit.config`: data, model, [params],
     # step = 2                      # sample on every step-th point of the fit's grid ...
     # roi = [-60, 60, -60, 60]      # ... inside this region [h0, h1, v0, v1] (seed pixel indices)
     predictive_draws = 100          # posterior draws for the predictive bands
+    # log_weights = true            # sample rho* as log rho (default: on with nuisance parameters)
+    # start_covariance = true       # start along the fit's full covariance (default: on with nuisance parameters)
 
     [sample.priors]                 # keys and units as in [params] (angles <name>_deg, lengths <name>_m)
     rho_s3 = { kind = "uniform", lower = 100.0, upper = 600.0 }
@@ -111,6 +113,12 @@ class SampleSection(StrictModel):
     step: int | None = Field(None, ge=1, description="sample on every step-th point of the fit's grid")
     roi: list[int] | None = Field(None, min_length=4, max_length=4, description="[h0, h1, v0, v1] seed pixel indices")
     predictive_draws: int = Field(100, ge=0, description="posterior draws for the predictive bands (0: none)")
+    log_weights: bool | None = Field(
+        None, description="sample the weights (rho*) as logarithms (default: on with nuisance parameters)"
+    )
+    start_covariance: bool | None = Field(
+        None, description="start from the fit's full covariance, not its sigmas (default: on with nuisance parameters)"
+    )
     priors: dict[str, PriorConfig] = Field(default_factory=dict, description="parameter key -> prior table")
 
     @field_validator("sampler")
@@ -309,6 +317,8 @@ def run(args: argparse.Namespace) -> int:
         sampler=sec.sampler,
         n_chains=sec.n_chains,
         n_warmup=sec.n_warmup,
+        log_weights=sec.log_weights,
+        start_covariance=sec.start_covariance,
     )
     _print_summary(console, res.summary)
     console.print(f"wrote {', '.join(sorted(Path(f).name for f in res.files.values()))} in {out}", markup=False)

@@ -72,6 +72,10 @@ class Signature:
     value: float
     score: float
     detail: str = ""
+    #: the effect is found by this statistic itself, not by a refit's chi^2 decrease (an unresolved peak: its
+    #: value is the widened range of the lobe's width and weight, which no chi^2 shows); such a candidate is
+    #: ranked by its score, ahead of the BIC ranking, and says so
+    detection: bool = False
 
 
 class Effect:

@@ -555,7 +555,7 @@ class AngularSamplingEffect(Effect):
         un = self.unresolved(ctx)
         if un is not None:
             z, text = un
-            return Signature(z, score_from_logp(log_sf_normal(z)), text)
+            return Signature(z, score_from_logp(log_sf_normal(z)), text, detection=z > 0)
         d, a = self._scan(ctx)
         z = math.sqrt(d)
         logp = math.log(len(self.apertures_deg) / 2.0) + log_sf_normal(z)
