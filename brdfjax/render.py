@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike
 from .detector import Detector, PixelGrid
 from .fields import check_param, param
 from .geometry import Directions
-from .terms import AbstractTerm
+from .terms import AbstractTerm, Model
 
 __all__ = [
     "Frame",
@@ -285,8 +285,6 @@ def render_frame(
     """
     detector, grid, dtype = _prepare(detector, grid, step, roi, precision)
     if not hasattr(model, "term_values"):
-        from .terms import Model  # noqa: PLC0415 -- avoid a module-level cycle for this rare case
-
         model = Model(terms={"model": model})
     rows = _default_rows(grid.n_v.size, grid.n_h.size, chunk_pixels)
     return _program(_frame_values, _host_leaves((model, frame, detector)), grid.n_h, grid.n_v, rows, dtype)

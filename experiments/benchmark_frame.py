@@ -37,6 +37,29 @@ How
     * Accuracy: ``max |f_jax - f_numpy| / f_numpy`` over the pixels where the
       NumPy frame exceeds 1e-3 of its maximum.
 
+    * Fused numba kernel (when ``numba`` is installed, ``pip install
+      "brdfjax[bench]"``): ``experiments/fused_numba.py``, the same formulas
+      in float32 as one ``numba.njit(parallel=True)`` loop over the pixels.
+      One worker process alternates ``brdfjax.render`` (float32, default
+      chunk) and the numba kernel, both warm, ``--duel-repeats`` times;
+      medians (and minima) are compared.
+    * Bare Beckmann lobe against Mitsuba 3 (when ``mitsuba`` 3.x imports with
+      its LLVM backend; otherwise the section says why it is skipped): the
+      8,146,112 direction pairs of the seed frame at theta_i = 20 deg (the
+      detector's scatter directions, one incident direction), float32.
+      brdfjax evaluates ``Specular(Beckmann(m), rho_s=1, n, k,
+      shadowing="smith", normalisation="torrance_sparrow")`` times
+      ``cos theta_s`` -- the microfacet form of Mitsuba's ``roughconductor``
+      (``D G F / (4 cos theta_i)``, which its ``eval`` returns) -- and the
+      seed's bare Eq 70 lobe (no shadowing); Mitsuba the ``roughconductor``
+      plugin (``distribution = "beckmann"``, ``alpha = m``, the same complex
+      index, variant ``llvm_ad_mono``), ``bsdf.eval`` on the same direction
+      arrays with the result evaluated (``dr.eval``).  Alternating calls in
+      one process, ``--duel-repeats`` times; the values are compared at the
+      peak.  Mitsuba's LLVM backend needs an LLVM >= 17:
+      ``DRJIT_LIBLLVM_PATH`` is pointed at one found on the system when it
+      is not set (the system's LLVM 15 aborts).
+
 Nothing here is CPU-specific: the same command runs on a GPU machine.
 
 Usage::
@@ -215,6 +238,138 @@ def _worker_jax(args) -> dict:
     }
 
 
+def _timed_alternating(fns: dict, repeats: int) -> dict[str, list[float]]:
+    """Call each function once (warm-up), then all of them in turn ``repeats`` times; the times of each."""
+    for f in fns.values():
+        f()
+    times = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, f in fns.items():
+            t0 = time.perf_counter()
+            f()
+            times[k].append(time.perf_counter() - t0)
+    return times
+
+
+def _worker_duel(args) -> dict:
+    """brdfjax.render (float32) and the fused numba kernel, alternating in one process."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import fused_numba  # noqa: PLC0415 -- the sibling module, only in this worker
+
+    import brdfjax as bj
+
+    model, frame, detector = bj.solar_cell(), bj.Frame.from_degrees(args.theta_i), bj.Detector.seed()
+    theta_i = np.deg2rad(args.theta_i)
+    out = np.empty(tuple(-(-n // args.step) for n in detector.shape), np.float32)
+    t0 = time.perf_counter()
+    fused_numba.solar_cell_frame(theta_i, step=args.step, out=out)
+    numba_first = time.perf_counter() - t0
+    fns = {
+        "jax": lambda: bj.render(model, frame, detector, step=args.step).block_until_ready(),
+        "numba": lambda: fused_numba.solar_cell_frame(theta_i, step=args.step, out=out),
+    }
+    times = _timed_alternating(fns, args.duel_repeats)
+    if args.save:
+        np.save(args.save, out)
+        np.save(args.save.replace(".npy", "_jax.npy"), np.asarray(fns["jax"]()))
+    import numba  # noqa: PLC0415 -- version only
+
+    return {
+        "path": "duel",
+        "numba_version": numba.__version__,
+        "numba_threads": numba.get_num_threads(),
+        "numba_first_call_s": numba_first,
+        "times_s": times,
+        "median_s": {k: float(np.median(v)) for k, v in times.items()},
+        "min_s": {k: float(np.min(v)) for k, v in times.items()},
+    }
+
+
+def _llvm_for_drjit() -> str | None:
+    """An LLVM >= 17 shared library for Dr.Jit's LLVM backend, or None."""
+    import glob  # noqa: PLC0415 -- only here
+
+    for pattern in ("/usr/lib/x86_64-linux-gnu/libLLVM-{v}.so", "/usr/lib/llvm-{v}/lib/libLLVM-{v}.so",
+                    "/usr/lib/llvm-{v}/lib/libLLVM.so", "/usr/lib/x86_64-linux-gnu/libLLVM.so.{v}*"):
+        for v in (21, 20, 19, 18, 17):
+            hits = sorted(glob.glob(pattern.format(v=v)))
+            if hits:
+                return hits[0]
+    return None
+
+
+def _worker_lobe(args) -> dict:
+    """The bare Beckmann lobe over the seed frame's direction pairs: brdfjax and Mitsuba 3, alternating."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import brdfjax as bj
+
+    m, n, k = args.lobe_m, 1.5, 0.0
+    detector = bj.Detector.seed()
+    grid = detector.grid(args.step)
+    theta_i = np.float32(np.deg2rad(args.theta_i))
+    dirs = detector.directions(
+        jnp.asarray(grid.n_h, jnp.float32)[None, :], jnp.asarray(grid.n_v, jnp.float32)[:, None], theta_i
+    )
+    w_s = [np.ascontiguousarray(np.broadcast_to(np.asarray(c, np.float32), grid.shape).ravel()) for c in dirs.s]
+    w_i = [float(np.asarray(c)) for c in dirs.i]
+    n_pairs = w_s[0].size
+    terms = {
+        "brdfjax_ts_smith": bj.Specular(bj.Beckmann(m), rho_s=1.0, n=n, k=k, shadowing="smith",
+                                        normalisation="torrance_sparrow"),
+        "brdfjax_seed": bj.Specular(bj.Beckmann(m), rho_s=1.0, n=n, k=k),
+    }
+    ws_dev = [jnp.asarray(c) for c in w_s]
+
+    @eqx.filter_jit
+    def lobe(term, sx, sy, sz):
+        ix, iy, iz = (jnp.float32(c) for c in w_i)
+        d = bj.Directions((ix, iy, iz), (sx, sy, sz), (ix + sx, iy + sy, iz + sz))
+        return term(d, 632.8e-9) * sz  # f cos(theta_s), what Mitsuba's eval returns
+
+    fns = {name: (lambda t=t: lobe(t, *ws_dev).block_until_ready()) for name, t in terms.items()}
+    res = {"path": "lobe", "n_pairs": n_pairs, "m": m, "n": n, "k": k, "jax_version": jax.__version__}
+    peak = {name: np.asarray(lobe(t, *ws_dev)) for name, t in terms.items()}
+    try:
+        import drjit as dr  # noqa: PLC0415 -- optional baseline
+        import mitsuba as mi  # noqa: PLC0415
+
+        mi.set_variant("llvm_ad_mono")
+        bsdf = mi.load_dict({"type": "roughconductor", "distribution": "beckmann", "alpha": m, "eta": n, "k": k,
+                             "sample_visible": False})
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.wi = mi.Vector3f(*w_i)
+        si.n = mi.Normal3f(0.0, 0.0, 1.0)
+        si.sh_frame = mi.Frame3f(si.n)
+        ctx = mi.BSDFContext()
+        wo = mi.Vector3f(*w_s)
+
+        def mitsuba_eval():
+            v = bsdf.eval(ctx, si, wo)
+            dr.eval(v)
+            dr.sync_thread()
+            return v
+
+        fns["mitsuba"] = mitsuba_eval
+        peak["mitsuba"] = np.asarray(mitsuba_eval()[0], np.float32).ravel()
+        res["mitsuba_version"] = mi.__version__
+        res["mitsuba_variant"] = "llvm_ad_mono"
+    except Exception as e:  # noqa: BLE001 - any failure to load the optional baseline skips it, with the reason
+        res["mitsuba_skipped"] = f"{type(e).__name__}: {e}".splitlines()[0][:200]
+    times = _timed_alternating(fns, args.duel_repeats)
+    i_peak = int(np.argmax(peak["brdfjax_ts_smith"]))
+    res.update({
+        "times_s": times,
+        "median_s": {k: float(np.median(v)) for k, v in times.items()},
+        "min_s": {k: float(np.min(v)) for k, v in times.items()},
+        "peak_values": {k: float(np.ravel(v)[i_peak]) for k, v in peak.items()},
+        "sum_values": {k: float(np.sum(np.ravel(v), dtype=np.float64)) for k, v in peak.items()},
+    })
+    return res
+
+
 def _xla_buffer_mib(fn) -> float | None:
     """Output + temporary buffer size (MiB) of ``fn`` compiled by XLA (``Compiled.memory_analysis``).
 
@@ -235,10 +390,10 @@ def _xla_buffer_mib(fn) -> float | None:
 # --- parent ----------------------------------------------------------------------------------
 
 
-def _spawn(argv: list[str], tmp: Path, tag: str) -> dict:
+def _spawn(argv: list[str], tmp: Path, tag: str, env: dict | None = None) -> dict:
     result = tmp / f"{tag}.json"
     cmd = [sys.executable, str(Path(__file__).resolve()), *argv, "--worker-json", str(result)]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode != 0 or not result.exists():
         sys.stderr.write(proc.stdout + proc.stderr)
         raise SystemExit(f"benchmark worker '{tag}' failed (exit {proc.returncode}); its output is above")
@@ -329,6 +484,26 @@ def _parent(args) -> dict:
                 r["max_rel_diff"] = _max_rel_diff(np.load(tmp / f"{tag}.npy"), ref)
             rows.append(r)
 
+        duel = lobe = None
+        if not args.skip_duel:
+            try:
+                import numba  # noqa: F401, PLC0415 -- presence check only
+            except ImportError:
+                duel = {"skipped": "numba is not installed (pip install 'brdfjax[bench]')"}
+            else:
+                print("running JAX float32 vs the fused numba kernel, alternating ...", file=sys.stderr, flush=True)
+                duel = _spawn(["--path", "duel", "--duel-repeats", str(args.duel_repeats), *common,
+                               "--save", str(tmp / "numba.npy")], tmp, "duel")
+                if ref is not None:
+                    duel["numba_max_rel_diff"] = _max_rel_diff(np.load(tmp / "numba.npy"), ref)
+                    duel["jax_max_rel_diff"] = _max_rel_diff(np.load(tmp / "numba_jax.npy"), ref)
+            print("running the bare Beckmann lobe: brdfjax vs Mitsuba 3, alternating ...", file=sys.stderr, flush=True)
+            env = dict(os.environ)
+            if "DRJIT_LIBLLVM_PATH" not in env and _llvm_for_drjit():
+                env["DRJIT_LIBLLVM_PATH"] = _llvm_for_drjit()
+            lobe = _spawn(["--path", "lobe", "--duel-repeats", str(args.duel_repeats), *common], tmp, "lobe", env=env)
+            lobe["drjit_libllvm"] = env.get("DRJIT_LIBLLVM_PATH")
+
     numpy_s = rows[0]["steady_s"] if ref is not None else None
     for r in rows:
         r["speedup"] = numpy_s / r["steady_s"] if numpy_s is not None else None
@@ -353,6 +528,8 @@ def _parent(args) -> dict:
         "memory_method": jax_row["memory_method"],
         "default_chunk_pixels": default_chunk,
         "rows": rows,
+        "duel": duel,
+        "lobe": lobe,
     }
 
 
@@ -385,7 +562,62 @@ def _report(res: dict) -> str:
             f"fastest single calls: NumPy {res['rows'][0]['min_s']:.3f} s, JAX {default['min_s']:.3f} s "
             f"({res['rows'][0]['min_s'] / default['min_s']:.1f}x, a guide on a busy machine)",
         ]
+    lines += _duel_report(res.get("duel"), n) + _lobe_report(res.get("lobe"))
     return "\n".join(lines)
+
+
+def _duel_report(duel: dict | None, n: int) -> list[str]:
+    if duel is None:
+        return []
+    if "skipped" in duel:
+        return ["", f"fused numba kernel: skipped ({duel['skipped']})"]
+    med, mn = duel["median_s"], duel["min_s"]
+    acc = (f"; max rel diff vs the NumPy oracle: numba {duel['numba_max_rel_diff']:.1e}, "
+           f"JAX {duel['jax_max_rel_diff']:.1e}" if "numba_max_rel_diff" in duel else "")
+    return [
+        "",
+        f"float32 frame, brdfjax.render vs the fused numba kernel (experiments/fused_numba.py, numba "
+        f"{duel['numba_version']}, {duel['numba_threads']} threads), alternating in one process, "
+        f"{len(duel['times_s']['jax'])} calls each{acc}",
+        "| kernel | median [s] | min [s] | Mpix/s (median) |",
+        "| --- | --- | --- | --- |",
+        f"| brdfjax.render float32 | {med['jax']:.3f} | {mn['jax']:.3f} | {n / med['jax'] / 1e6:.1f} |",
+        f"| fused numba | {med['numba']:.3f} | {mn['numba']:.3f} | {n / med['numba'] / 1e6:.1f} |",
+        f"brdfjax / numba time: {med['jax'] / med['numba']:.2f}x (median), {mn['jax'] / mn['numba']:.2f}x (min); "
+        f"target <= 1.2x",
+    ]
+
+
+def _lobe_report(lobe: dict | None) -> list[str]:
+    if lobe is None:
+        return []
+    med, mn, peak = lobe["median_s"], lobe["min_s"], lobe["peak_values"]
+    labels = {
+        "brdfjax_ts_smith": "brdfjax Specular(Beckmann), Torrance-Sparrow + Smith G2, x cos_s",
+        "brdfjax_seed": "brdfjax Specular(Beckmann), the seed's Eq 70 (no G), x cos_s",
+        "mitsuba": f"Mitsuba {lobe.get('mitsuba_version', '')} roughconductor beckmann, {lobe.get('mitsuba_variant', '')}",
+    }
+    lines = [
+        "",
+        f"bare Beckmann lobe, m = {lobe['m']:g}, n = {lobe['n']:g} + {lobe['k']:g}i, over {lobe['n_pairs']:,} direction "
+        f"pairs (the seed frame's), float32, alternating in one process, {len(lobe['times_s']['brdfjax_seed'])} calls each",
+        "| evaluator | median [s] | min [s] | M pairs/s (median) | value at the peak |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for key in ("brdfjax_ts_smith", "brdfjax_seed", "mitsuba"):
+        if key in med:
+            lines.append(f"| {labels[key]} | {med[key]:.4f} | {mn[key]:.4f} | {lobe['n_pairs'] / med[key] / 1e6:.0f} | "
+                         f"{peak[key]:.6g} |")
+    if "mitsuba" in med:
+        lines.append(
+            f"Mitsuba / brdfjax time (>= 1: brdfjax at or above Mitsuba's rate): like-for-like (TS + Smith) "
+            f"{med['mitsuba'] / med['brdfjax_ts_smith']:.2f}x median, {mn['mitsuba'] / mn['brdfjax_ts_smith']:.2f}x min; "
+            f"seed lobe {med['mitsuba'] / med['brdfjax_seed']:.2f}x median; peak value brdfjax / Mitsuba "
+            f"{peak['brdfjax_ts_smith'] / peak['mitsuba']:.5f}"
+        )
+    else:
+        lines.append(f"Mitsuba 3: skipped ({lobe.get('mitsuba_skipped')})")
+    return lines
 
 
 def _parse_chunks(text: str) -> list[int]:
@@ -413,19 +645,24 @@ def main(argv: list[str] | None = None) -> int:
                    default=[1 << 12, 1 << 14, 1 << 16, 1 << 18, 1 << 20, 1 << 22],
                    help="comma-separated chunk_pixels values for the float32 sweep, e.g. '2**18,2**20,2**22'")
     p.add_argument("--skip-numpy", action="store_true", help="JAX rows only (no speed-up or accuracy columns)")
+    p.add_argument("--skip-duel", action="store_true", help="no numba and Mitsuba comparisons")
+    p.add_argument("--duel-repeats", type=int, default=9,
+                   help="alternating calls of each side in the numba and Mitsuba comparisons (default 9)")
+    p.add_argument("--lobe-m", type=float, default=2e-4, help=argparse.SUPPRESS)
     p.add_argument("--json", type=Path, help="also write all figures to this JSON file")
     # internal: worker modes driven by the parent
-    p.add_argument("--path", choices=["jax", "numpy"], help=argparse.SUPPRESS)
+    p.add_argument("--path", choices=["jax", "numpy", "duel", "lobe"], help=argparse.SUPPRESS)
     p.add_argument("--precision", choices=["float32", "float64"], default="float32", help=argparse.SUPPRESS)
     p.add_argument("--chunk-pixels", type=int, help=argparse.SUPPRESS)
     p.add_argument("--save", help=argparse.SUPPRESS)
     p.add_argument("--worker-json", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    if args.step < 1 or args.repeats < 1 or args.numpy_repeats < 1:
-        p.error("--step, --repeats and --numpy-repeats must be positive integers")
+    if args.step < 1 or args.repeats < 1 or args.numpy_repeats < 1 or args.duel_repeats < 1:
+        p.error("--step, --repeats, --numpy-repeats and --duel-repeats must be positive integers")
 
     if args.path is not None:
-        res = _worker_jax(args) if args.path == "jax" else _worker_numpy(args)
+        workers = {"jax": _worker_jax, "numpy": _worker_numpy, "duel": _worker_duel, "lobe": _worker_lobe}
+        res = workers[args.path](args)
         Path(args.worker_json).write_text(json.dumps(res))
         return 0
 

@@ -29,6 +29,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from brdfjax.fit.config import build_fit_job, load_fit_config  # noqa: E402
+from brdfjax.io import write_json_atomic  # noqa: E402
 from brdfjax.sample import sample  # noqa: E402
 from brdfjax.sample.cli import SampleSection, priors_from_config  # noqa: E402
 
@@ -85,10 +86,12 @@ def main(argv=None) -> int:
             "nuts": s.get("nuts"),
         }
         print(f"{name}: {json.dumps(report[name], default=str)[:600]}", file=sys.stderr, flush=True)
+        report["loadavg_now"] = os.getloadavg()
+        write_json_atomic(out / "benchmark.json", json.loads(json.dumps(report, default=str)))  # what is measured so far survives a kill
     report["loadavg_end"] = os.getloadavg()
     e, n = report["emcee"]["ess_per_s_total"], report["nuts"]["ess_per_s_total"]
     report["nuts_over_emcee_ess_per_s"] = None if not (e and n) else n / e
-    (out / "benchmark.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
+    write_json_atomic(out / "benchmark.json", json.loads(json.dumps(report, default=str)))
     print(json.dumps({k: report[k] for k in ("nuts_over_emcee_ess_per_s", "fit_s", "n_free")}, default=str))
     return 0
 

@@ -212,3 +212,47 @@ def test_samplers_move_the_weights_as_logarithms_from_the_fit_covariance():
     width = float(np.std(np.log(res.flat()[:, 0])))
     assert width == pytest.approx(LN10 * math.hypot(0.15, 0.06), rel=0.2)
     assert res.summary["tau_max"] < 100  # linear rho from a diagonal ball: tau about 250 on this posterior
+
+
+def test_instrument_nuisance_parameters_footprint_width_and_misalignment():
+    """Footprint width (log-scale) and misalignment (Eq 105 offsets) as nuisance parameters with the seed's priors:
+    a frame measured by a detector whose peak sits 2 px off (m_h) is fitted back to the truth with them; their
+    bad input names the key."""
+    from brdfjax.fit._problem import scale_footprint
+    from brdfjax.instrument.synthetic import footprint_kernel
+
+    k = footprint_kernel(6.0, tail=1e-6)
+    wide = np.asarray(scale_footprint(k, math.log(1.1)))
+    ref = footprint_kernel(6.6, tail=1e-6)
+    h = ref.shape[0] // 2 - k.shape[0] // 2
+    np.testing.assert_allclose(wide, ref[h : h + k.shape[0], h : h + k.shape[0]], atol=2e-3 * ref.max())
+
+    det = bj.Detector.seed(m_h=2.0)
+    (f,) = render_noisy_frames(MODEL, [20.0], detector=det, roi=(-24, 24, -24, 24), step=4, noise_rel=0.02, seed=4,
+                               floor=0.05)
+    f = dataclasses.replace(f, detector=bj.Detector.seed(), systematics=_syst("4.0+3.0", "4.0+1.0", 0.0))
+    base = NuisanceOptions(nd=False, flux=False, nonlinearity=False, misalignment=True,
+                           alignment={"roll_deg": 0, "yaw_deg": 0, "pitch_deg": 0, "distance_m": 0, "m_v_px": 0,
+                                      "m_h_px": 3.0})
+    res = fit(MODEL, [f], SPEC, nuisance=base)
+    d = res.to_dict()
+    assert set(d["nuisance"]["parameters"]) == {"m_h[ti20]"}
+    assert d["nuisance"]["parameters"]["m_h[ti20]"]["prior_sigma"] == 3.0
+    assert res.value("m_h[ti20]") == pytest.approx(2.0, abs=3 * res.sigma("m_h[ti20]"))
+    assert res.value("m_h[ti20]") > 5 * res.sigma("m_h[ti20]")  # the data say the peak is off (without it chi2 420)
+    assert res.chi2 < 1.3 * res.dof
+    # the defaults: the seed's accuracies, roll/yaw/pitch/distance shared, m_h/m_v per frame
+    spec = build_nuisance([_Block(_syst("4.0+3.0", "4.0+1.0")), _Block(_syst("4.0+3.0", "4.0+1.0"))], ["a", "b"],
+                          NuisanceOptions(nd=False, flux=False, nonlinearity=False, misalignment=True))
+    assert spec.names == ("roll", "yaw", "pitch", "m_h[a]", "m_h[b]", "m_v[a]", "m_v[b]", "distance")
+    assert spec.prior_sigma[0] == pytest.approx(math.radians(0.11)) and spec.prior_sigma[-1] == 0.005
+    assert spec.blocks_of(0) == (0, 1) and spec.blocks_of(3) == (0,)
+    with pytest.raises(FitInputError, match=r"cfg.toml: nuisance.footprint = true, but no frame with ND stacks has a beam"):
+        build_nuisance([_Block(_syst("4.0+3.0", "4.0+1.0"))], ["a"], NuisanceOptions(footprint=True), source="cfg.toml")
+    from brdfjax.fit.config import parse_fit_config
+
+    cfg = {"data": {"frames": ["x.exr"]}, "model": {"preset": "solar_cell"}}
+    with pytest.raises(ConfigError, match=r"c.toml: nuisance.alignment: .*unknown key 'rol_deg'; did you mean 'roll_deg'"):
+        parse_fit_config({**cfg, "nuisance": {"alignment": {"rol_deg": 0.1}}}, source="c.toml")
+    with pytest.raises(ConfigError, match=r"c.toml: nuisance.alignment: .*m_h_px = -1.0: an alignment accuracy must be"):
+        parse_fit_config({**cfg, "nuisance": {"alignment": {"m_h_px": -1.0}}}, source="c.toml")

@@ -322,7 +322,10 @@ def _with_nuisance(layout: Layout, spec: NuisanceSpec) -> Layout:
     for j, (name, s) in enumerate(zip(spec.names, spec.prior_sigma)):
         if name in taken:
             raise FitInputError(f"nuisance parameter '{name}' clashes with a parameter of the model")
-        extra.append(FreeEntry(name, name, "nuisance", spec.blocks_of(j), "identity", -math.inf, math.inf, "1", 0.0, float(s)))
+        g = spec.geometry_of(j)
+        base = f"nuisance:{g}" if g else name  # an instrument quantity: applied to the frames (Problem._block_values)
+        extra.append(FreeEntry(name, base, "nuisance", spec.blocks_of(j), "identity", -math.inf, math.inf,
+                               spec.stored_unit(j), 0.0, float(s)))
     return Layout(layout.free + tuple(extra), layout.fixed, layout.block_names, layout.order + tuple(spec.names))
 
 

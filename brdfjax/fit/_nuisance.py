@@ -39,6 +39,7 @@ marginal one (systematics included) from the full covariance.
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
@@ -72,6 +73,30 @@ __all__ = [
 #: ("standard"); "rectangular" takes it as the half-width of a uniform distribution (GUM: tol / sqrt 3).
 ND_TOLERANCE_KINDS = ("standard", "rectangular")
 LN10 = math.log(10.0)
+
+#: The footprint's 1/e^2 width is known to about 4 %: the seed's 25 px focus (§3.3) against the 24 px that the
+#: beam-signature peak of 3.82e6 sr^-1 implies (§3.8).
+FOOTPRINT_REL_SIGMA = 0.04
+#: ``[nuisance.alignment]`` key -> (Detector field, factor to stored units).  Misalignment of Eq 105.
+ALIGNMENT_KEYS: dict[str, tuple[str, float]] = {
+    "roll_deg": ("roll", math.pi / 180),
+    "yaw_deg": ("yaw", math.pi / 180),
+    "pitch_deg": ("pitch", math.pi / 180),
+    "m_h_px": ("m_h", 1.0),
+    "m_v_px": ("m_v", 1.0),
+    "distance_m": ("distance", 1.0),
+}
+#: The seed's alignment accuracy: roll, yaw and pitch left after one alignment iteration (§3.4: 0.11, 0.062,
+#: 0.025 deg); the peak offsets read from the peak pixel, to one pixel, per measurement (§4.4); the
+#: sample-to-array distance to 5 mm (§4.4, Delta R).
+SEED_ALIGNMENT: dict[str, float] = {
+    "roll_deg": 0.11, "yaw_deg": 0.062, "pitch_deg": 0.025, "m_h_px": 1.0, "m_v_px": 1.0, "distance_m": 0.005,
+}
+#: Detector fields a misalignment nuisance parameter offsets, and whether it is per measurement (Eq 105: m_h, m_v
+#: "vary independently for every specific measurement", the mounting's rotation and distance do not).
+GEOMETRY_PER_FRAME = {"roll": False, "yaw": False, "pitch": False, "distance": False, "m_h": True, "m_v": True}
+GEOMETRY_UNITS = {"roll": "rad", "yaw": "rad", "pitch": "rad", "distance": "m", "m_h": "px", "m_v": "px",
+                  "footprint": "log-scale"}
 
 
 def default_nd_tolerances() -> dict[float, float]:
@@ -139,6 +164,14 @@ class NuisanceOptions(StrictModel):
     nonlinearity: bool = Field(True, description="the response curve's common level, shared by every frame")
     nd_tolerance: str = Field("standard", description=f"one of {', '.join(ND_TOLERANCE_KINDS)}")
     nd_tolerances: dict[str, float] = Field(default_factory=dict, description='"OD" = tolerance (+-OD, >= 0)')
+    footprint: bool = Field(False, description="the beam footprint's width as a nuisance parameter (log-scale)")
+    footprint_rel_sigma: float = Field(
+        FOOTPRINT_REL_SIGMA, ge=0, description="prior sigma of the footprint width, relative (seed §3.3/§3.8: 24-25 px)"
+    )
+    misalignment: bool = Field(False, description="the detector's misalignment (Eq 105) as nuisance parameters")
+    alignment: dict[str, float] = Field(
+        default_factory=dict, description="alignment accuracies replacing the seed's: " + ", ".join(ALIGNMENT_KEYS)
+    )
     # the calibration's table (a manifest's [calibration.nd_tolerances] over the seed's), set by with_calibration
     _calibration: dict[float, float] | None = PrivateAttr(default=None)
 
@@ -167,6 +200,23 @@ class NuisanceOptions(StrictModel):
                 raise ValueError(f'"{k}" = {tol!r}: an OD tolerance must be a finite number >= 0')
         return v
 
+    @field_validator("alignment")
+    @classmethod
+    def _alignment(cls, v: dict[str, float]) -> dict[str, float]:
+        for k, a in v.items():
+            if k not in ALIGNMENT_KEYS:
+                close = difflib.get_close_matches(k, ALIGNMENT_KEYS, n=1)
+                hint = f"; did you mean '{close[0]}'?" if close else ""
+                raise ValueError(f"unknown key '{k}'{hint} (known: {', '.join(ALIGNMENT_KEYS)})")
+            if not (math.isfinite(a) and a >= 0):
+                raise ValueError(f"{k} = {a!r}: an alignment accuracy must be a finite number >= 0 (0: not a parameter)")
+        return v
+
+    def alignment_sigmas(self) -> dict[str, float]:
+        """Alignment accuracy per detector field, stored units (rad, px, m): the seed's, replaced by ``alignment``."""
+        acc = {**SEED_ALIGNMENT, **self.alignment}
+        return {ALIGNMENT_KEYS[k][0]: float(a) * ALIGNMENT_KEYS[k][1] for k, a in acc.items()}
+
     def tolerance_table(self, base: Mapping[float, float] | None = None) -> dict[float, float]:
         base = self._calibration if base is None else base
         table = default_nd_tolerances() if base is None else {round(float(k), 6): float(t) for k, t in base.items()}
@@ -183,20 +233,41 @@ class NuisanceSpec:
     prior_sigma: np.ndarray  # (q,) in the parameter's unit (OD for nd, log-scale otherwise)
     design: np.ndarray  # (n_blocks, q): d log f / d parameter
     notes: tuple[str, ...]
+    # per parameter: the instrument quantity it offsets ("" for the log-scale ones above; "footprint" or a
+    # Detector field), and (n_blocks, q) the blocks it acts on through that quantity
+    geometry: tuple[str, ...] = ()
+    acts_on: np.ndarray | None = None
 
     @property
     def size(self) -> int:
         return len(self.names)
 
+    def geometry_of(self, j: int) -> str:
+        return self.geometry[j] if self.geometry else ""
+
     def blocks_of(self, j: int) -> tuple[int, ...]:
-        return tuple(int(k) for k in np.flatnonzero(self.design[:, j] != 0))
+        on = self.design[:, j] != 0
+        if self.acts_on is not None:
+            on = on | self.acts_on[:, j]
+        return tuple(int(k) for k in np.flatnonzero(on))
+
+    def unit_of(self, j: int) -> str:
+        g = self.geometry_of(j)
+        return GEOMETRY_UNITS[g] if g else ("OD" if self.kinds[j] == "nd" else "log-scale")
+
+    def stored_unit(self, j: int) -> str:
+        """The layout unit (radians are reported in degrees); "1" for the dimensionless ones."""
+        u = self.unit_of(j)
+        return u if u in ("rad", "m", "px") else "1"
 
     def describe(self) -> dict[str, Any]:
-        return {
-            n: {"kind": k, "prior": "normal", "prior_mu": 0.0, "prior_sigma": float(s), "note": note,
-                "unit": "OD" if k == "nd" else "log-scale"}
-            for n, k, s, note in zip(self.names, self.kinds, self.prior_sigma, self.notes)
-        }
+        out = {}
+        for j, (n, k, s, note) in enumerate(zip(self.names, self.kinds, self.prior_sigma, self.notes)):
+            u = self.unit_of(j)
+            f = 180 / math.pi if u == "rad" else 1.0
+            out[n] = {"kind": k, "prior": "normal", "prior_mu": 0.0, "prior_sigma": float(s) * f, "note": note,
+                      "unit": "deg" if u == "rad" else u}
+        return out
 
 
 def _filters(spec: str) -> list[tuple[float, int]]:
@@ -301,9 +372,45 @@ def build_nuisance(
             kinds.append("nonlinearity")
             sig.append(level)
             notes.append("common level of the camera's response curve left after the reduction (§4.2)")
+    geometry = [""] * len(cols)
+    acts: list[np.ndarray] = [np.zeros(n_blocks, bool) for _ in cols]
+    frames = [k for k, s in enumerate(systs) if s is not None]
+    if options.footprint:
+        with_fp = [k for k in frames if getattr(blocks[k], "footprint", None) is not None]
+        if not with_fp:
+            raise FitInputError(
+                f"{source}: nuisance.footprint = true, but no frame with ND stacks has a beam footprint (data."
+                "footprint_w_px, or the frame's footprint_w_px attribute); give the footprint or remove the key"
+            )
+        if options.footprint_rel_sigma > 0:
+            on = np.zeros(n_blocks, bool)
+            on[with_fp] = True
+            cols.append(np.zeros(n_blocks))
+            acts.append(on)
+            geometry.append("footprint")
+            out_names.append("footprint")
+            kinds.append("footprint")
+            sig.append(options.footprint_rel_sigma)
+            notes.append("the beam footprint's 1/e^2 width, log-scale (w = w0 exp(s); seed §3.3, §3.8)")
+    if options.misalignment:
+        for field, sigma in options.alignment_sigmas().items():
+            if sigma <= 0:
+                continue
+            groups = [[k] for k in frames] if GEOMETRY_PER_FRAME[field] else [frames]
+            for g in groups:
+                on = np.zeros(n_blocks, bool)
+                on[g] = True
+                cols.append(np.zeros(n_blocks))
+                acts.append(on)
+                geometry.append(field)
+                out_names.append(f"{field}[{names[g[0]]}]" if GEOMETRY_PER_FRAME[field] else field)
+                kinds.append("misalignment")
+                sig.append(sigma)
+                notes.append(f"detector misalignment: offset of {field} from nominal (Eq 105; seed §3.4, §4.4)")
     if not cols:
         return None
-    return NuisanceSpec(tuple(out_names), tuple(kinds), np.array(sig, np.float64), np.stack(cols, axis=1), tuple(notes))
+    return NuisanceSpec(tuple(out_names), tuple(kinds), np.array(sig, np.float64), np.stack(cols, axis=1), tuple(notes),
+                        tuple(geometry), np.stack(acts, axis=1))
 
 
 class NuisanceTerms(eqx.Module):

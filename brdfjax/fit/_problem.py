@@ -69,6 +69,39 @@ def _apply(template: AbstractTerm, frame: Frame | None, model_values: Values, fr
     return model, frame
 
 
+#: Detector fields a nuisance parameter may offset (brdfjax.fit._nuisance: misalignment, Eq 105).
+_DETECTOR_FIELDS = ("roll", "yaw", "pitch", "m_h", "m_v", "distance")
+
+
+def _with_instrument(block: "FrameBlock | TableBlock", fv: Values) -> "FrameBlock | TableBlock":
+    """The block with the instrument's nuisance offsets of ``fv`` applied: detector fields offset from nominal,
+    the footprint's width scaled by ``exp(s)`` (``K -> K^(exp(-2 s))``, renormalised: a Gaussian's width)."""
+    if not isinstance(block, FrameBlock):
+        return block
+    fields = [f for f in _DETECTOR_FIELDS if f in fv]
+    if fields:
+        det = block.detector
+        det = eqx.tree_at(lambda d: tuple(getattr(d, f) for f in fields), det,
+                          tuple(getattr(det, f) + fv[f].astype(jnp.result_type(getattr(det, f))) for f in fields))
+        block = eqx.tree_at(lambda b: b.detector, block, det)
+    if "footprint" in fv and block.kernel is not None:
+        block = eqx.tree_at(lambda b: b.kernel, block, scale_footprint(block.kernel, fv["footprint"]))
+    return block
+
+
+def scale_footprint(kernel: Array, s: Array) -> Array:
+    """A Gaussian footprint kernel of width ``w`` -> the one of width ``w exp(s)``: ``K^(exp(-2 s))``, renormalised.
+
+    Exact for a sampled Gaussian; for the pixel-integrated one of Eq 73 it
+    scales the pixel's share of the variance too (1/12 px^2 against
+    ``w^2 / 4``: 0.1 % of a 25 px footprint).
+    """
+    k = jnp.asarray(kernel)
+    power = jnp.exp(-2.0 * s).astype(k.dtype)
+    scaled = jnp.where(k > 0, jnp.exp(jnp.log(jnp.where(k > 0, k, 1.0)) * power), 0.0)
+    return scaled / jnp.sum(scaled)
+
+
 class FrameBlock(eqx.Module):
     """One detector frame: the usable pixels (or the whole grid when a footprint is convolved)."""
 
@@ -148,6 +181,7 @@ class FrameStack(eqx.Module):
 
     def residuals(self, model_values: Values, frame_values: Values, soften: Array) -> Array:
         def one(block, mv, fv):
+            block = _with_instrument(block, fv)
             model, frame = _apply(block.template, block.frame, mv, fv)
             return block.residuals(model, frame, soften)
 
@@ -253,14 +287,24 @@ class Problem(eqx.Module):
         mv: Values = {}
         fv: Values = {}
         for i, (base, kind, blocks) in enumerate(self.targets):
-            if k in blocks and kind != "nuisance":
-                (mv if kind == "model" else fv)[base] = x[i]
+            if k not in blocks:
+                continue
+            if kind == "nuisance":
+                # an instrument nuisance parameter (footprint, misalignment) goes with the frame's values
+                # under its quantity ("nuisance:<field>"); the log-scale ones act in NuisanceTerms
+                if base.startswith("nuisance:"):
+                    g = base.split(":", 1)[1]
+                    fv[g] = fv[g] + x[i] if g in fv else x[i]
+                continue
+            (mv if kind == "model" else fv)[base] = x[i]
         return mv, fv
 
     def _stacked_values(self, x: Array) -> tuple[Values, Values]:
         per = [self._block_values(x, k) for k in range(self.n_blocks)]
         mv = {name: jnp.stack([p[0][name] for p in per]) for name in per[0][0]}
-        fv = {name: jnp.stack([p[1][name] for p in per]) for name in per[0][1]}
+        # an instrument offset that acts on some frames only is 0 on the others
+        names = list(dict.fromkeys(n for p in per for n in p[1]))
+        fv = {name: jnp.stack([jnp.asarray(p[1].get(name, 0.0), x.dtype) for p in per]) for name in names}
         return mv, fv
 
     def block_inputs(self, v: Array) -> list[tuple[AbstractTerm, Frame | None]]:
@@ -291,6 +335,7 @@ class Problem(eqx.Module):
             out = []
             for k, block in enumerate(self.blocks):
                 mv, fv = self._block_values(x, k)
+                block = _with_instrument(block, fv)
                 model, frame = _apply(block.template, block.frame, mv, fv)
                 out.append(block.residuals(model, frame, self.soften))
             r = jnp.concatenate(out)
