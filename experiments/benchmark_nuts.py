@@ -2,15 +2,20 @@
 
 Loads a sample config (default: the 12-parameter two-angle solar-cell posterior
 with nuisance parameters, ``configs/sample_synthetic_solar_cell_full.toml``),
-generates and reduces its synthetic data, fits once, then samples the same
-log-posterior with emcee (``--emcee-steps`` x the config's walkers) and with
-NUTS (``--nuts-steps`` per chain after ``--warmup``), and reports per sampler
-the wall time (total, and the sampling alone), the smallest ESS over the
-parameters (emcee: walkers x kept / tau; NUTS: blackjax's ESS across
-chains), ESS per second, R-hat (NUTS) and the acceptance.  Written to
-``OUT/benchmark.json``.
+generates and reduces its synthetic data, fits once (or reads ``--fit-result``;
+the fit is written to ``OUT/fit_result.json`` for the next run), then samples
+the same log-posterior with emcee (the config's walkers) and with NUTS
+(``--chains`` chains after ``--warmup`` adaptation steps), each for the same
+wall-clock budget ``--budget-s`` (the chain is extended piece by piece with
+``resume`` until the budget is spent, or until ``--emcee-steps`` /
+``--nuts-steps``), and reports per sampler the wall time (total, and the
+sampling alone), the steps drawn, the largest tau, the smallest ESS over the
+parameters (emcee: walkers x kept / tau; NUTS: blackjax's ESS across chains),
+ESS per second, R-hat and divergences (NUTS) and the acceptance.  A chain
+shorter than 50 tau has an unreliable ESS: ``converged`` and
+``chain_over_tau`` say so.  Written to ``OUT/benchmark.json`` after each sampler.
 
-    python3 experiments/benchmark_nuts.py --out runs/bench_nuts [--config CFG] [--emcee-steps 2000] [--nuts-steps 500]
+    python3 experiments/benchmark_nuts.py --out runs/bench_nuts [--budget-s 420] [--fit-result FIT.json]
 """
 
 from __future__ import annotations
@@ -36,15 +41,44 @@ from brdfjax.sample.cli import SampleSection, priors_from_config  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _record(s: dict, wall: float, sampling: float) -> dict:
+    ess = np.array([p["ess"] if p["ess"] is not None else np.nan for p in s["parameters"].values()], float)
+    names = list(s["parameters"])
+    ok = np.any(np.isfinite(ess))
+    worst = int(np.nanargmin(ess)) if ok else 0
+    kept = s["n_steps"] - s["burn"]
+    return {
+        "wall_s": wall,
+        "sampling_s": sampling,
+        "n_steps": s["n_steps"],
+        "n_walkers_or_chains": s["n_walkers"],
+        "min_ess": float(np.nanmin(ess)) if ok else None,
+        "min_ess_parameter": names[worst],
+        "ess_per_s_total": float(np.nanmin(ess) / wall) if ok else None,
+        "ess_per_s_sampling": float(np.nanmin(ess) / sampling) if ok and sampling > 0 else None,
+        "tau_max": s["tau_max"],
+        "chain_over_tau": None if not s["tau_max"] else kept / s["tau_max"],
+        "converged": s["converged"],
+        "acceptance_mean": s["acceptance_fraction_mean"],
+        "warnings": s["warnings"],
+        "nuts": s.get("nuts"),
+    }
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="runs/bench_nuts")
     ap.add_argument("--config", default=str(ROOT / "configs" / "sample_synthetic_solar_cell_full.toml"))
-    ap.add_argument("--emcee-steps", type=int, default=2000)
+    ap.add_argument("--fit-result", default=None, help="a fit result JSON of this problem (default: fit here)")
+    ap.add_argument("--budget-s", type=float, default=420.0, help="wall-clock budget per sampler, seconds")
+    ap.add_argument("--emcee-steps", type=int, default=100000)
+    ap.add_argument("--emcee-piece", type=int, default=100)
     ap.add_argument("--walkers", type=int, default=None)
-    ap.add_argument("--nuts-steps", type=int, default=500)
-    ap.add_argument("--warmup", type=int, default=300)
+    ap.add_argument("--nuts-steps", type=int, default=100000)
+    ap.add_argument("--nuts-piece", type=int, default=50)
+    ap.add_argument("--warmup", type=int, default=200)
     ap.add_argument("--chains", type=int, default=4)
+    ap.add_argument("--only", choices=("emcee", "nuts"), default=None)
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -53,46 +87,50 @@ def main(argv=None) -> int:
     job = build_fit_job(cfg, work_dir=out)
     print("\n".join(job.notes), file=sys.stderr)
     t0 = time.perf_counter()
-    res = job.run()
+    if args.fit_result:
+        start = json.loads(Path(args.fit_result).read_text())
+        n_free = sum(1 for p in start["parameters"].values() if p.get("free"))
+    else:
+        res = job.run()
+        print(res.summary(), file=sys.stderr)
+        start = json.loads(res.to_json())
+        write_json_atomic(out / "fit_result.json", start)
+        n_free = len(res.free_names)
     t_fit = time.perf_counter() - t0
-    print(res.summary(), file=sys.stderr)
     priors = priors_from_config(str(cfg.source), sec, job.model)
-    report = {"config": args.config, "fit_s": t_fit, "n_free": len(res.free_names), "loadavg_start": os.getloadavg()}
-    common = dict(priors=priors, start=res, fit_kwargs=job.fit_kwargs, figures=False, seed=1, predictive_draws=0)
-    for name, kw in (
-        ("emcee", dict(sampler="emcee", n_steps=args.emcee_steps, n_walkers=args.walkers or sec.n_walkers)),
-        ("nuts", dict(sampler="nuts", n_steps=args.nuts_steps, n_chains=args.chains, n_warmup=args.warmup)),
-    ):
+    report = {"config": args.config, "fit_s": t_fit, "n_free": n_free, "budget_s_per_sampler": args.budget_s,
+              "loadavg_start": os.getloadavg()}
+    common = dict(priors=priors, start=start, fit_kwargs=job.fit_kwargs, figures=False, seed=1, predictive_draws=0)
+    runs = (
+        ("emcee", dict(sampler="emcee", n_walkers=args.walkers or sec.n_walkers), args.emcee_steps, args.emcee_piece),
+        ("nuts", dict(sampler="nuts", n_chains=args.chains, n_warmup=args.warmup), args.nuts_steps, args.nuts_piece),
+    )
+    for name, kw, max_steps, piece in runs:
+        if args.only and name != args.only:
+            continue
         d = out / name
         t0 = time.perf_counter()
-        r = sample(job.model, job.blocks, job.params, out_dir=d, resume=(d / "chain.h5").exists(), **common, **kw)
-        wall = time.perf_counter() - t0
-        s = r.summary
-        ess = np.array([p["ess"] if p["ess"] is not None else np.nan for p in s["parameters"].values()], float)
-        worst = int(np.nanargmin(ess)) if np.any(np.isfinite(ess)) else 0
-        names = list(s["parameters"])
-        report[name] = {
-            "wall_s": wall,
-            "sampling_s": s["run_wall_s"],
-            "n_steps": s["n_steps"],
-            "n_walkers_or_chains": s["n_walkers"],
-            "min_ess": float(np.nanmin(ess)) if np.any(np.isfinite(ess)) else None,
-            "min_ess_parameter": names[worst],
-            "ess_per_s_total": float(np.nanmin(ess) / wall) if np.any(np.isfinite(ess)) else None,
-            "ess_per_s_sampling": float(np.nanmin(ess) / s["run_wall_s"]) if np.any(np.isfinite(ess)) else None,
-            "tau_max": s["tau_max"],
-            "converged": s["converged"],
-            "acceptance_mean": s["acceptance_fraction_mean"],
-            "nuts": s.get("nuts"),
-        }
-        print(f"{name}: {json.dumps(report[name], default=str)[:600]}", file=sys.stderr, flush=True)
+        sampling = 0.0
+        n = piece
+        while True:
+            r = sample(job.model, job.blocks, job.params, out_dir=d, resume=(d / "chain.h5").exists(), n_steps=n,
+                       **common, **kw)
+            sampling += r.summary["run_wall_s"]
+            wall = time.perf_counter() - t0
+            print(f"{name}: {n} steps, {wall:.0f} s, tau_max {r.summary['tau_max']}", file=sys.stderr, flush=True)
+            if wall > args.budget_s or n >= max_steps:
+                break
+            n = min(max_steps, n + piece)
+        report[name] = _record(r.summary, wall, sampling)
+        print(f"{name}: {json.dumps(report[name], default=str)[:800]}", file=sys.stderr, flush=True)
         report["loadavg_now"] = os.getloadavg()
-        write_json_atomic(out / "benchmark.json", json.loads(json.dumps(report, default=str)))  # what is measured so far survives a kill
+        write_json_atomic(out / "benchmark.json", json.loads(json.dumps(report, default=str)))  # survives a kill
     report["loadavg_end"] = os.getloadavg()
-    e, n = report["emcee"]["ess_per_s_total"], report["nuts"]["ess_per_s_total"]
-    report["nuts_over_emcee_ess_per_s"] = None if not (e and n) else n / e
+    e = (report.get("emcee") or {}).get("ess_per_s_total")
+    n_ = (report.get("nuts") or {}).get("ess_per_s_total")
+    report["nuts_over_emcee_ess_per_s"] = None if not (e and n_) else n_ / e
     write_json_atomic(out / "benchmark.json", json.loads(json.dumps(report, default=str)))
-    print(json.dumps({k: report[k] for k in ("nuts_over_emcee_ess_per_s", "fit_s", "n_free")}, default=str))
+    print(json.dumps({k: report.get(k) for k in ("nuts_over_emcee_ess_per_s", "fit_s", "n_free")}, default=str))
     return 0
 
 

@@ -21,8 +21,21 @@ configs unless said otherwise):
     Beckmann or Hyper-Cauchy halo, the better kept), Smith G2, the better
     normalisation of (b), + Lambertian; ``multi_lobe_no_shadowing``: the same
     model refitted with G = 1 (the shadowing before/after per angle);
+(c') ``three_lobes``: spike + mid + halo sharing the index (the spike of (c)'s
+    family, a Hyper-Cauchy mid lobe and a Hyper-Cauchy halo, free tails), Smith
+    G2, (c)'s normalisation, + Lambertian, started from (c) with two starts
+    of the mid lobe's width (the geometric mean of the spike's and the halo's,
+    and 4x the spike's; the better kept); ``three_lobes_no_shadowing``: the
+    same refitted with G = 1;
 (d) ``abg``: Harvey-Shack ABg + Lambertian; ``phong``: normalised Phong lobe
-    + Lambertian (the lumos-sat PHONG family); both empirical.
+    + Lambertian (the lumos-sat PHONG family); ``binomial``: Greynolds'
+    binomial (lumos-sat's BINOMIAL; n = 2 powers of V, m = 3 of D, one
+    Gaussian term, l1 = 1) + Lambertian, started at ABg's fit (with
+    ``c0_0 = -g``, ``d = B^(-2/g)`` it is ABg's form); all three empirical.
+
+``--add`` runs only (c') and ``binomial``, from the starts stored in the
+dataset's results json (the other fits are kept as they are there), and
+merges them in.
 
 Prints a table of log-RMS per incident angle and overall per model, writes
 ``experiments/results/real_data_fits_<dataset>.json`` (atomically) and one figure per
@@ -33,6 +46,7 @@ Run::
 
     python3 experiments/real_data_fits.py                 # all three datasets
     python3 experiments/real_data_fits.py --datasets merl_aluminium
+    python3 experiments/real_data_fits.py --add --datasets merl_aluminium   # (c') and binomial only, merged
 """
 
 from __future__ import annotations
@@ -51,7 +65,7 @@ import numpy as np  # noqa: E402
 import brdfjax as bj  # noqa: E402
 from brdfjax.fit import fit, read_cornell_brdf, read_merl_inplane  # noqa: E402
 from brdfjax.io import write_json_atomic  # noqa: E402
-from brdfjax.terms import ABg, Lobe, MultiLobeSpecular, Phong  # noqa: E402
+from brdfjax.terms import ABg, Binomial, Lobe, MultiLobeSpecular, Phong  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT / "tests" / "data" / "real"
@@ -65,7 +79,10 @@ DATASETS = {
 WIDTH = {"ggx": "alpha", "beckmann": "m"}
 DIST = {"ggx": bj.GGX, "beckmann": bj.Beckmann}
 #: Physically based model names (the rest are empirical).
-PHYSICAL = ("today", "smith_seed", "smith_ts", "tail_hc", "multi_lobe", "multi_lobe_no_shadowing")
+PHYSICAL = ("today", "smith_seed", "smith_ts", "tail_hc", "multi_lobe", "multi_lobe_no_shadowing", "three_lobes",
+            "three_lobes_no_shadowing")
+EMPIRICAL = ("abg", "phong", "binomial")
+TAIL = {"value": 2.5, "lower": 1.5, "upper": 30.0}  # Smith's Lambda is finite for a Hyper-Cauchy gamma > 1.5
 
 
 def read(name: str):
@@ -97,6 +114,63 @@ def two_lobes(d1: str, w1: float, r1: float, d2: str, w2: float, r2: float, rho_
     return bj.Model(terms={"spec": spec, "diffuse": bj.Lambertian(rho_d)})
 
 
+def two_lobe_model(name: str, variant: str, params: dict, normalisation: str) -> bj.Model:
+    """(c)'s fitted two-lobe model rebuilt from its free parameters (the index at the dataset's prior)."""
+    _, _, dname, index = DATASETS[name]
+    halo = bj.HyperCauchy(0.3, 3.0) if variant == "multi_lobe_hc" else bj.Beckmann(0.3)
+    lobes = {"spike": Lobe(DIST[dname](0.01), 0.1), "halo": Lobe(halo, 0.1)}
+    model = bj.Model(terms={"spec": MultiLobeSpecular(lobes, shadowing="smith", normalisation=normalisation, **index),
+                            "diffuse": bj.Lambertian(0.01)})
+    return model.with_params(params)
+
+
+def three_lobe_runs(run, name: str, two: bj.Model) -> None:
+    """(c'): spike + Hyper-Cauchy mid + Hyper-Cauchy halo from (c)'s fit, two starts of the mid width; G = 1 refit."""
+    _, _, dname, _ = DATASETS[name]
+    wname = WIDTH[dname]
+    spec2 = two.terms["spec"]
+    spike, halo = spec2.lobes["spike"], spec2.lobes["halo"]
+    ws, rs = float(getattr(spike.distribution, wname)), float(spike.rho_s)
+    if isinstance(halo.distribution, bj.HyperCauchy):
+        wh, gh = float(halo.distribution.sigma), float(halo.distribution.gamma)
+    else:
+        wh, gh = float(halo.distribution.m), 3.6
+    rh = float(halo.rho_s)
+    rho_d = max(float(two.terms["diffuse"].rho_d), 1e-4)
+    best = None
+    for label, wm in (("three_lobes_geo", (ws * wh) ** 0.5), ("three_lobes_4x", 4.0 * ws)):
+        lobes = {"spike": Lobe(DIST[dname](ws), 0.85 * rs), "mid": Lobe(bj.HyperCauchy(wm, 2.0), 0.2 * rs),
+                 "halo": Lobe(bj.HyperCauchy(wh, gh), rh)}
+        model = bj.Model(terms={"spec": MultiLobeSpecular(lobes, shadowing="smith", normalisation=spec2.normalisation,
+                                                          n=spec2.n, k=spec2.k),
+                                "diffuse": bj.Lambertian(rho_d)})
+        spec = {f"spec.spike.{wname}": "free", "spec.spike.rho_s": "free", "spec.mid.sigma": "free",
+                "spec.mid.gamma": dict(TAIL, value=2.0), "spec.mid.rho_s": "free", "spec.halo.sigma": "free",
+                "spec.halo.gamma": dict(TAIL, value=gh), "spec.halo.rho_s": "free", "diffuse.rho_d": "free"}
+        run(label, model, spec)
+        if best is None or run.out[label]["log_rms"] < run.out[best]["log_rms"]:
+            best = label
+    run.out["three_lobes"] = dict(run.out[best], variant=best)
+    run.models["three_lobes"] = run.models[best]
+    m = run.models["three_lobes"]
+    bare = dataclasses.replace(m.terms["spec"], shadowing="none")
+    spec = {k: "free" for k in m.params() if k.startswith("spec.") and not k.endswith((".n", ".k"))}
+    spec.update({k: dict(TAIL, value=float(m.params()[k])) for k in spec if k.endswith(".gamma")})
+    spec["diffuse.rho_d"] = "free"
+    run("three_lobes_no_shadowing", bj.Model(terms={"spec": bare, "diffuse": m.terms["diffuse"]}), spec)
+
+
+def binomial_run(run, abg: dict, rho_d: float) -> None:
+    """Greynolds' binomial (n = 2, m = 3, one Gaussian term, l1 = 1) + Lambertian, started at ABg's fit."""
+    A, B, g = abg["spec.A"], abg["spec.B"], abg["spec.g"]
+    Bm = np.array([[np.log10(A / B), 0.0, 0.0], [0.0, 0.0, 0.0]])
+    Cm = np.array([[-g], [0.0]])
+    model = bj.Model(terms={"spec": Binomial(Bm, Cm, B ** (-2.0 / g), l1=1), "diffuse": bj.Lambertian(max(rho_d, 1e-4))})
+    spec = {f"spec.{k}": "free" for k in model.terms["spec"].coefficients}
+    spec.update({"spec.d": "free", "diffuse.rho_d": "free"})
+    run("binomial", model, spec)
+
+
 def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
     """All model fits of one dataset: ``({model: summary}, {model: fitted Model})``."""
     table = read(name)
@@ -104,17 +178,7 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
     wname = WIDTH[dname]
     out, models = {}, {}
 
-    def run(label, model, spec, **kw):
-        t0 = time.perf_counter()
-        res = fit(model, table, spec, **kw)
-        out[label] = _summary(res, t0)
-        models[label] = res.models[0]
-        if verbose:
-            s = out[label]
-            per = " ".join(f"{v:.2f}" for v in s["per_angle"].values())
-            print(f"  {label:14s} log-RMS {s['log_rms']:.3f} | {per} | {s['wall_s']:.0f} s {'' if s['converged'] else '(not converged)'}",
-                  flush=True)
-        return res
+    run = Runner(table, out, models, verbose)
 
     # (a) today's model
     a = run("today", single_lobe(dname, 0.1, 0.5, 0.05, index),
@@ -167,7 +231,48 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
         {"spec.A": "free", "spec.B": "free", "spec.g": "free", "diffuse.rho_d": "free"})
     run("phong", bj.Model(terms={"spec": Phong(r0, 2.0 / wb**2), "diffuse": bj.Lambertian(d0)}),
         {"spec.rho": "free", "spec.k": "free", "diffuse.rho_d": "free"})
+    binomial_run(run, out["abg"]["parameters"], d0)
+    three_lobe_runs(run, name, models["multi_lobe"])
     return out, models
+
+
+def add_to_dataset(name: str, stored: dict, verbose: bool = True) -> tuple[dict, dict]:
+    """``--add``: (c') and ``binomial`` from the starts in ``stored`` (a results json); returns the new fits."""
+    table = read(name)
+    out, models = {}, {}
+    run = Runner(table, out, models, verbose)
+    fits = stored["fits"]
+    norm = "seed" if fits["smith_seed"]["log_rms"] <= fits["smith_ts"]["log_rms"] else "torrance_sparrow"
+    variant = fits["multi_lobe"]["variant"]
+    two = two_lobe_model(name, variant, fits[variant]["parameters"], norm)
+    binomial_run(run, fits["abg"]["parameters"], fits["today"]["parameters"]["diffuse.rho_d"])
+    three_lobe_runs(run, name, two)
+    models["multi_lobe"] = two
+    _, _, dname, index = DATASETS[name]
+    today = single_lobe(dname, 0.1, 0.5, 0.05, index)
+    models["today"] = today.with_params(fits["today"]["parameters"])
+    a = fits["abg"]["parameters"]
+    models["abg"] = bj.Model(terms={"spec": ABg(a["spec.A"], a["spec.B"], a["spec.g"]), "diffuse": bj.Lambertian(a["diffuse.rho_d"])})
+    return out, models
+
+
+class Runner:
+    """One fit of a dataset's table: its summary in ``out[label]``, the fitted model in ``models[label]``."""
+
+    def __init__(self, table, out: dict, models: dict, verbose: bool):
+        self.table, self.out, self.models, self.verbose = table, out, models, verbose
+
+    def __call__(self, label, model, spec, **kw):
+        t0 = time.perf_counter()
+        res = fit(model, self.table, spec, **kw)
+        self.out[label] = _summary(res, t0)
+        self.models[label] = res.models[0]
+        if self.verbose:
+            s = self.out[label]
+            per = " ".join(f"{v:.2f}" for v in s["per_angle"].values())
+            print(f"  {label:24s} log-RMS {s['log_rms']:.3f} | {per} | {s['wall_s']:.0f} s {'' if s['converged'] else '(not converged)'}",
+                  flush=True)
+        return res
 
 
 def figure(name: str, models: dict, path: Path) -> None:
@@ -188,7 +293,7 @@ def figure(name: str, models: dict, path: Path) -> None:
     ncol = 4
     nrow = int(np.ceil(len(angles) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 3.2 * nrow), squeeze=False)
-    shown = ("today", "tail_hc", "multi_lobe", "abg", "phong")
+    shown = ("today", "tail_hc", "multi_lobe", "three_lobes", "abg", "phong", "binomial")
     for ax, a in zip(axes.ravel(), angles):
         sel = plane & (np.round(np.degrees(ti), 4) == a) & (f > 0)
         order = np.argsort(signed[sel])
@@ -215,14 +320,28 @@ def main(argv=None) -> int:
                    help="folder of the results: real_data_fits_<dataset>.json per dataset")
     p.add_argument("--figures", type=Path, default=ROOT / "experiments" / "figures")
     p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--add", action="store_true", help="run only (c') and binomial from the stored results, merged in")
     args = p.parse_args(argv)
     for name in args.datasets:
         print(f"{name}: model, overall log-RMS | per incident angle | wall time", flush=True)
-        summary, models = fit_dataset(name)
+        stored_path = args.out / f"real_data_fits_{name}.json"
+        if args.add:
+            import json  # function-local: only --add reads the stored results
+
+            stored = json.loads(stored_path.read_text())
+            new, models = add_to_dataset(name, stored)
+            summary = {**stored["fits"], **new}
+            best_models = dict(stored.get("best_models", {}))
+        else:
+            summary, models = fit_dataset(name)
+            best_models = {}
         physical = min((k for k in summary if k in PHYSICAL), key=lambda k: summary[k]["log_rms"])
-        empirical = min(("abg", "phong"), key=lambda k: summary[k]["log_rms"])
+        empirical = min((k for k in EMPIRICAL if k in summary), key=lambda k: summary[k]["log_rms"])
+        for k in (physical, empirical):
+            if k in models:
+                best_models[k] = {p: float(v) for p, v in models[k].params().items()}
         results = {"dataset": name, "fits": summary, "best_physical": physical, "best_empirical": empirical,
-                   "best_models": {k: {p: float(v) for p, v in models[k].params().items()} for k in (physical, empirical)}}
+                   "best_models": {k: best_models[k] for k in (physical, empirical) if k in best_models}}
         print(f"  best physically based: {physical} ({summary[physical]['log_rms']:.3f}); "
               f"best empirical: {empirical} ({summary[empirical]['log_rms']:.3f})", flush=True)
         if not args.no_figures:

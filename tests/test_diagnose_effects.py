@@ -121,7 +121,8 @@ def test_null_signatures_low(null_ctx):
 
 
 #: Table effects whose synthetic round trip is not run here: the table scenario's glossy lobes (m 0.001-0.002,
-#: +-4 deg scans) show neither shadowing nor a halo; they are checked on the real tables (test_tables_diagnosis.py).
+#: +-4 deg scans) show neither shadowing nor a halo; their round trips run on wide_table_scenario
+#: (tests/test_tables_round_trip.py) and on the real tables (test_tables_diagnosis.py).
 NO_ROUND_TRIP = ("second_lobe", "shadowing")
 
 

@@ -52,6 +52,7 @@ from .generators import (
     reference_frames as reference_frames,
     synthesize as synthesize,
     table_scenario as table_scenario,
+    wide_table_scenario as wide_table_scenario,
 )
 from .instrument import (
     AngularSamplingEffect as AngularSamplingEffect,
@@ -87,6 +88,7 @@ __all__ = [
     "Scenario",
     "base_scenario",
     "table_scenario",
+    "wide_table_scenario",
     "inject",
     "synthesize",
     "GENERATORS",

@@ -67,7 +67,7 @@ from .model import (
 )
 from .terms import InstrumentResponse, Oriented, SpectralDiffraction
 
-__all__ = ["Scenario", "base_scenario", "table_scenario", "inject", "synthesize", "GENERATORS", "EXCLUSIVE",
+__all__ = ["Scenario", "base_scenario", "table_scenario", "wide_table_scenario", "inject", "synthesize", "GENERATORS", "EXCLUSIVE",
            "reference_frames", "REFERENCE_EFFECTS"]
 
 
@@ -168,6 +168,34 @@ def table_scenario(
         params={"center.m": Param(), "center.rho_s": Param(), "floor.rho_d": Param()},
         step=1, roi=None, noise_rel=noise_rel, floor=0.0, kind="table",
     )
+
+
+def wide_table_scenario(
+    rng: np.random.Generator,
+    *,
+    theta_i_deg: tuple[float, ...] = (30.0, 60.0, 75.0),
+    half_range_deg: float = 60.0,
+    step_deg: float = 2.0,
+    wavelength_nm: float = 632.8,
+    noise_rel: float = 0.03,
+    m_range: tuple[float, float] = (0.08, 0.12),
+) -> Scenario:
+    """Wide in-plane scans (a scatterometer's): a rough Beckmann lobe on a diffuse floor, out to grazing scatter.
+
+    m in ``m_range`` (default [0.08, 0.12]), rho_s in [0.3, 0.8], n = 1.5, rho_d in [0.005, 0.02]; samples every
+    ``step_deg`` within ``half_range_deg`` of the specular direction (0 < theta_s < 89 deg) at each
+    ``theta_i``.  What the table effects (``second_lobe``, ``shadowing``, ``distribution_shape``) change
+    shows here: the lobe's wings over decades and the grazing angles, which the glossy
+    :func:`table_scenario` does not reach.
+    """
+    m = float(rng.uniform(*m_range))
+    rho = float(rng.uniform(0.3, 0.8))
+    rd = float(rng.uniform(0.005, 0.02))
+    sc = table_scenario(rng, theta_i_deg=theta_i_deg, half_range_deg=half_range_deg, step_deg=step_deg,
+                        wavelength_nm=wavelength_nm, noise_rel=noise_rel)
+    model = Model(terms={"center": Specular(Beckmann(m), rho_s=rho, n=1.5), "floor": Lambertian(rd)})
+    return sc.replace(truth_model=model, base_model=model,
+                      truth={**sc.truth, "center.m": m, "center.rho_s": rho, "floor.rho_d": rd})
 
 
 # --- injection ----------------------------------------------------------------------------------
