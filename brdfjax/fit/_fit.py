@@ -146,31 +146,137 @@ def _dilate(mask: np.ndarray, r: int, c: int) -> np.ndarray:
     return sliding_window_view(m, 2 * c + 1, axis=1).any(-1)
 
 
-def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame, floor: float, use_footprint: bool):
+#: The scatter directions of a frame's evaluation points are computed once per problem (they depend on
+#: no fitted parameter when theta_i is fixed) up to this many points per frame (9 floats a point).
+DIRS_MAX_POINTS = 4_000_000
+
+
+def _fast_len(n: int) -> int:
+    """The smallest 2-3-5-smooth integer >= n (a fast FFT length)."""
+    m = max(int(n), 1)
+    while True:
+        k = m
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m += 1
+
+
+def _box_need(usable: np.ndarray, kshape: tuple[int, int]) -> tuple[int, int]:
+    """Rows and columns a circular convolution needs so that no wrap-around reaches a usable point."""
+    rows, cols = np.nonzero(usable)
+    return (int(rows.max() - rows.min() + kshape[0]), int(cols.max() - cols.min() + kshape[1]))
+
+
+def _box(usable: np.ndarray, reach: np.ndarray, k: np.ndarray, shape: tuple[int, int]) -> dict[str, Any]:
+    """The footprint on a ``shape`` FFT box whose origin is the usable points' corner less the kernel's half-size.
+
+    The model is zero outside the support (the usable points dilated by the kernel), so a circular
+    convolution of at least the usable span plus the kernel's size equals the zero-padded linear one at
+    every usable point.
+    """
+    r, c = k.shape[0] // 2, k.shape[1] // 2
+    ur, uc = np.nonzero(usable)
+    r0, c0 = int(ur.min()) - r, int(uc.min()) - c
+    nr, nc = shape
+    sr, sc = np.nonzero(reach)
+    kc = np.zeros(shape)
+    jj, ii = np.meshgrid(np.arange(k.shape[0]) - r, np.arange(k.shape[1]) - c, indexing="ij")
+    kc[jj % nr, ii % nc] = k
+    kf = np.fft.rfft2(kc)
+    return dict(
+        box_support=(sr - r0) * nc + (sc - c0),
+        box_points=(ur - r0) * nc + (uc - c0),
+        kernel_fft=np.stack([kf.real, kf.imag]),
+        box_shape=(int(nr), int(nc)),
+    )
+
+
+#: A kernel is taken as separable when its second singular value is below this fraction of the first.
+SEPARABLE_RTOL = 1e-12
+#: The direct separable convolution is used up to this many gathered points (index entries) per frame.
+SEPARABLE_MAX_ENTRIES = 50_000_000
+
+
+def _separable(usable: np.ndarray, reach: np.ndarray, k: np.ndarray) -> dict[str, Any] | None:
+    """The footprint as two one-dimensional passes at the points the usable ones need (None: not separable).
+
+    ``K = outer(kv, kh)`` to rounding (the Gaussian beam footprint is): the model convolved at a usable
+    point is ``sum_i kh[i] T[row, col - i + c]`` with ``T[row, col] = sum_j kv[j] f[row - j + r, col]``,
+    and ``T`` is needed only at the usable points dilated along the rows by ``c``.  Index -1 is a zero.
+    """
+    u, s, vt = np.linalg.svd(k)
+    if s.size < 2 or not s[1] <= SEPARABLE_RTOL * s[0]:
+        return None
+    kv, kh = u[:, 0] * np.sqrt(s[0]), vt[0] * np.sqrt(s[0])
+    if kv.sum() < 0:
+        kv, kh = -kv, -kh
+    r, c = k.shape[0] // 2, k.shape[1] // 2
+    shape = usable.shape
+    mid = _dilate(usable, 0, c)
+    if mid.sum() * k.shape[0] + usable.sum() * k.shape[1] > SEPARABLE_MAX_ENTRIES:
+        return None
+    support_of = np.full(shape[0] * shape[1] + 1, -1, np.int64)  # grid pixel -> support point (last: outside)
+    support_of[np.flatnonzero(reach.ravel())] = np.arange(int(reach.sum()))
+    mid_of = np.full(shape[0] * shape[1] + 1, -1, np.int64)
+    mid_of[np.flatnonzero(mid.ravel())] = np.arange(int(mid.sum()))
+    outside = shape[0] * shape[1]
+
+    def index(rows, cols, lookup):
+        ok = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+        return lookup[np.where(ok, rows * shape[1] + cols, outside)]
+
+    mr, mc = np.nonzero(mid)
+    sep_rows = index(mr[:, None] - np.arange(k.shape[0])[None, :] + r, mc[:, None], support_of)
+    ur, uc = np.nonzero(usable)
+    sep_cols = index(ur[:, None], uc[:, None] - np.arange(k.shape[1])[None, :] + c, mid_of)
+    return dict(sep_rows=sep_rows.astype(np.int32), sep_cols=sep_cols.astype(np.int32), kernel_v=kv, kernel_h=kh)
+
+
+def _directions(detector, theta_i: float, n_h: np.ndarray, n_v: np.ndarray) -> Directions:
+    d = detector.directions(jnp.asarray(n_h), jnp.asarray(n_v), jnp.asarray(np.float64(theta_i)))
+    return Directions(*(np.asarray(a).reshape(-1, 3) for a in (d.w_i, d.w_s, d.w_sum)))
+
+
+def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame, floor: float, use_footprint: bool,
+                 box_shape: tuple[int, int] | None = None, fixed_theta_i: bool = False):
     brdf = np.asarray(b.brdf, np.float64)
     sigma = np.broadcast_to(np.asarray(b.sigma_rel, np.float64), brdf.shape)
     data = brdf[usable]
     inv_sigma = 1.0 / sigma[usable]
     soft = float(np.median(data))
     detector = b.arm_detector()
+    theta_i = float(np.asarray(frame.theta_i))
     if b.footprint is not None and use_footprint:
         k = np.asarray(b.footprint, np.float64)
         n_h, n_v = np.asarray(b.grid.n_h, np.float64), np.asarray(b.grid.n_v, np.float64)
         reach = _dilate(usable, k.shape[0] // 2, k.shape[1] // 2)
-        support = {}
+        extra: dict[str, Any] = {}
         if reach.sum() < SUPPORT_FRACTION * reach.size:  # evaluate the model only where the convolution looks
             rows, cols = np.nonzero(reach)
-            support = dict(support_index=np.flatnonzero(reach.ravel()), support_h=n_h[cols], support_v=n_v[rows])
+            extra = dict(support_index=np.flatnonzero(reach.ravel()), support_h=n_h[cols], support_v=n_v[rows])
+            sep = _separable(usable, reach, k / k.sum())
+            if sep is not None:
+                extra.update(sep)
+            elif box_shape is not None:
+                extra.update(_box(usable, reach, k / k.sum(), box_shape))
+            if fixed_theta_i and rows.size <= DIRS_MAX_POINTS:
+                extra["dirs"] = _directions(detector, theta_i, n_h[cols], n_v[rows])
+        elif fixed_theta_i and reach.size <= DIRS_MAX_POINTS:
+            extra["dirs"] = _directions(detector, theta_i, n_h[None, :], n_v[:, None])
         return FrameBlock(
             template, frame, detector, n_h, n_v,
             data, inv_sigma, np.float64(floor), np.float64(soft), k / k.sum(), np.flatnonzero(usable.ravel()),
-            **support,
+            **extra,
         )
     rows, cols = np.nonzero(usable)
+    n_h, n_v = np.asarray(b.grid.n_h, np.float64)[cols], np.asarray(b.grid.n_v, np.float64)[rows]
+    dirs = _directions(detector, theta_i, n_h, n_v) if fixed_theta_i and rows.size <= DIRS_MAX_POINTS else None
     return FrameBlock(
-        template, frame, detector,
-        np.asarray(b.grid.n_h, np.float64)[cols], np.asarray(b.grid.n_v, np.float64)[rows],
-        data, inv_sigma, np.float64(floor), np.float64(soft),
+        template, frame, detector, n_h, n_v,
+        data, inv_sigma, np.float64(floor), np.float64(soft), dirs=dirs,
     )
 
 
@@ -253,12 +359,21 @@ def prepare(
         spec, model_values, model.parameter_units(), names, frame_values, auto, solver.box_bounds
     )
     built = []
+    # one FFT box for every frame with a footprint of one kernel shape (so that they stack)
+    needs: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for b, u in zip(blocks, usable):
+        if isinstance(b, FrameData) and b.footprint is not None and use_footprint:
+            kshape = tuple(np.shape(b.footprint))
+            needs.setdefault(kshape, []).append(_box_need(u, kshape))
+    boxes = {ks: (_fast_len(max(n[0] for n in v)), _fast_len(max(n[1] for n in v))) for ks, v in needs.items()}
     for i, (b, u) in enumerate(zip(blocks, usable)):
         template = template_for_block(model, layout, i)
         fl = _floor(b, u, floor)
         if isinstance(b, FrameData):
             frame = frame_for_block(Frame(b.theta_i, b.phi_ref, b.wavelength), layout, i)
-            built.append(_frame_block(b, u, template, frame, fl, use_footprint))
+            fixed = not any(e.base == "theta_i" and i in e.blocks for e in layout.free)
+            box = boxes.get(tuple(np.shape(b.footprint))) if b.footprint is not None else None
+            built.append(_frame_block(b, u, template, frame, fl, use_footprint, box, fixed))
         else:
             built.append(_table_block(b, u, template, fl))
     spec_n = _nuisance_spec(blocks, names, nuisance)

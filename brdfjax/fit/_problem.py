@@ -44,9 +44,10 @@ import numpy as np
 from jaxtyping import Array
 
 from ..detector import Detector
-from ..geometry import Directions
+from ..geometry import Directions, Rz
 from ..render import Frame, evaluate_pixels
 from ..terms import AbstractTerm, Model
+from ._jacobian import residuals_and_jacobian as structured_residuals_and_jacobian, supports as structured_supports
 from ._nuisance import NuisanceTerms
 from ._params import Layout, forward_by_id
 from ._residuals import convolve_same, log_model, robust_residuals_by_id
@@ -122,17 +123,76 @@ class FrameBlock(eqx.Module):
     support_index: Array | None = None  # (m,) indices in the raveled grid
     support_h: Array | None = None  # (m,) their pixel columns
     support_v: Array | None = None  # (m,) their pixel rows
+    # Parameter-independent work done once per problem (brdfjax.fit._jacobian):
+    # the scatter-frame directions at the evaluation points (the points, or the support with a
+    # footprint), when theta_i is not fitted; None: computed from the pixel indices on every call.
+    dirs: Directions | None = None
+    # With a support, the footprint as a circular convolution on a small FFT box (the usable points'
+    # span plus the kernel's, rounded up to a 2-3-5 size) instead of the whole grid zero-padded:
+    # flat indices of the support points and of the usable points in the box, and the rfft2 of the
+    # kernel centred at the box's origin (real and imaginary parts: every leaf stays real).
+    box_support: Array | None = None  # (m,)
+    box_points: Array | None = None  # (n,)
+    kernel_fft: Array | None = None  # (2, box rows, box cols // 2 + 1)
+    box_shape: tuple[int, int] | None = eqx.field(static=True, default=None)
+    # A separable kernel (K = outer(kernel_v, kernel_h), the Gaussian beam footprint) with a support:
+    # the convolution done directly, in two one-dimensional passes, only where the usable points need
+    # it.  sep_rows (q, kr): for each point of the first pass (the usable points dilated along the
+    # rows by the kernel's half-width), the support points it sums along its column (-1: none, zero);
+    # sep_cols (n, kc): for each usable point, the first-pass points it sums along its row.
+    sep_rows: Array | None = None
+    sep_cols: Array | None = None
+    kernel_v: Array | None = None  # (kr,)
+    kernel_h: Array | None = None  # (kc,)
 
-    def model_values(self, model: AbstractTerm, frame: Frame) -> Array:
+    def point_values(self, model: AbstractTerm, frame: Frame) -> Array:
+        """The model at the evaluation points: the usable points, or the support (or grid) with a footprint."""
+        if self.dirs is not None:
+            return model(self.dirs.rotated(Rz(-frame.phi_ref)), frame.wavelength)
         if self.kernel is None:
             return evaluate_pixels(model, frame, self.detector, self.n_h, self.n_v)
         if self.support_index is None:
-            image = evaluate_pixels(model, frame, self.detector, self.n_h[None, :], self.n_v[:, None])
+            return evaluate_pixels(model, frame, self.detector, self.n_h[None, :], self.n_v[:, None]).ravel()
+        return evaluate_pixels(model, frame, self.detector, self.support_h, self.support_v)
+
+    def convolve(self, values: Array) -> Array:
+        """Point values ``(m,)`` or ``(m, k)`` to the footprint-convolved model at the usable points, ``(n,)`` or ``(n, k)``.
+
+        Linear: the Jacobian's columns go through it together (the trailing axis).
+        """
+        if self.kernel is None:
+            return values
+        cols = values.reshape((values.shape[0], -1))  # (m, k)
+        if self.sep_rows is not None:
+            zero = jnp.zeros((1, cols.shape[1]), values.dtype)
+            ext = jnp.concatenate([cols, zero])  # index -1: outside the support
+            mid = sum(self.kernel_v[j] * ext[self.sep_rows[:, j]] for j in range(self.sep_rows.shape[1]))
+            ext = jnp.concatenate([mid, zero])
+            out = sum(self.kernel_h[i] * ext[self.sep_cols[:, i]] for i in range(self.sep_cols.shape[1]))
+        elif self.box_shape is not None:
+            nr, nc = self.box_shape
+            kf = jax.lax.complex(self.kernel_fft[0], self.kernel_fft[1])
+
+            def one(col):
+                image = jnp.zeros(nr * nc, values.dtype).at[self.box_support].set(col).reshape((nr, nc))
+                return jnp.fft.irfft2(jnp.fft.rfft2(image) * kf, s=(nr, nc)).ravel()[self.box_points]
+
+            out = jax.lax.map(one, cols.T).T  # one column at a time: faster than a batched FFT on CPU
         else:
-            values = evaluate_pixels(model, frame, self.detector, self.support_h, self.support_v)
             shape = (self.n_v.shape[0], self.n_h.shape[0])
-            image = jnp.zeros(shape[0] * shape[1], values.dtype).at[self.support_index].set(values).reshape(shape)
-        return convolve_same(image, self.kernel).ravel()[self.flat_index]
+
+            def one(col):
+                if self.support_index is None:
+                    image = col.reshape(shape)
+                else:
+                    image = jnp.zeros(shape[0] * shape[1], values.dtype).at[self.support_index].set(col).reshape(shape)
+                return convolve_same(image, self.kernel).ravel()[self.flat_index]
+
+            out = jax.lax.map(one, cols.T).T
+        return out.reshape(out.shape[:1] + values.shape[1:]).astype(values.dtype)
+
+    def model_values(self, model: AbstractTerm, frame: Frame) -> Array:
+        return self.convolve(self.point_values(model, frame))
 
     def residuals(self, model: AbstractTerm, frame: Frame, soften: Array) -> Array:
         return _log_residuals(self.model_values(model, frame), self, soften)
@@ -165,6 +225,12 @@ class TableBlock(eqx.Module):
     @property
     def frame(self) -> None:
         return None
+
+    def point_values(self, model: AbstractTerm, frame: None) -> Array:
+        return model(self.dirs, self.wavelength)
+
+    def convolve(self, values: Array) -> Array:
+        return values
 
     def model_values(self, model: AbstractTerm, frame: None) -> Array:
         return model(self.dirs, self.wavelength)
@@ -204,29 +270,45 @@ def stack_frames(blocks: list[FrameBlock]) -> FrameStack:
     n_pad = _pad_to(max(n))
     with_support = blocks[0].support_index is not None
     m_pad = _pad_to(max(int(b.support_index.shape[0]) for b in blocks)) if with_support else 0
+    separable = blocks[0].sep_rows is not None
+    q_pad = _pad_to(max(int(b.sep_rows.shape[0]) for b in blocks)) if separable else 0
 
     def ext(a, k, fill):
         a = np.asarray(a)
         return np.concatenate([a, np.full(k - a.shape[0], fill, a.dtype)])
 
+    def rep(a, k):  # pad along the first axis by repeating the first entry
+        a = np.asarray(a)
+        return np.concatenate([a, np.repeat(a[:1], k - a.shape[0], axis=0)])
+
+    def pad_dirs(d: Directions | None, k: int) -> Directions | None:
+        return None if d is None else Directions(rep(d.w_i, k), rep(d.w_s, k), rep(d.w_sum, k))
+
     def pad(b: FrameBlock, k: int) -> FrameBlock:
         if b.kernel is None:
             return eqx.tree_at(
-                lambda x: (x.n_h, x.n_v, x.data, x.inv_sigma),
+                lambda x: (x.n_h, x.n_v, x.data, x.inv_sigma, x.dirs),
                 b,
                 (ext(b.n_h, n_pad, np.asarray(b.n_h)[0]), ext(b.n_v, n_pad, np.asarray(b.n_v)[0]),
-                 ext(b.data, n_pad, 1.0), ext(b.inv_sigma, n_pad, 0.0)),
+                 ext(b.data, n_pad, 1.0), ext(b.inv_sigma, n_pad, 0.0), pad_dirs(b.dirs, n_pad)),
+                is_leaf=lambda x: x is None,
             )
         b = eqx.tree_at(
-            lambda x: (x.flat_index, x.data, x.inv_sigma),
+            lambda x: (x.flat_index, x.data, x.inv_sigma, x.box_points, x.sep_cols, x.sep_rows),
             b,
-            (ext(b.flat_index, n_pad, np.asarray(b.flat_index)[0]), ext(b.data, n_pad, 1.0), ext(b.inv_sigma, n_pad, 0.0)),
+            (ext(b.flat_index, n_pad, np.asarray(b.flat_index)[0]), ext(b.data, n_pad, 1.0), ext(b.inv_sigma, n_pad, 0.0),
+             None if b.box_points is None else rep(b.box_points, n_pad),
+             None if b.sep_cols is None else rep(b.sep_cols, n_pad),
+             None if b.sep_rows is None else rep(b.sep_rows, q_pad)),
+            is_leaf=lambda x: x is None,
         )
         if with_support:
             b = eqx.tree_at(
-                lambda x: (x.support_index, x.support_h, x.support_v),
+                lambda x: (x.support_index, x.support_h, x.support_v, x.box_support, x.dirs),
                 b,
-                tuple(ext(a, m_pad, np.asarray(a)[0]) for a in (b.support_index, b.support_h, b.support_v)),
+                tuple(rep(a, m_pad) for a in (b.support_index, b.support_h, b.support_v))
+                + (None if b.box_support is None else rep(b.box_support, m_pad), pad_dirs(b.dirs, m_pad)),
+                is_leaf=lambda x: x is None,
             )
         return b
 
@@ -326,27 +408,38 @@ class Problem(eqx.Module):
             return list(self.blocks)
         return [jax.tree_util.tree_map(lambda a, k=k: a[k], self.stack.blocks) for k in range(self.n_blocks)]
 
+    def block_residuals(self, x: Array) -> Array:
+        """The blocks' log residuals at the natural parameter values ``x``, blocks in order (no nuisance rows)."""
+        if self.stack is not None:
+            return self.stack.residuals(*self._stacked_values(x), self.soften)
+        out = []
+        for k, block in enumerate(self.blocks):
+            mv, fv = self._block_values(x, k)
+            block = _with_instrument(block, fv)
+            model, frame = _apply(block.template, block.frame, mv, fv)
+            out.append(block.residuals(model, frame, self.soften))
+        return jnp.concatenate(out)
+
     def weighted_residuals(self, v: Array) -> Array:
         """``(log(f + floor) - log d) / sigma_rel`` at every usable point (softened in a first stage), blocks in order."""
         x = self.natural(v)
-        if self.stack is not None:
-            r = self.stack.residuals(*self._stacked_values(x), self.soften)
-        else:
-            out = []
-            for k, block in enumerate(self.blocks):
-                mv, fv = self._block_values(x, k)
-                block = _with_instrument(block, fv)
-                model, frame = _apply(block.template, block.frame, mv, fv)
-                out.append(block.residuals(model, frame, self.soften))
-            r = jnp.concatenate(out)
+        return self.with_nuisance(self.block_residuals(x), x)
+
+    def with_nuisance(self, r: Array, x: Array) -> Array:
         return r if self.nuisance is None else self.nuisance.apply(r, x)
 
-    def residuals(self, v: Array) -> Array:
-        r = self.weighted_residuals(v)
+    def robust(self, r: Array) -> Array:
         if self.nuisance is None:
             return robust_residuals_by_id(self.loss_index, r, self.loss_scale)
         n = r.shape[0] - self.nuisance.size  # the prior rows stay quadratic
         return jnp.concatenate([robust_residuals_by_id(self.loss_index, r[:n], self.loss_scale), r[n:]])
+
+    def finish(self, r_blocks: Array, x: Array) -> Array:
+        """The solver's residuals from the blocks' log residuals: nuisance offsets and rows, then the robust loss."""
+        return self.robust(self.with_nuisance(r_blocks, x))
+
+    def residuals(self, v: Array) -> Array:
+        return self.robust(self.weighted_residuals(v))
 
 
 def _plain_residuals(v: Array, problem: Problem) -> Array:
@@ -403,8 +496,8 @@ def residuals(v: Array, problem: Problem) -> Array:
 def _residuals_jvp(primals, tangents):
     v, problem = primals
     t_v, _ = tangents  # the data are not differentiated
-    r = problem.residuals(v).astype(jnp.result_type(v))
-    J = jax.jacfwd(_plain_residuals)(v, problem).astype(jnp.result_type(v))
+    r, J = _residuals_and_jacobian(v, problem)
+    r, J = r.astype(jnp.result_type(v)), J.astype(jnp.result_type(v))
     # Far from the data (a trial step of the solver) a derivative can be 0 * inf; the solver must
     # see finite numbers to reject the step rather than fail.
     r = jnp.where(jnp.isfinite(r), r, _BIG)
@@ -418,9 +511,26 @@ def half_sum_squares(v: Array, problem: Problem) -> Array:
     return 0.5 * jnp.sum(jnp.square(residuals(v, problem)))
 
 
+def _residuals_and_jacobian(v: Array, problem: Problem) -> tuple[Array, Array]:
+    """Residuals and Jacobian: from the problem's structure where it allows (:mod:`._jacobian`), else jacfwd."""
+    if STRUCTURED_JACOBIAN and structured_supports(problem):
+        return structured_residuals_and_jacobian(v, problem)
+    return problem.residuals(v), jax.jacfwd(_plain_residuals)(v, problem)
+
+
+#: Use the structured Jacobian (:mod:`brdfjax.fit._jacobian`) where a problem allows it; False: always jacfwd.
+STRUCTURED_JACOBIAN = True
+
+
 @eqx.filter_jit
 def jacobian(v: Array, problem: Problem) -> Array:
-    """d r~ / d v, (n_points, n_free), forward mode."""
+    """d r~ / d v, (n_points, n_free): from the problem's structure where it allows, else ``jax.jacfwd``."""
+    return _residuals_and_jacobian(v, problem)[1]
+
+
+@eqx.filter_jit
+def jacobian_jacfwd(v: Array, problem: Problem) -> Array:
+    """d r~ / d v by ``jax.jacfwd`` through the whole residual function (the reference)."""
     return jax.jacfwd(_plain_residuals)(v, problem)
 
 
