@@ -241,7 +241,7 @@ def _directions(detector, theta_i: float, n_h: np.ndarray, n_v: np.ndarray) -> D
 
 
 def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame, floor: float, use_footprint: bool,
-                 box_shape: tuple[int, int] | None = None, fixed_theta_i: bool = False):
+                 box_shape: tuple[int, int] | None = None, fixed_theta_i: bool = False, plain: bool = False):
     brdf = np.asarray(b.brdf, np.float64)
     sigma = np.broadcast_to(np.asarray(b.sigma_rel, np.float64), brdf.shape)
     data = brdf[usable]
@@ -249,6 +249,8 @@ def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame
     soft = float(np.median(data))
     detector = b.arm_detector()
     theta_i = float(np.asarray(frame.theta_i))
+    if plain:  # nothing precomputed from the detector or the kernel (see the caller)
+        fixed_theta_i, box_shape = False, None
     if b.footprint is not None and use_footprint:
         k = np.asarray(b.footprint, np.float64)
         n_h, n_v = np.asarray(b.grid.n_h, np.float64), np.asarray(b.grid.n_v, np.float64)
@@ -257,7 +259,7 @@ def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame
         if reach.sum() < SUPPORT_FRACTION * reach.size:  # evaluate the model only where the convolution looks
             rows, cols = np.nonzero(reach)
             extra = dict(support_index=np.flatnonzero(reach.ravel()), support_h=n_h[cols], support_v=n_v[rows])
-            sep = _separable(usable, reach, k / k.sum())
+            sep = None if plain else _separable(usable, reach, k / k.sum())
             if sep is not None:
                 extra.update(sep)
             elif box_shape is not None:
@@ -358,6 +360,11 @@ def prepare(
     layout = build_layout(
         spec, model_values, model.parameter_units(), names, frame_values, auto, solver.box_bounds
     )
+    spec_n = _nuisance_spec(blocks, names, nuisance)
+    # A free instrument quantity (footprint width, misalignment) moves each frame's geometry and kernel on every
+    # call: its blocks keep the plain path (directions from the detector, the footprint from the kernel itself)
+    # instead of the precomputed directions and convolution plans, which hold them constant.
+    moving = spec_n is not None and any(spec_n.geometry_of(j) for j in range(len(spec_n.names)))
     built = []
     # one FFT box for every frame with a footprint of one kernel shape (so that they stack)
     needs: dict[tuple[int, int], list[tuple[int, int]]] = {}
@@ -373,10 +380,9 @@ def prepare(
             frame = frame_for_block(Frame(b.theta_i, b.phi_ref, b.wavelength), layout, i)
             fixed = not any(e.base == "theta_i" and i in e.blocks for e in layout.free)
             box = boxes.get(tuple(np.shape(b.footprint))) if b.footprint is not None else None
-            built.append(_frame_block(b, u, template, frame, fl, use_footprint, box, fixed))
+            built.append(_frame_block(b, u, template, frame, fl, use_footprint, box, fixed, plain=moving))
         else:
             built.append(_table_block(b, u, template, fl))
-    spec_n = _nuisance_spec(blocks, names, nuisance)
     if spec_n is not None:
         layout = _with_nuisance(layout, spec_n)
     n_free = len(layout.free)
