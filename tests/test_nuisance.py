@@ -199,7 +199,7 @@ def test_samplers_move_the_weights_as_logarithms_from_the_fit_covariance():
     f = dataclasses.replace(f, brdf=np.asarray(f.brdf) * 10**-DELTA, systematics=_syst("4.0+3.0", "4.0+1.0", 0.0))
     opts = NuisanceOptions(nonlinearity=False, flux=False)
     start = fit(model, [f], {"rho_d": 0.9}, nuisance=opts)
-    res = sample(model, [f], {"rho_d": 0.9}, start=start, n_walkers=16, n_steps=800, seed=3, figures=False,
+    res = sample(model, [f], {"rho_d": 0.9}, start=start, n_walkers=16, n_steps=500, seed=3, figures=False,
                  fit_kwargs={"nuisance": opts})
     post = res.posterior
     assert res.summary["sampled_as_log"] == ["rho_d"] and res.summary["start"].startswith("fit covariance")
