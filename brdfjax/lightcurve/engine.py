@@ -466,6 +466,9 @@ class AdaptiveDisk(eqx.Module):
     def n_nodes(self) -> int:
         return self.full.n_nodes
 
+    def unplanned(self) -> "AdaptiveDisk":
+        return AdaptiveDisk(self.full, None, self.tol, self.slot_chunk)
+
     def with_capacity(self, capacity: Sequence[int]) -> "AdaptiveDisk":
         return AdaptiveDisk(self.full, tuple(int(c) for c in capacity), self.tol, self.slot_chunk)
 
@@ -498,7 +501,12 @@ def _model_facets(sat: Satellite, m: int) -> np.ndarray:
     return np.asarray([j for j in range(len(sat.facets.names)) if sat.model_of[j] == m], int)
 
 
-def _cheap_terms(sat: Satellite, g: Geometry, disk: AdaptiveDisk, wavelength: float, earth_radius: float):
+def _unit_features(sat: Satellite, disk: AdaptiveDisk) -> list:
+    """The sharp features of every unit (computed once per call, outside the loops over time steps)."""
+    return [term_features(term, disk.radius, disk.tol) for _, _, term in _units(sat)]
+
+
+def _cheap_terms(sat: Satellite, g: Geometry, disk: AdaptiveDisk, wavelength: float, earth_radius: float, features: list):
     """One chunk with the cheap rule: integral (T, J), cos_s (T, J), scale (T,), angles, lit (T,), flags per unit."""
     s = g.s
     r_sat = g.r_hat * g.r[:, None]
@@ -543,9 +551,8 @@ def _cheap_terms(sat: Satellite, g: Geometry, disk: AdaptiveDisk, wavelength: fl
     h = wsum / jnp.where(norm > 0, norm, 1.0)[..., None]
     delta_h = disk.radius / jnp.maximum(norm, 1e-9)  # r / (2 cos theta_d)
     flags = []
-    for m, _, term in _units(sat):
+    for (m, _, _), feats in zip(_units(sat), features):
         idx = _model_facets(sat, m)
-        feats = term_features(term, disk.radius, disk.tol)
         hit = flag_features(feats, jax.lax.stop_gradient(h[:, idx]), jax.lax.stop_gradient(delta_h[:, idx]), disk.radius)
         flags.append((hit & matters[:, idx]) | always[:, idx])
     return integral, cos_s, scale, theta_i, theta_s, vis_c, penumbra, tuple(flags)
@@ -555,7 +562,8 @@ def _cheap_pass(sat: Satellite, geometry: Geometry, disk: AdaptiveDisk, waveleng
     T = len(geometry)
     size = max(1, min(chunk, T))
     chunks, _ = geometry.chunks(size)
-    out = jax.lax.map(lambda g: _cheap_terms(sat, g, disk, wavelength, earth_radius), chunks)
+    features = _unit_features(sat, disk)
+    out = jax.lax.map(lambda g: _cheap_terms(sat, g, disk, wavelength, earth_radius, features), chunks)
     return jax.tree_util.tree_map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:])[:T], out)
 
 
@@ -589,6 +597,16 @@ def _full_minus_cheap(sat: Satellite, g: Geometry, j: Array, term: AbstractTerm,
     return whole - cheap
 
 
+def _ranks(flat: Array, block: int = 512) -> Array:
+    """``cumsum(flat) - 1`` (int32) in two levels: XLA's one-level cumsum of 10^5 flags costs as much as the light curve."""
+    n = flat.shape[0]
+    pad = (-n) % block
+    b = jnp.concatenate([flat.astype(jnp.int32), jnp.zeros(pad, jnp.int32)]).reshape(-1, block)
+    inner = jnp.cumsum(b, 1)
+    offset = jnp.cumsum(inner[:, -1]) - inner[:, -1]
+    return (inner + offset[:, None]).reshape(-1)[:n] - 1
+
+
 def _adaptive_flux(sat: Satellite, geometry: Geometry, disk: AdaptiveDisk, wavelength: float, chunk: int,
                    earth_radius: float) -> dict[str, Array]:
     units = _units(sat)
@@ -609,14 +627,17 @@ def _adaptive_flux(sat: Satellite, geometry: Geometry, disk: AdaptiveDisk, wavel
         cap = sc * math.ceil(cap / sc)
         flat = fl.reshape(-1)
         counts.append(jnp.sum(flat))
-        rank = jnp.cumsum(flat) - 1
+        if cap == 0:
+            n_over = n_over + jnp.sum(fl, -1).astype(jnp.int32)
+            continue
+        rank = _ranks(flat)
         fitted = flat & (rank < cap)
         n_full = n_full + jnp.sum(fitted.reshape(T, Jm), -1).astype(jnp.int32)
         n_over = n_over + jnp.sum((flat & ~fitted).reshape(T, Jm), -1).astype(jnp.int32)
-        if cap == 0:
-            continue
-        slots = jnp.flatnonzero(flat, size=cap, fill_value=T * Jm)
-        valid = slots < T * Jm
+        N = T * Jm
+        # the flagged pairs' flat indices in order, N where fewer than cap are flagged
+        slots = jnp.full(cap, N, jnp.int32).at[jnp.where(fitted, rank, cap)].set(jnp.arange(N, dtype=jnp.int32), mode="drop")
+        valid = slots < N
         t_idx = jnp.where(valid, slots // Jm, 0)
         jj = jnp.where(valid, slots % Jm, 0)
         j_idx = jnp.asarray(idx)[jj]

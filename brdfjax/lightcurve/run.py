@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import io
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +29,19 @@ from ..config import ConfigError
 from ..io import atomic_output, write_json_atomic
 from ..plotting import save_figure_atomic
 from .config import BuiltModel, LightcurveConfig, build_models
-from .engine import Attitude, Facets, Geometry, Satellite, SunDisk, facet_flux, magnitude, phase_angle, shadow_mask
+from .engine import (
+    AdaptiveDisk,
+    Attitude,
+    Facets,
+    Geometry,
+    Satellite,
+    SunDisk,
+    facet_flux,
+    light_curve,
+    magnitude,
+    phase_angle,
+    shadow_mask,
+)
 from .ephemeris import PassGeometry, parse_tle, pass_geometry, time_grid
 
 __all__ = ["LightcurveJob", "build_job", "run_lightcurve", "glint_runs", "compare_series", "posterior_total_flux"]
@@ -110,34 +123,54 @@ def build_job(cfg: LightcurveConfig) -> LightcurveJob:
                          wavelength, dtype, len(times))
 
 
-def posterior_total_flux(sat: Satellite, geometry: Geometry, disk: SunDisk, wavelength: float, model_index: int,
-                         names: tuple[str, ...], draws: Any, *, chunk: int = 256, batch: int | None = None) -> jax.Array:
+def posterior_total_flux(sat: Satellite, geometry: Geometry, disk: SunDisk | AdaptiveDisk, wavelength: float,
+                         model_index: int, names: tuple[str, ...], draws: Any, *, chunk: int = 256,
+                         batch: int | None = None, margin: float = 1.25) -> jax.Array:
     """Total flux (S, T) for each row of ``draws`` (S, p) replacing the parameters ``names`` of ``sat.models[model_index]``.
 
     The facets of the other models do not change between draws: they are evaluated once.  Draws run
-    ``batch`` at a time (vmapped), time steps in chunks of ``chunk``.
+    ``batch`` at a time (vmapped), time steps in chunks of ``chunk``.  An unplanned :class:`AdaptiveDisk`
+    is planned on the model's own parameters (capacities with ``margin``); if a draw flags more pairs
+    than that, the draws are rerun with capacities from the largest counts (a RuntimeWarning says so).
     """
     J = len(sat.facets.names)
     mine = [j for j in range(J) if sat.model_of[j] == model_index]
     rest = [j for j in range(J) if sat.model_of[j] != model_index]
     if not mine:
         raise ValueError(f"posterior_total_flux: no facet uses model {model_index}")
-    fixed = facet_flux(sat.subset(rest), geometry, disk, wavelength, chunk=chunk)["flux"].sum(-1) if rest else 0.0
+    adaptive = isinstance(disk, AdaptiveDisk)
+    other = disk.unplanned() if adaptive else disk  # a planned disk belongs to the facets it was planned for
+    fixed = light_curve(sat.subset(rest), geometry, other, wavelength, chunk=chunk)["flux"].sum(-1) if rest else 0.0
+    sub = sat.subset(mine)
+    if adaptive and disk.capacity is None:
+        disk = disk.plan(sub, geometry, chunk=chunk, margin=margin)
     if batch is None:
-        per_sample = min(chunk, len(geometry)) * len(mine) * disk.n_nodes
+        per_sample = min(chunk, len(geometry)) * len(mine) * (1 if adaptive else disk.n_nodes)
+        if adaptive:
+            per_sample += disk.slot_chunk * disk.n_nodes
         batch = int(max(1, min(len(draws), 4_000_000 // max(per_sample, 1))))
     draws = jnp.asarray(draws, geometry.d_obs.dtype)
-    return _draws_flux(sat.subset(mine), geometry, disk, wavelength, tuple(names), draws, chunk, batch) + fixed
+    flux, flagged, over = _draws_flux(sub, geometry, disk, wavelength, tuple(names), draws, chunk, batch)
+    if adaptive and int(jnp.max(over)) > 0:
+        counts = np.asarray(jnp.max(flagged, 0)).tolist()
+        warnings.warn(f"adaptive solar disk: up to {int(jnp.max(over))} flagged pairs per draw exceeded the capacity "
+                      f"{disk.capacity}; rerunning the draws with capacities for {counts}", RuntimeWarning, stacklevel=2)
+        disk = disk.capacity_for(counts, margin)
+        flux, flagged, over = _draws_flux(sub, geometry, disk, wavelength, tuple(names), draws, chunk, batch)
+    return flux + fixed
 
 
 @eqx.filter_jit
-def _draws_flux(sub: Satellite, geometry: Geometry, disk: SunDisk, wavelength: float, names: tuple[str, ...],
-                draws: jax.Array, chunk: int, batch: int) -> jax.Array:
+def _draws_flux(sub: Satellite, geometry: Geometry, disk: SunDisk | AdaptiveDisk, wavelength: float,
+                names: tuple[str, ...], draws: jax.Array, chunk: int, batch: int):
     base = sub.models[0]
 
     def one(p):
         m = base.with_params({n: p[i] for i, n in enumerate(names)})
-        return facet_flux(sub.with_models((m,)), geometry, disk, wavelength, chunk=chunk)["flux"].sum(-1)
+        out = facet_flux(sub.with_models((m,)), geometry, disk, wavelength, chunk=chunk)
+        if "disk_flagged" in out:
+            return out["flux"].sum(-1), out["disk_flagged"], jnp.sum(out["disk_overflow"])
+        return out["flux"].sum(-1), jnp.zeros(1, jnp.int32), jnp.zeros((), jnp.int32)
 
     return jax.lax.map(one, draws, batch_size=batch)
 

@@ -194,7 +194,7 @@ def flag_features(features: list[Feature], h: Array, delta_h: Array, radius: flo
     feature that is sharp anywhere flags the pair.
     """
     table = jnp.asarray(disk_deltas(radius), h.dtype)
-    idx = jnp.searchsorted(table, delta_h)
+    idx = jnp.sum(delta_h[..., None] > table, -1)  # searchsorted (left) without a loop
     flag = jnp.zeros(h.shape[:-1], bool)
     for f in features:
         radii = jnp.asarray(f.radius, h.dtype)
