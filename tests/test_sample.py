@@ -378,7 +378,7 @@ def test_shipped_config_runs(tmp_path, _):
     cfg = ROOT / "configs" / "sample_synthetic_solar_cell.toml"
     assert main(["sample", str(cfg), "--out", str(out), "--steps", "60", "--no-progress"]) == 0
     doc = json.loads((out / "posterior.json").read_text())
-    assert doc["n_steps"] == 60 and doc["n_walkers"] == 16
+    assert doc["n_steps"] == 60 and doc["n_walkers"] == 20
     truth = dict(bj.SOLAR_CELL_SEED)
     for k in ("m1", "rho_s1", "rho_s3"):
         p = doc["parameters"][k]
