@@ -65,6 +65,47 @@ def _record(s: dict, wall: float, sampling: float) -> dict:
     }
 
 
+def evaluation_costs(job, priors, start, n_walkers: int, repeats: int = 5) -> dict:
+    """Seconds per log-posterior evaluation in emcee's vectorised batch (per walker) and per value-and-gradient
+    of NUTS's whitened log-density (one point), medians of ``repeats`` after a compiling call."""
+    import jax.numpy as jnp
+
+    from brdfjax.fit import get_solver, prepare
+    from brdfjax.sample._api import _PREPARE_KEYS, _spec_from_result, weight_mask
+    from brdfjax.sample._nuts import _logdensity
+    from brdfjax.sample._posterior import build_log_posterior
+
+    fk = job.fit_kwargs
+    values = {k: p["value"] * (np.pi / 180 if p.get("unit") == "deg" else 1.0)
+              for k, p in start["parameters"].items() if p.get("free")}
+    prep = prepare(job.model, job.blocks, _spec_from_result(job.params, values, [b.name for b in job.blocks]),
+                   solver=get_solver(fk.get("solver", "levenberg_marquardt")),
+                   **{k: fk[k] for k in _PREPARE_KEYS if k in fk and k not in ("initializer", "init_options")})
+    post = build_log_posterior(prep, priors)
+    post = post.with_log(weight_mask(post))
+    x0 = np.array([values.get(n, 0.0) for n in post.names])
+    X = x0 + 1e-9 * np.abs(x0) * np.random.default_rng(0).standard_normal((n_walkers, x0.size))
+    post.sampler_log_prob(post.to_sampler(X))
+    t = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        post.sampler_log_prob(post.to_sampler(X))
+        t.append(time.perf_counter() - t0)
+    y0 = jnp.asarray(post.to_sampler(x0))
+    ld = jax.jit(jax.value_and_grad(_logdensity(post.problem, post.priors, post.est, y0, jnp.eye(x0.size),
+                                                jnp.asarray(post.logged))))
+    z = jnp.zeros(x0.size)
+    jax.block_until_ready(ld(z))
+    tg = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(ld(z))
+        tg.append(time.perf_counter() - t0)
+    return {"emcee_s_per_walker_evaluation": float(np.median(t)) / n_walkers, "n_walkers": n_walkers,
+            "nuts_s_per_gradient": float(np.median(tg)), "n_points": post.n_points, "n_dim": post.ndim,
+            "gradient_over_evaluation": float(np.median(tg)) / (float(np.median(t)) / n_walkers)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="runs/bench_nuts")
@@ -78,7 +119,8 @@ def main(argv=None) -> int:
     ap.add_argument("--nuts-piece", type=int, default=50)
     ap.add_argument("--warmup", type=int, default=200)
     ap.add_argument("--chains", type=int, default=4)
-    ap.add_argument("--only", choices=("emcee", "nuts"), default=None)
+    ap.add_argument("--only", choices=("emcee", "nuts", "none"), default=None)
+    ap.add_argument("--costs", action="store_true", help="measure the cost of an evaluation and of a gradient first")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -101,12 +143,17 @@ def main(argv=None) -> int:
     report = {"config": args.config, "fit_s": t_fit, "n_free": n_free, "budget_s_per_sampler": args.budget_s,
               "loadavg_start": os.getloadavg()}
     common = dict(priors=priors, start=start, fit_kwargs=job.fit_kwargs, figures=False, seed=1, predictive_draws=0)
+    if args.costs:
+        nw = args.walkers or sec.n_walkers or max(32, 4 * n_free)
+        report["costs"] = evaluation_costs(job, priors, start, nw + nw % 2)
+        print(f"costs: {report['costs']}", file=sys.stderr, flush=True)
+        write_json_atomic(out / "benchmark.json", json.loads(json.dumps(report, default=str)))
     runs = (
         ("emcee", dict(sampler="emcee", n_walkers=args.walkers or sec.n_walkers), args.emcee_steps, args.emcee_piece),
         ("nuts", dict(sampler="nuts", n_chains=args.chains, n_warmup=args.warmup), args.nuts_steps, args.nuts_piece),
     )
     for name, kw, max_steps, piece in runs:
-        if args.only and name != args.only:
+        if args.only and name != args.only:  # "none": the costs only
             continue
         d = out / name
         t0 = time.perf_counter()

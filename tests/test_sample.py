@@ -378,11 +378,14 @@ def test_shipped_config_runs(tmp_path, _):
     cfg = ROOT / "configs" / "sample_synthetic_solar_cell.toml"
     assert main(["sample", str(cfg), "--out", str(out), "--steps", "60", "--no-progress"]) == 0
     doc = json.loads((out / "posterior.json").read_text())
-    assert doc["n_steps"] == 60 and doc["n_walkers"] == 16
+    assert doc["n_steps"] == 60 and doc["n_walkers"] == 20
     truth = dict(bj.SOLAR_CELL_SEED)
-    for k in ("m1", "rho_s1", "rho_s3"):
+    p = doc["parameters"]["m1"]
+    assert p["median"] == pytest.approx(truth["m1"], rel=0.05)
+    for k in ("rho_s1", "rho_s3"):  # sampled as log rho, their ND budget 0.37 wide in it: a short chain spreads
         p = doc["parameters"][k]
-        assert p["median"] == pytest.approx(truth[k], rel=0.05)
+        assert abs(math.log(p["median"] / truth[k])) < 0.5 and p["q025"] < truth[k] < p["q975"]
+    assert doc["sampled_as_log"] == ["rho_s1", "rho_s3"] and "footprint" in doc["nuisance"]["parameters"]
     assert (out / "fit_result.json").is_file() and (out / "predictive_ti20.png").is_file()
 
 
