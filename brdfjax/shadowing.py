@@ -95,8 +95,10 @@ __all__ = [
     "lambda_table",
     "smith_g1",
     "smith_g2",
+    "smith_g2_parts",
     "v_cavity",
     "shadowing_factor",
+    "shadowing_parts",
 ]
 
 #: Shadowing-masking forms a specular term accepts.
@@ -350,6 +352,12 @@ def smith_g2(dist: AbstractDistribution, dirs: Directions, method: str = "auto")
     Evaluated in the directions' frame (the sample frame, or the frame of a
     wrapper that rotated them); the tabulated Lambda is built once for both.
     """
+    num, den = smith_g2_parts(dist, dirs, method)
+    return num / den
+
+
+def smith_g2_parts(dist: AbstractDistribution, dirs: Directions, method: str = "auto") -> tuple[Array, Array]:
+    """:func:`smith_g2` as ``(numerator, denominator)``: a caller can fold the division into its own."""
     if method == "auto" and type(dist) not in (Beckmann, BeckmannAniso, GGX, GGXAniso, StudentTAniso):
         table = lambda_table(dist)
         lam_i = _lambda_tabulated(table, dirs.i)
@@ -359,7 +367,7 @@ def smith_g2(dist: AbstractDistribution, dirs: Directions, method: str = "auto")
         lam_s = smith_lambda(dist, dirs.s, method)
     ok = jnp.isfinite(lam_i) & jnp.isfinite(lam_s) & _positive_side(dirs.i, dirs.t) & _positive_side(dirs.s, dirs.t)
     total = jnp.where(ok, lam_i + lam_s, 0.0)
-    return jnp.where(ok, 1.0 / (1.0 + total), 0.0)
+    return jnp.where(ok, 1.0, 0.0), 1.0 + total
 
 
 def v_cavity(dirs: Directions) -> Array:
@@ -376,10 +384,16 @@ def v_cavity(dirs: Directions) -> Array:
 
 def shadowing_factor(kind: str, dist: AbstractDistribution, dirs: Directions) -> Array | float:
     """The masking-shadowing factor of a specular term: 1, Smith G2 or the V-cavity G."""
+    num, den = shadowing_parts(kind, dist, dirs)
+    return num if isinstance(den, float) else num / den
+
+
+def shadowing_parts(kind: str, dist: AbstractDistribution, dirs: Directions) -> tuple[Array | float, Array | float]:
+    """:func:`shadowing_factor` as ``(numerator, denominator)`` (the denominator a float 1.0 when there is none)."""
     if kind == "none":
-        return 1.0
+        return 1.0, 1.0
     if kind == "smith":
-        return smith_g2(dist, dirs)
+        return smith_g2_parts(dist, dirs)
     if kind == "v_cavity":
-        return v_cavity(dirs)
+        return v_cavity(dirs), 1.0
     raise ValueError(f"unknown shadowing '{kind}'; known: {', '.join(SHADOWING)}")

@@ -31,7 +31,7 @@ from .distributions import AbstractDistribution, Beckmann
 from .fields import check_param, param
 from .fresnel import q_factor_parts
 from .geometry import Directions, Ry, Rz, fast_cos, fast_sinc
-from .shadowing import SHADOWING, shadowing_factor
+from .shadowing import SHADOWING, shadowing_factor, shadowing_parts
 
 __all__ = [
     "AbstractTerm",
@@ -92,11 +92,13 @@ def _specular_geometry_parts(dirs: Directions, normalisation: str) -> tuple[floa
     return 0.125, jnp.where(prod > 0, prod, 1.0)
 
 
-def _q_times_geometry(n, k, dirs: Directions, normalisation: str) -> Array:
-    """``Q * geometry`` with a single per-pixel division."""
+def _q_times_geometry(n, k, dirs: Directions, normalisation: str, extra: tuple = (1.0, 1.0)) -> Array:
+    """``Q * geometry`` (times ``extra[0] / extra[1]``, e.g. the shadowing) with a single per-pixel division."""
     q_num, q_den = q_factor_parts(n, dirs, k)
     g_num, g_den = _specular_geometry_parts(dirs, normalisation)
-    return (g_num * q_num) / (q_den * g_den)
+    e_num, e_den = extra
+    den = q_den * g_den if isinstance(e_den, float) and e_den == 1.0 else q_den * g_den * e_den
+    return (g_num * q_num * e_num) / den
 
 
 class Specular(AbstractTerm):
@@ -132,8 +134,8 @@ class Specular(AbstractTerm):
     def __call__(self, dirs, wavelength):
         tx2, ty2, upper = dirs.half_slopes()
         D = jnp.where(upper, self.distribution(tx2, ty2), 0.0)
-        G = shadowing_factor(self.shadowing, self.distribution, dirs)
-        f = self.rho_s * D * G * _q_times_geometry(self.n, self.k, dirs, self.normalisation)
+        G = shadowing_parts(self.shadowing, self.distribution, dirs)  # its division folded into Q's
+        f = self.rho_s * D * _q_times_geometry(self.n, self.k, dirs, self.normalisation, G)
         return jnp.where(_both_above(dirs), f, 0.0)
 
 
