@@ -236,7 +236,7 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
     return out, models
 
 
-ADD_PARTS = ("binomial", "three_lobes", "abg")
+ADD_PARTS = ("binomial", "three_lobes", "abg", "refine")
 
 
 def _stored_model(label: str, name: str, fits: dict) -> bj.Model:
@@ -265,7 +265,8 @@ def _stored_model(label: str, name: str, fits: dict) -> bj.Model:
 
 def add_to_dataset(name: str, stored: dict, parts=ADD_PARTS, verbose: bool = True) -> tuple[dict, dict]:
     """``--add``: the ``parts`` (``binomial``, (c') ``three_lobes``, ``abg``: ABg refitted from its stored
-    optimum without the soft first stage, kept if lower) from the starts in ``stored`` (a results json)."""
+    optimum without the soft first stage, kept if lower; ``refine``: the same for the stored (c')) from the
+    starts in ``stored`` (a results json)."""
     table = read(name)
     out, models = {}, {}
     run = Runner(table, out, models, verbose)
@@ -284,6 +285,18 @@ def add_to_dataset(name: str, stored: dict, parts=ADD_PARTS, verbose: bool = Tru
             out["abg"] = dict(out["abg_refit"], note="refitted from the stored optimum without the soft first stage")
             abg = models["abg_refit"]
         out.pop("abg_refit")
+    if "refine" in parts and "three_lobes" in fits:
+        # the stored three-lobe optimum refitted without the soft first stage (a fit that stopped at its
+        # iteration limit goes on from there); kept if lower
+        start = _stored_model("three_lobes", name, fits)
+        spec = {k: "free" for k in fits["three_lobes"]["parameters"]}
+        spec.update({k: dict(TAIL, value=float(start.params()[k])) for k in spec if k.endswith(".gamma")})
+        run("three_lobes_refined", start, spec, first_stage=None)
+        if out["three_lobes_refined"]["log_rms"] < fits["three_lobes"]["log_rms"]:
+            out["three_lobes"] = dict(out["three_lobes_refined"], variant=fits["three_lobes"].get("variant"),
+                                      note="refitted from the stored optimum without the soft first stage")
+            models["three_lobes"] = models["three_lobes_refined"]
+        out.pop("three_lobes_refined")
     models.setdefault("multi_lobe", two)
     for label in ("today", "three_lobes", "binomial"):
         if label not in models and label in fits:
