@@ -340,7 +340,8 @@ class Binomial(AbstractTerm):
         b2, _ = _sq_distance_from_mirror(dirs)
         pos = b2 > 0
         D = jnp.where(pos, jnp.sqrt(jnp.where(pos, b2, 1.0)), 0.0)
-        V = -(dirs.w_i[..., 0] * dirs.w_s[..., 0] + dirs.w_i[..., 1] * dirs.w_s[..., 1])
+        (ix, iy, _), (sx, sy, _) = dirs.i, dirs.s  # components: no (N, 3) arrays stacked
+        V = -(ix * sx + iy * sy)
         n, m, j = self.shape
         c = self.coefficients
         log_f = 0.0
