@@ -274,10 +274,11 @@ def test_cli_writes_csv_json_png(tmp_path, capsys):
         ({"normal = [0.0, 0.0, 1.0]\nmodel = \"bus\"": "normal = [0.0, 0.0, 0.0]\nmodel = \"bus\""}, "satellite.facets.bus_nadir.normal"),
         ({"[models.bus]\nlambertian_albedo = 0.3": "[models.bus]\npreset = \"solar_cel\""}, "models.bus.preset"),
         ({"model = \"back\"": "model = \"bak\""}, "satellite.facets.array_back.model"),
+        ({'disk = "adaptive"': 'disk = "adaptiv"'}, "sun.disk"),
         ({"start = 2026-12-02T07:15:00Z": "start = 2026-12-02T03:00:00Z",
           "stop = 2026-12-02T07:16:00Z": "stop = 2026-12-02T03:30:00Z"}, "time"),
     ],
-    ids=["tle_checksum", "zero_normal", "unknown_preset", "unknown_model", "never_visible"],
+    ids=["tle_checksum", "zero_normal", "unknown_preset", "unknown_model", "sun_disk", "never_visible"],
 )
 def test_bad_input_exit_2_names_file_and_key(tmp_path, capsys, replace, key):
     cfg = _small_config(tmp_path, **replace)
@@ -355,3 +356,122 @@ def test_glint_map_diffraction_widens_the_glints():
     ellipse = np.pi * r**2 * np.cos(th)
     assert 2 * ellipse < g2.solid_angle_sr < 2 * ellipse * (1 + 6 * 2.8e-4 / r) ** 2
     assert g1.solid_angle_sr > 5 * g2.solid_angle_sr
+
+
+# --- the adaptive solar disk -------------------------------------------------------------------------------
+
+
+def _glint_sweep(T=96, theta=np.deg2rad(30.0)):
+    """Observer directions sweeping over the mirror direction of a facet (normal +z) and on to the offset peak's."""
+    s = np.array([np.sin(theta), 0.0, np.cos(theta)])
+    o0 = np.array([-np.sin(theta), 0.0, np.cos(theta)])
+    az = 0.3 + np.deg2rad(45.0)  # phi_ref + the offset peak's dphi0
+    tilt = np.deg2rad(0.5)
+    n2 = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
+    o_off = 2 * n2.dot(s) * n2 - s
+    t = np.linspace(-0.8, 1.8, T)
+    o = o0 + t[:, None] * (o_off - o0) + np.deg2rad(0.05) * np.cross(o0, [0.0, 1.0, 0.0])
+    o /= np.linalg.norm(o, axis=-1, keepdims=True)
+    r = np.tile([[0.0, 0.0, 7e6]], (T, 1))
+    return Geometry.from_positions(r, np.tile([[7e3, 0, 0]], (T, 1)), r + s * AU_M, r + o * 1e6)
+
+
+def _cell_sat(yaw=0.0):
+    cell = bj.solar_cell()
+    floor = bj.Model({**cell.terms, "floor": bj.Lambertian(0.02)}, cell.aliases)
+    fac = Facets.build(["cell", "white"], [1.0, 0.3], [[0, 0, 1.0], [0.2, 0.1, 1.0]], phi_ref=[0.3, 0.0])
+    return Satellite(fac, (floor, bj.Model({"d": bj.Lambertian(0.3)})), Attitude.inertial(yaw=yaw), (0, 1))
+
+
+@pytest.fixture(scope="module")
+def sweep():
+    """The glint sweep with the adaptive, full (8 rings) and point disks (compiled once for the tests below)."""
+    from brdfjax.lightcurve.engine import AdaptiveDisk
+
+    geo, sat, full = _glint_sweep(), _cell_sat(), SunDisk.rings(8)
+    disk = AdaptiveDisk(full).plan(sat, geo)
+    outs = {k: facet_flux(sat, geo, d) for k, d in (("adaptive", disk), ("full", full), ("point", SunDisk.point()))}
+    return geo, sat, full, disk, outs
+
+
+def test_adaptive_disk_matches_full_disk_through_glints(sweep):
+    """A pass over the centre peak, the diffraction streak and the offset peak: adaptive = full disk, point Sun far off."""
+    from brdfjax.lightcurve.engine import _units
+
+    geo, sat, full, disk, outs = sweep
+    out = outs["adaptive"]
+    mags = {k: np.asarray(magnitude(o["flux"].sum(-1))) for k, o in outs.items()}
+    dm, dm_point = np.max(np.abs(mags["adaptive"] - mags["full"])), np.max(np.abs(mags["point"] - mags["full"]))
+    print(f"adaptive vs full disk: max |dm| = {dm:.1e} mag over {len(geo)} steps; point Sun: {dm_point:.2f} mag")
+    assert dm < 0.01 and dm < 1e-6
+    assert dm_point > 1.0  # the glints are there
+    flagged = dict(zip([f"{m}.{n}" for m, n, _ in _units(sat)], np.asarray(out["disk_flagged"]).tolist()))
+    assert flagged["0.center"] > 0 and flagged["0.offset"] > 0 and flagged["0.bars"] > 0
+    assert flagged["0.floor"] == 0 and flagged["1.d"] == 0  # Lambertian terms: the cheap rule is exact
+    assert int(np.sum(out["disk_overflow"])) == 0
+    assert 0 < int(np.sum(out["disk_full"])) < 0.5 * len(geo) * 4
+
+
+def test_adaptive_disk_without_glints_is_the_cheap_rule():
+    """No sharp feature in reach: every pair takes the centre with the rule's mean cosine; the Lambertian plate exact."""
+    from brdfjax.lightcurve.engine import AdaptiveDisk
+
+    geo = _glint_sweep(T=24)
+    full = SunDisk.rings(8)
+    fac = Facets.build(["a", "b"], [1.0, 2.0], [[0, 0, 1.0], [0.5, -0.2, 1.0]])
+    sat = Satellite(fac, (Phong(0.1, 0.3, 20.0), bj.Model({"d": bj.Lambertian(0.3)})), Attitude.inertial(), (0, 1))
+    disk = AdaptiveDisk(full).plan(sat, geo)
+    assert disk.capacity == (0, 0)
+    out = facet_flux(sat, geo, disk)
+    assert int(np.sum(out["disk_full"])) == 0 and int(np.sum(out["disk_overflow"])) == 0
+    cheap = np.asarray(facet_flux(sat, geo, SunDisk.point())["flux"]) * float(full.mean_cos())
+    np.testing.assert_allclose(np.asarray(out["flux"]), cheap, rtol=1e-13)
+    # Lambertian facet: the cheap rule equals the full rule (to rounding)
+    np.testing.assert_allclose(np.asarray(out["flux"])[:, 1], np.asarray(facet_flux(sat, geo, full)["flux"])[:, 1], rtol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def light_sweep():
+    """The sweep with a light model (a Phong spike and the bars' streak: no complex Fresnel) for overflow and gradients."""
+    from brdfjax.lightcurve.engine import AdaptiveDisk
+
+    geo, full = _glint_sweep(T=48), SunDisk.rings(6)
+    spike = bj.Model({"spike": bj.Phong(0.5, 2e4), "bars": bj.solar_cell().terms["bars"], "d": bj.Lambertian(0.02)})
+    fac = Facets.build(["cell", "white"], [1.0, 0.3], [[0, 0, 1.0], [0.2, 0.1, 1.0]], phi_ref=[0.3, 0.0])
+    sat = Satellite(fac, (spike, bj.Model({"d": bj.Lambertian(0.3)})), Attitude.inertial(yaw=1e-3), (0, 1))
+    disk = AdaptiveDisk(full, slot_chunk=8).plan(sat, geo)
+    return geo, sat, full, disk, {"full": facet_flux(sat, geo, full)}
+
+
+def test_adaptive_disk_capacity_overflow(light_sweep):
+    from brdfjax.lightcurve.engine import AdaptiveDisk, light_curve
+
+    geo, sat, full, planned, outs = light_sweep
+    assert min(c for c in planned.capacity if c) > 8
+    with pytest.raises(ValueError, match="no capacity; plan it first"):
+        facet_flux(sat, geo, AdaptiveDisk(full))
+    small = planned.with_capacity([min(c, 8) for c in planned.capacity])
+    out = facet_flux(sat, geo, small)
+    counts = np.asarray(out["disk_flagged"])
+    # every flagged pair beyond a unit's capacity is counted and got the cheap rule
+    assert int(np.sum(out["disk_overflow"])) == int(np.sum(np.maximum(counts - 8, 0))) > 0
+    ref = np.asarray(outs["full"]["flux"]).sum(-1)
+    assert np.max(np.abs(np.asarray(out["flux"]).sum(-1) / ref - 1)) > 0.1
+    with pytest.warns(RuntimeWarning, match="exceeded the capacity"):
+        again = light_curve(sat, geo, small)  # replans from the counts and reruns
+    assert int(np.sum(again["disk_overflow"])) == 0
+    np.testing.assert_allclose(np.asarray(again["flux"]).sum(-1), ref, rtol=1e-9)
+
+
+def test_adaptive_disk_gradients_finite_and_equal_to_full(light_sweep):
+    geo, sat, full, disk, _ = light_sweep
+
+    def loss(st, d):
+        return jnp.mean(jnp.square(magnitude(facet_flux(st, geo, d)["flux"].sum(-1)) - 3.0))
+
+    ga, gf = eqx.filter_grad(loss)(sat, disk), eqx.filter_grad(loss)(sat, full)
+    for get in (lambda s: s.models[0].terms["spike"].rho, lambda s: s.models[0].terms["spike"].k,
+                lambda s: s.models[0].terms["bars"].rho, lambda s: s.attitude.yaw):
+        a, f = float(get(ga)), float(get(gf))
+        assert np.isfinite(a) and a != 0.0
+        assert a == pytest.approx(f, rel=1e-6)

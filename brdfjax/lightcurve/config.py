@@ -21,7 +21,8 @@
     step_s = 1.0
 
     [sun]
-    disk_rings = 16                    # 0: point Sun
+    disk = "adaptive"                  # or "full" (the rule at every step) or "point" (the centre only)
+    disk_rings = 16                    # the full rule's rings (0: point Sun)
     limb_darkening = 0.0
     magnitude = -26.76
 
@@ -169,6 +170,8 @@ class TimeConfig(StrictModel):
 
 
 class SunConfig(StrictModel):
+    disk: Literal["adaptive", "full", "point"] = Field(
+        "adaptive", description="'adaptive': the full rule only near sharp features; 'full': everywhere; 'point': the centre")
     disk_rings: int = Field(16, ge=0, le=64, description="rings of the solar-disk quadrature (0: point Sun)")
     limb_darkening: float = Field(0.0, ge=0, le=1)
     magnitude: float = -26.76

@@ -589,10 +589,11 @@ def _full_minus_cheap(sat: Satellite, g: Geometry, j: Array, term: AbstractTerm,
     w_i = jnp.stack([_dot(nodes_b, x[:, None]), _dot(nodes_b, y[:, None]), _dot(nodes_b, n[:, None])], -1)
     w_c = jnp.stack([_dot(s_b, x), _dot(s_b, y), _dot(s_b, n)], -1)
     w_s = jnp.stack([_dot(o_b, x), _dot(o_b, y), _dot(o_b, n)], -1)
-    f = term(Directions.from_vectors(w_i, w_s[:, None, :]), wavelength)  # (S, K)
+    K = w_i.shape[1]
+    f_all = term(Directions.from_vectors(jnp.concatenate([w_i, w_c[:, None]], 1), w_s[:, None, :]), wavelength)
+    f, fc = f_all[:, :K], f_all[:, K]  # the K nodes and the centre, in one evaluation (one compiled term)
     wts = jnp.asarray(full.weights, f.dtype)
     whole = jnp.sum(wts * vis * f * jnp.maximum(w_i[..., 2], 0.0), -1)
-    fc = term(Directions.from_vectors(w_c, w_s), wavelength)
     cheap = full.mean_cos().astype(f.dtype) * vis_c * fc * jnp.maximum(w_c[..., 2], 0.0)
     return whole - cheap
 

@@ -57,7 +57,7 @@ class LightcurveJob:
     model_names: tuple[str, ...]  # distinct model names, in facet order of first use
     model_of: tuple[int, ...]
     models: dict[str, BuiltModel]
-    disk: SunDisk
+    disk: SunDisk | AdaptiveDisk  # an unplanned AdaptiveDisk: planned for each satellite it is used with
     wavelength: float
     dtype: Any
     n_steps_total: int
@@ -118,7 +118,8 @@ def build_job(cfg: LightcurveConfig) -> LightcurveJob:
     posts = [n for n in model_names if models[n].draws is not None]
     if len(posts) > 1:
         raise ConfigError(src, [(f"models.{posts[1]}.posterior", f"only one facet model may have a posterior (also {posts[0]})")])
-    disk = SunDisk.rings(cfg.sun.disk_rings, limb_darkening=cfg.sun.limb_darkening)
+    rule = SunDisk.rings(cfg.sun.disk_rings, limb_darkening=cfg.sun.limb_darkening)
+    disk = {"full": rule, "point": SunDisk.point(), "adaptive": AdaptiveDisk(rule)}[cfg.sun.disk]
     return LightcurveJob(cfg, passes, geometry, facets, attitude, tuple(model_names), model_of, models, disk,
                          wavelength, dtype, len(times))
 
@@ -148,7 +149,7 @@ def posterior_total_flux(sat: Satellite, geometry: Geometry, disk: SunDisk | Ada
         per_sample = min(chunk, len(geometry)) * len(mine) * (1 if adaptive else disk.n_nodes)
         if adaptive:
             per_sample += disk.slot_chunk * disk.n_nodes
-        batch = int(max(1, min(len(draws), 4_000_000 // max(per_sample, 1))))
+        batch = int(max(1, min(len(draws), 128, 4_000_000 // max(per_sample, 1))))  # 128: larger batches thrash the CPU caches
     draws = jnp.asarray(draws, geometry.d_obs.dtype)
     flux, flagged, over = _draws_flux(sub, geometry, disk, wavelength, tuple(names), draws, chunk, batch)
     if adaptive and int(jnp.max(over)) > 0:
@@ -224,7 +225,7 @@ def _num(x: float) -> float | None:
 
 
 def evaluate(job: LightcurveJob, replace: Mapping[str, str] | None = None) -> dict[str, np.ndarray]:
-    out = facet_flux(job.satellite(replace), job.geometry, job.disk, job.wavelength, chunk=job.cfg.chunk)
+    out = light_curve(job.satellite(replace), job.geometry, job.disk, job.wavelength, chunk=job.cfg.chunk)
     return {k: np.asarray(v, np.float64) for k, v in out.items()}
 
 
@@ -240,7 +241,7 @@ def run_lightcurve(cfg: LightcurveConfig, out_dir: str | Path, *, plot: bool = T
     smag = cfg.sun.magnitude
     thr = cfg.glints.threshold_mag
     log(f"{len(job.passes)} visible steps of {job.n_steps_total}; {len(job.facets.names)} facets; "
-        f"solar disk {job.disk.n_nodes} node(s)")
+        f"solar disk {cfg.sun.disk}, {job.disk.n_nodes} node(s)")
     prim = evaluate(job)
     mags = _mag(prim["flux"], smag)  # (T, J)
     total = _mag(prim["flux"].sum(-1), smag)
@@ -268,7 +269,9 @@ def run_lightcurve(cfg: LightcurveConfig, out_dir: str | Path, *, plot: bool = T
         "step_s": step,
         "start_utc": str(job.passes.times[0]),
         "facets": list(job.facets.names),
+        "sun_disk": cfg.sun.disk,
         "sun_disk_nodes": job.disk.n_nodes,
+        "sun_disk_full_pairs": int(prim["disk_full"].sum()) if "disk_full" in prim else None,
         "glint_threshold_mag": thr,
         "glints": {k: {"count": len(v), "total_duration_s": float(sum(r["duration_s"] for r in v)), "runs": v}
                    for k, v in glints.items()},
