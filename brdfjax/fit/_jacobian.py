@@ -45,6 +45,7 @@ from jaxtyping import Array
 
 from ..geometry import Rz
 from ..terms import ABg, Diffraction, Lambertian, Model, OffsetNormal, Oriented, Phong, Specular
+from ._residuals import block_log_residuals
 
 __all__ = ["SCALES", "supports", "residuals_and_jacobian"]
 
@@ -189,11 +190,9 @@ def _columns(block: Any, plan: _Plan, xs: Array) -> tuple[Array, Array]:
 
 def _block_residuals(block: Any, plan: _Plan, xs: Array, soften: Array) -> tuple[Array, Array]:
     """Log residuals (n,) of a block and their derivatives (p, n)."""
-    from ._problem import _log_residuals
-
     g, dg = _columns(block, plan, xs)
     r, dr = jax.vmap(
-        lambda t: jax.jvp(lambda f: _log_residuals(f, block, soften), (g,), (t,)), in_axes=1, out_axes=(None, 0)
+        lambda t: jax.jvp(lambda f: block_log_residuals(f, block, soften), (g,), (t,)), in_axes=1, out_axes=(None, 0)
     )(dg)
     return r, dr
 

@@ -50,7 +50,7 @@ from ..terms import AbstractTerm, Model
 from ._jacobian import residuals_and_jacobian as structured_residuals_and_jacobian, supports as structured_supports
 from ._nuisance import NuisanceTerms
 from ._params import Layout, forward_by_id
-from ._residuals import convolve_same, log_model, robust_residuals_by_id
+from ._residuals import block_log_residuals, convolve_same, robust_residuals_by_id
 
 __all__ = ["FrameBlock", "FrameStack", "TableBlock", "Problem", "residuals", "PAD_MULTIPLE"]
 
@@ -198,17 +198,7 @@ class FrameBlock(eqx.Module):
         return _log_residuals(self.model_values(model, frame), self, soften)
 
 
-def _log_residuals(f: Array, block: "FrameBlock | TableBlock", soften: Array) -> Array:
-    """``(log(f + floor + s) - log(d + s)) (d + s) / (d sigma_rel)`` with ``s = soften * soft_level``.
-
-    ``s = 0`` is the plain log residual; ``s > 0`` softens the log below the
-    level ``s`` (a first stage that keeps the zeros of the model -- dark
-    fringes -- from trapping the solver), with the weight rescaled so that
-    the residual stays in units of sigma.
-    """
-    s = soften * block.soft_level
-    d = block.data
-    return (log_model(f, block.floor + s) - jnp.log(d + s)) * block.inv_sigma * ((d + s) / d)
+_log_residuals = block_log_residuals  # (moved to ._residuals: ._jacobian needs it too)
 
 
 class TableBlock(eqx.Module):

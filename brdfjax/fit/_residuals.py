@@ -32,11 +32,13 @@ point counts at the optimum.
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax.numpy as jnp
 import jax.scipy.signal as jsignal
 from jaxtyping import Array, ArrayLike
 
-__all__ = ["LOSSES", "DEFAULT_LOSS_SCALE", "robust_residuals", "robust_residuals_by_id", "loss_id", "irls_weights", "log_model", "convolve_same"]
+__all__ = ["LOSSES", "DEFAULT_LOSS_SCALE", "robust_residuals", "robust_residuals_by_id", "loss_id", "irls_weights", "log_model", "convolve_same", "block_log_residuals"]
 
 LOSSES = ("linear", "huber", "cauchy")
 
@@ -113,3 +115,16 @@ def log_model(f: Array, floor: ArrayLike) -> Array:
 def convolve_same(image: Array, kernel: Array) -> Array:
     """``image`` convolved with a centred odd-sided ``kernel`` (FFT, zero padding), same shape as ``image``."""
     return jsignal.fftconvolve(image, kernel, mode="same")
+
+
+def block_log_residuals(f: Array, block: Any, soften: Array) -> Array:
+    """``(log(f + floor + s) - log(d + s)) (d + s) / (d sigma_rel)`` with ``s = soften * soft_level``.
+
+    ``s = 0`` is the plain log residual; ``s > 0`` softens the log below the
+    level ``s`` (a first stage that keeps the zeros of the model -- dark
+    fringes -- from trapping the solver), with the weight rescaled so that
+    the residual stays in units of sigma.
+    """
+    s = soften * block.soft_level
+    d = block.data
+    return (log_model(f, block.floor + s) - jnp.log(d + s)) * block.inv_sigma * ((d + s) / d)
