@@ -117,3 +117,17 @@ def test_fit_is_unchanged_by_the_structured_jacobian(monkeypatch, first_stage):
     assert a.chi2 == pytest.approx(b.chi2, rel=1e-8)
     for name in ("peak.m", "peak.rho_s", "bars.c"):
         assert a.value(name) == pytest.approx(b.value(name), rel=1e-6, abs=1e-3 * b.sigma(name))
+
+
+def test_progress_is_heard_whether_or_not_a_solve_without_listeners_was_compiled_first():
+    """A solve nobody listens to is compiled without the progress callback (so it can come from the
+    persistent cache); one with a listener still reports every evaluation."""
+    lamb = bj.Model(terms={"diffuse": bj.Lambertian(rho_d=0.1)})
+    ts = np.radians(np.linspace(5.0, 60.0, 12))
+    tab = TableData(theta_i=np.full(12, np.radians(30.0)), phi_i=np.zeros(12), theta_s=ts, phi_s=np.full(12, np.pi),
+                    brdf=np.full(12, 0.2 / np.pi), sigma_rel=0.05)
+    quiet = fit(lamb, tab, {"diffuse.rho_d": 0.1}, first_stage=None)
+    heard = []
+    loud = fit(lamb, tab, {"diffuse.rho_d": 0.1}, first_stage=None, progress=lambda k, chi2: heard.append(chi2))
+    assert quiet.converged and loud.converged and quiet.chi2 == pytest.approx(loud.chi2, rel=1e-12)
+    assert len(heard) >= 2 and heard[-1] == pytest.approx(loud.cost, rel=1e-6, abs=1e-9)

@@ -342,6 +342,9 @@ class Problem(eqx.Module):
     # Systematic errors as nuisance parameters (the last free entries): offsets of every point's log
     # model and their prior rows after the data's residuals (brdfjax.fit._nuisance).  None: none.
     nuisance: NuisanceTerms | None = None
+    # Whether the residual function reports each evaluation to report_evaluations' listeners (static:
+    # the solvers set it from whether anyone listens, so that a quiet solve carries no host callback).
+    report: bool = eqx.field(static=True, default=True)
 
     @property
     def n_blocks(self) -> int:
@@ -451,8 +454,16 @@ def _emit(chi2: Any) -> None:
             listener(value)
 
 
-def _announce(r: Array) -> None:
-    jax.debug.callback(_emit, jnp.sum(jnp.square(r)))
+def listening() -> bool:
+    """Whether anyone listens to residual evaluations now (:func:`report_evaluations`)."""
+    return bool(_LISTENERS)
+
+
+def _announce(r: Array, problem: "Problem") -> None:
+    # A program with a host callback never comes from JAX's persistent compilation cache in another
+    # process (the cache key holds the callback's address): a solve nobody listens to goes without.
+    if problem.report:
+        jax.debug.callback(_emit, jnp.sum(jnp.square(r)))
 
 
 @contextmanager
@@ -478,7 +489,7 @@ def residuals(v: Array, problem: Problem) -> Array:
     """The residual function handed to solvers (one object, so compiled programs are reused)."""
     r = problem.residuals(v).astype(jnp.result_type(v))
     r = jnp.where(jnp.isfinite(r), r, _BIG)
-    _announce(r)
+    _announce(r, problem)
     return r
 
 
@@ -492,7 +503,7 @@ def _residuals_jvp(primals, tangents):
     # see finite numbers to reject the step rather than fail.
     r = jnp.where(jnp.isfinite(r), r, _BIG)
     J = jnp.where(jnp.isfinite(J), J, 0.0)
-    _announce(r)
+    _announce(r, problem)
     return r, J @ t_v
 
 

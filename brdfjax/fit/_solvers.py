@@ -30,7 +30,7 @@ import numpy as np
 import optimistix as optx
 
 from ._common import FitInputError
-from ._problem import Problem, half_sum_squares, residuals
+from ._problem import Problem, half_sum_squares, listening, residuals
 
 __all__ = ["SolveOutcome", "AbstractSolver", "LevenbergMarquardt", "LBFGSB", "SOLVERS", "get_solver"]
 
@@ -88,6 +88,8 @@ class LevenbergMarquardt(AbstractSolver):
     max_steps: int = eqx.field(static=True, default=256)
 
     def solve(self, problem, v0, box=None):
+        # without listeners, no progress callback: the compiled solve can then come from the persistent cache
+        problem = dataclasses.replace(problem, report=listening())
         value, result, steps = _lm_solve(jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps)
         v = np.asarray(value)
         n = int(steps)
