@@ -90,7 +90,7 @@ def _draw_offsets(rng: np.random.Generator, uniform: bool) -> dict:
     return out
 
 
-def realise(i: int, work: Path, uniform: bool, step: int) -> dict:
+def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = False) -> dict:
     model = bj.solar_cell()
     truth = {k: float(np.asarray(v)) for k, v in model.params().items()}
     det = Detector.seed(shape=(2472 // BIN, 3296 // BIN), pixel_pitch=5.5e-6 * BIN, pixel_pitch_v=5.5e-6 * BIN)
@@ -128,7 +128,10 @@ def realise(i: int, work: Path, uniform: bool, step: int) -> dict:
         od = float(name[3:-1].split("#")[0])
         true_log_scale += float(col[0]) * offsets[(round(od, 6), 0)]
     out["true_log_scale"] = true_log_scale
-    for label, nuis in (("without", None), ("with", NuisanceOptions())):
+    runs = [("without", None), ("with", NuisanceOptions())]
+    if footprint:  # the footprint width free too (4 % prior), as configs/sample_synthetic_solar_cell.toml does
+        runs.append(("with_footprint", NuisanceOptions(footprint=True)))
+    for label, nuis in runs:
         t0 = time.perf_counter()
         r = fit(model, [frame], spec, nuisance=nuis)
         est = {}
@@ -141,7 +144,7 @@ def realise(i: int, work: Path, uniform: bool, step: int) -> dict:
 
 def coverage(rows: list[dict], label: str) -> dict:
     res = {}
-    for group, names in {**GROUPS, "overall": FREE}.items():
+    for group, names in {**GROUPS, "overall": FREE, **{k: [k] for k in FREE}}.items():
         hit68 = hit95 = n = 0
         for row in rows:
             for k in names:
@@ -162,6 +165,8 @@ def main(argv=None) -> int:
     ap.add_argument("--n", type=int, default=50)
     ap.add_argument("--step", type=int, default=1, help="every step-th pixel of the reduced 16x16-binned frame")
     ap.add_argument("--uniform", action="store_true", help="draw OD errors uniformly within the tolerance (the instrument's own)")
+    ap.add_argument("--footprint", action="store_true",
+                    help="a third fit per realisation with the footprint width free as well (4 %% prior)")
     ap.add_argument("--budget-s", type=float, default=math.inf, help="stop starting new realisations after this long")
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -179,7 +184,7 @@ def main(argv=None) -> int:
                 print(f"budget reached after {len(rows)} realisations", file=sys.stderr)
                 break
             try:
-                row = realise(i, Path(tmp), args.uniform, args.step)
+                row = realise(i, Path(tmp), args.uniform, args.step, args.footprint)
             except ReductionError as e:  # an OD error so large that the beam saturates: the lab would refilter
                 print(f"[{i}] skipped: {e}", file=sys.stderr)
                 skipped.append({"i": i, "why": str(e).split(": ", 1)[-1]})
@@ -197,13 +202,18 @@ def main(argv=None) -> int:
             shutil.rmtree(Path(tmp) / f"r{i}", ignore_errors=True)
     summary = {"n_realisations": len(rows), "skipped_this_run": skipped, "uniform_nd": bool(args.uniform), "bin": BIN, "step": args.step,
                "without": coverage(rows, "without"), "with": coverage(rows, "with"),
+               **({"with_footprint": coverage(rows, "with_footprint")} if args.footprint else {}),
                "loadavg": os.getloadavg(), "wall_s": time.perf_counter() - t0}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"{len(rows)} realisations; coverage of the 68 % / 95 % intervals (asked: 60-76 % / 90-98 %):")
-    for g in (*GROUPS, "overall"):
+    for g in (*GROUPS, "overall", *FREE):
         a, b = summary["without"][g], summary["with"][g]
-        print(f"  {g:<8s} without nuisance {a['cover68']:.2f} / {a['cover95']:.2f}   "
-              f"with nuisance {b['cover68']:.2f} / {b['cover95']:.2f}   (n = {b['n']})")
+        line = (f"  {g:<8s} without nuisance {a['cover68']:.2f} / {a['cover95']:.2f}   "
+                f"with nuisance {b['cover68']:.2f} / {b['cover95']:.2f}")
+        if args.footprint:
+            c = summary["with_footprint"][g]
+            line += f"   with nuisance + footprint {c['cover68']:.2f} / {c['cover95']:.2f}"
+        print(line + f"   (n = {b['n']})")
     return 0
 
 
