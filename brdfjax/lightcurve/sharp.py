@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ..geometry import Rz
 from ..terms import (
     ABg,
     AbstractTerm,
@@ -46,6 +47,7 @@ from ..terms import (
     Phong as CorePhong,
     Specular,
 )
+from .models import Phong as LCPhong  # the light-curve Phong baseline (kd, ks, exponent)
 
 __all__ = ["Feature", "term_features", "lobe_radius", "DEFAULT_TOL"]
 
@@ -142,8 +144,6 @@ def term_features(term: AbstractTerm, radius: float, tol: float = DEFAULT_TOL) -
 
 
 def _features(term: AbstractTerm, delta: Array, tol: float) -> list[Feature]:
-    from .models import Phong as LCPhong  # the light-curve Phong baseline (kd, ks, exponent)
-
     if isinstance(term, Lambertian):
         return []
     if isinstance(term, Specular):
@@ -177,8 +177,6 @@ def _features(term: AbstractTerm, delta: Array, tol: float) -> list[Feature]:
         R = term.rotation()
         return [f.rotated_back(R) for f in _features(term.term, delta, tol)]
     if isinstance(term, Oriented):
-        from ..geometry import Rz
-
         R = Rz(-term.psi)
         return [f.rotated_back(R) for f in _features(term.term, delta, tol)]
     if isinstance(getattr(term, "terms", None), dict):  # a nested Model
