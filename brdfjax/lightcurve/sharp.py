@@ -205,8 +205,7 @@ def flag_features(features: list[Feature], h: Array, delta_h: Array, radius: flo
         c = jnp.sum(h * v, -1)
         reach = jnp.minimum(delta_h + rad, np.pi / 2)
         if f.kind == "axis":
-            s = jnp.sqrt(jnp.maximum(jnp.sum(jnp.square(jnp.cross(h, v)), -1), 0.0))
-            hit = jnp.arctan2(s, c) < reach
+            hit = c > jnp.cos(reach)  # angle(h, v) < reach, both unit vectors
         else:  # band
             hit = jnp.abs(c) < jnp.sin(reach)
         flag = flag | ((rad >= 0) & hit)
