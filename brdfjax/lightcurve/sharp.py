@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ..geometry import Rz
 from ..terms import (
     ABg,
     AbstractTerm,
@@ -46,6 +47,7 @@ from ..terms import (
     Phong as CorePhong,
     Specular,
 )
+from .models import Phong as LCPhong  # the light-curve Phong baseline (kd, ks, exponent)
 
 __all__ = ["Feature", "term_features", "lobe_radius", "DEFAULT_TOL"]
 
@@ -142,8 +144,6 @@ def term_features(term: AbstractTerm, radius: float, tol: float = DEFAULT_TOL) -
 
 
 def _features(term: AbstractTerm, delta: Array, tol: float) -> list[Feature]:
-    from .models import Phong as LCPhong  # the light-curve Phong baseline (kd, ks, exponent)
-
     if isinstance(term, Lambertian):
         return []
     if isinstance(term, Specular):
@@ -177,8 +177,6 @@ def _features(term: AbstractTerm, delta: Array, tol: float) -> list[Feature]:
         R = term.rotation()
         return [f.rotated_back(R) for f in _features(term.term, delta, tol)]
     if isinstance(term, Oriented):
-        from ..geometry import Rz
-
         R = Rz(-term.psi)
         return [f.rotated_back(R) for f in _features(term.term, delta, tol)]
     if isinstance(getattr(term, "terms", None), dict):  # a nested Model
@@ -207,8 +205,7 @@ def flag_features(features: list[Feature], h: Array, delta_h: Array, radius: flo
         c = jnp.sum(h * v, -1)
         reach = jnp.minimum(delta_h + rad, np.pi / 2)
         if f.kind == "axis":
-            s = jnp.sqrt(jnp.maximum(jnp.sum(jnp.square(jnp.cross(h, v)), -1), 0.0))
-            hit = jnp.arctan2(s, c) < reach
+            hit = c > jnp.cos(reach)  # angle(h, v) < reach, both unit vectors
         else:  # band
             hit = jnp.abs(c) < jnp.sin(reach)
         flag = flag | ((rad >= 0) & hit)
