@@ -57,6 +57,7 @@ from brdfjax.instrument.nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES  # noqa: E4
 from brdfjax.instrument.reduce import ReductionError, reduce_measurement_set  # noqa: E402
 from brdfjax.instrument.synthetic import InstrumentConfig, SyntheticInstrument  # noqa: E402
 from brdfjax.render import Frame  # noqa: E402
+from brdfjax.sample import sample  # noqa: E402
 
 FREE = ("m1", "rho_s1", "rho_s3", "c")
 GROUPS = {"shape": ("m1", "c"), "weights": ("rho_s1", "rho_s3")}
@@ -90,7 +91,7 @@ def _draw_offsets(rng: np.random.Generator, uniform: bool) -> dict:
     return out
 
 
-def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = False) -> dict:
+def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = False, sample_steps: int = 0) -> dict:
     model = bj.solar_cell()
     truth = {k: float(np.asarray(v)) for k, v in model.params().items()}
     det = Detector.seed(shape=(2472 // BIN, 3296 // BIN), pixel_pitch=5.5e-6 * BIN, pixel_pitch_v=5.5e-6 * BIN)
@@ -139,7 +140,31 @@ def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = Fals
             est[k] = {"value": r.value(k), "sigma": r.sigma(k)}
         out[label] = {"converged": r.converged, "chi2_reduced": r.chi2_reduced, "params": est,
                       "wall_s": time.perf_counter() - t0}
+        if sample_steps and label == runs[-1][0]:
+            # the same likelihood sampled (emcee, started from this fit): equal-tailed 68 % / 95 % intervals
+            t0 = time.perf_counter()
+            post = sample(model, [frame], spec, start=r, fit_kwargs={"nuisance": nuis}, n_steps=sample_steps,
+                          seed=i, figures=False, predictive_draws=0)
+            iv = {k: {"i68": post.interval(k, 0.68), "i95": post.interval(k, 0.95)} for k in FREE}
+            out["sampled"] = {"of": label, "params": iv, "tau_max": float(np.max(post.diagnostics.tau)),
+                              "n_steps": sample_steps, "wall_s": time.perf_counter() - t0}
     return out
+
+
+def sampled_coverage(rows: list[dict]) -> dict:
+    """Coverage of the sampler's equal-tailed intervals (the realisations that were sampled)."""
+    rows = [r for r in rows if "sampled" in r]
+    res = {}
+    for group, names in {**GROUPS, "overall": FREE, **{k: [k] for k in FREE}}.items():
+        hits = {"68": 0, "95": 0}
+        for row in rows:
+            for k in names:
+                for lev in hits:
+                    lo, hi = row["sampled"]["params"][k]["i" + lev]
+                    hits[lev] += lo <= row["truth"][k] <= hi
+        n = len(rows) * len(names)
+        res[group] = {"n": n, "cover68": hits["68"] / n if n else None, "cover95": hits["95"] / n if n else None}
+    return res
 
 
 def coverage(rows: list[dict], label: str) -> dict:
@@ -167,6 +192,8 @@ def main(argv=None) -> int:
     ap.add_argument("--uniform", action="store_true", help="draw OD errors uniformly within the tolerance (the instrument's own)")
     ap.add_argument("--footprint", action="store_true",
                     help="a third fit per realisation with the footprint width free as well (4 %% prior)")
+    ap.add_argument("--sample-steps", type=int, default=0,
+                    help="also sample each realisation's last likelihood with emcee for this many steps (0: off)")
     ap.add_argument("--budget-s", type=float, default=math.inf, help="stop starting new realisations after this long")
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -184,7 +211,7 @@ def main(argv=None) -> int:
                 print(f"budget reached after {len(rows)} realisations", file=sys.stderr)
                 break
             try:
-                row = realise(i, Path(tmp), args.uniform, args.step, args.footprint)
+                row = realise(i, Path(tmp), args.uniform, args.step, args.footprint, args.sample_steps)
             except ReductionError as e:  # an OD error so large that the beam saturates: the lab would refilter
                 print(f"[{i}] skipped: {e}", file=sys.stderr)
                 skipped.append({"i": i, "why": str(e).split(": ", 1)[-1]})
@@ -203,6 +230,7 @@ def main(argv=None) -> int:
     summary = {"n_realisations": len(rows), "skipped_this_run": skipped, "uniform_nd": bool(args.uniform), "bin": BIN, "step": args.step,
                "without": coverage(rows, "without"), "with": coverage(rows, "with"),
                **({"with_footprint": coverage(rows, "with_footprint")} if args.footprint else {}),
+               **({"sampled": sampled_coverage(rows)} if any("sampled" in r for r in rows) else {}),
                "loadavg": os.getloadavg(), "wall_s": time.perf_counter() - t0}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"{len(rows)} realisations; coverage of the 68 % / 95 % intervals (asked: 60-76 % / 90-98 %):")
@@ -213,6 +241,9 @@ def main(argv=None) -> int:
         if args.footprint:
             c = summary["with_footprint"][g]
             line += f"   with nuisance + footprint {c['cover68']:.2f} / {c['cover95']:.2f}"
+        if "sampled" in summary:
+            d = summary["sampled"][g]
+            line += f"   sampled (emcee) {d['cover68']:.2f} / {d['cover95']:.2f} (n = {d['n']})"
         print(line + f"   (n = {b['n']})")
     return 0
 

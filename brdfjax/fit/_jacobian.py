@@ -72,7 +72,9 @@ def _local(problem, k: int) -> list[tuple[int, str, str]]:
 
 
 def _block_ok(block: Any, local: list[tuple[int, str, str]]) -> bool:
-    if not isinstance(block.template, Model) or getattr(block, "dirs", None) is None:
+    # exactly a Model (a sum of named terms): a subclass such as the diagnosis's InstrumentResponse applies a
+    # response to the sum, which per-term columns do not see
+    if type(block.template) is not Model or getattr(block, "dirs", None) is None:
         return False
     return all(kind == "model" or base == "phi_ref" for _, base, kind in local)
 
