@@ -23,6 +23,7 @@ FIT = """
 precision = "float64"
 [data]
 frames = ["{frame}"]
+step = 2
 footprint_w_px = 3.125
 sigma = "noise"
 sigma_floor = 0.0068
