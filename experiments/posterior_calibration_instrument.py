@@ -57,7 +57,7 @@ from brdfjax.instrument.nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES  # noqa: E4
 from brdfjax.instrument.reduce import ReductionError, reduce_measurement_set  # noqa: E402
 from brdfjax.instrument.synthetic import InstrumentConfig, SyntheticInstrument  # noqa: E402
 from brdfjax.render import Frame  # noqa: E402
-from brdfjax.sample import sample  # noqa: E402
+from brdfjax.sample import Prior, sample  # noqa: E402
 
 FREE = ("m1", "rho_s1", "rho_s3", "c")
 GROUPS = {"shape": ("m1", "c"), "weights": ("rho_s1", "rho_s3")}
@@ -91,7 +91,8 @@ def _draw_offsets(rng: np.random.Generator, uniform: bool) -> dict:
     return out
 
 
-def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = False, sample_steps: int = 0) -> dict:
+def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = False, sample_steps: int = 0,
+            log_weights_prior: bool = False) -> dict:
     model = bj.solar_cell()
     truth = {k: float(np.asarray(v)) for k, v in model.params().items()}
     det = Detector.seed(shape=(2472 // BIN, 3296 // BIN), pixel_pitch=5.5e-6 * BIN, pixel_pitch_v=5.5e-6 * BIN)
@@ -143,10 +144,14 @@ def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = Fals
         if sample_steps and label == runs[-1][0]:
             # the same likelihood sampled (emcee, started from this fit): equal-tailed 68 % / 95 % intervals
             t0 = time.perf_counter()
+            # log-uniform priors on the weights (two decades either side of the truth): the ND error is log-normal,
+            # and a prior flat in rho pushes the flux-scaled weights' posterior up by the ridge's length
+            priors = ({k: Prior.log_uniform(truth[k] / 100, truth[k] * 100) for k in GROUPS["weights"]}
+                      if log_weights_prior else None)
             post = sample(model, [frame], spec, start=r, fit_kwargs={"nuisance": nuis}, n_steps=sample_steps,
-                          seed=i, figures=False, predictive_draws=0)
+                          seed=i, figures=False, predictive_draws=0, priors=priors)
             iv = {k: {"i68": post.interval(k, 0.68), "i95": post.interval(k, 0.95)} for k in FREE}
-            out["sampled"] = {"of": label, "params": iv, "tau_max": float(np.max(post.diagnostics.tau)),
+            out["sampled"] = {"of": label, "prior": "log_uniform weights" if log_weights_prior else "flat", "params": iv, "tau_max": float(np.max(post.diagnostics.tau)),
                               "n_steps": sample_steps, "wall_s": time.perf_counter() - t0}
     return out
 
@@ -194,6 +199,8 @@ def main(argv=None) -> int:
                     help="a third fit per realisation with the footprint width free as well (4 %% prior)")
     ap.add_argument("--sample-steps", type=int, default=0,
                     help="also sample each realisation's last likelihood with emcee for this many steps (0: off)")
+    ap.add_argument("--log-uniform-weights", action="store_true",
+                    help="with --sample-steps: log-uniform priors on rho_s1, rho_s3 (else flat in rho)")
     ap.add_argument("--budget-s", type=float, default=math.inf, help="stop starting new realisations after this long")
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -211,7 +218,8 @@ def main(argv=None) -> int:
                 print(f"budget reached after {len(rows)} realisations", file=sys.stderr)
                 break
             try:
-                row = realise(i, Path(tmp), args.uniform, args.step, args.footprint, args.sample_steps)
+                row = realise(i, Path(tmp), args.uniform, args.step, args.footprint, args.sample_steps,
+                          args.log_uniform_weights)
             except ReductionError as e:  # an OD error so large that the beam saturates: the lab would refilter
                 print(f"[{i}] skipped: {e}", file=sys.stderr)
                 skipped.append({"i": i, "why": str(e).split(": ", 1)[-1]})
