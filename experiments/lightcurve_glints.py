@@ -1,4 +1,4 @@
-"""Light curves with the seed's solar cell (issue 17): glints over the shipped passes, the glint map, speed.
+"""Light curves with the seed's solar cell (issue 17): glints over the shipped passes, the glint map, the glint height.
 
 1. The shipped config (configs/lightcurve_box_wing.toml: a box-and-wing
    satellite at 550 km, one night over Cerro Pachon): number and total
@@ -13,7 +13,8 @@
    experiments/figures/lightcurve_glint_map.png.
 3. Solar-disk integration: a mirror-like facet's glint height, disk-averaged
    vs analytic vs point Sun.
-4. Speed: 10^4 time steps x 10 facets x 1,000 posterior draws.
+(Speed, 10^4 steps x 10 facets x 1,000 draws with the point Sun, the adaptive and the full disk:
+experiments/benchmark_lightcurve.py.)
 
     python3 experiments/lightcurve_glints.py --out experiments/results/lightcurve_glints.json
     python3 experiments/lightcurve_glints.py --quick --out /tmp/lc_quick.json
@@ -43,7 +44,7 @@ from brdfjax.lightcurve.engine import Attitude, Facets, Geometry, Satellite, Sun
 from brdfjax.lightcurve.ephemeris import AU_M  # noqa: E402
 from brdfjax.lightcurve.glintmap import glint_map  # noqa: E402
 from brdfjax.lightcurve.models import directional_albedo  # noqa: E402
-from brdfjax.lightcurve.run import posterior_total_flux, run_lightcurve  # noqa: E402
+from brdfjax.lightcurve.run import run_lightcurve  # noqa: E402
 from brdfjax.plotting import save_figure_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -154,49 +155,11 @@ def glint_height() -> dict:
     return out
 
 
-def speed(quick: bool) -> dict:
-    T, J = 10_000, 10
-    S = 100 if quick else 1000
-    ang = np.linspace(0, 0.5, T)
-    r_hat = np.stack([np.cos(ang), np.sin(ang), np.zeros(T)], -1)
-    t_hat = np.stack([-np.sin(ang), np.cos(ang), np.zeros(T)], -1)
-    r_sat = 6.93e6 * r_hat
-    s = -0.3 * r_hat + t_hat + np.array([0, 0, 0.4])
-    s /= np.linalg.norm(s, axis=-1, keepdims=True)
-    geo = Geometry.from_positions(r_sat, 7.6e3 * t_hat, r_sat + s * AU_M, 6.37e6 * r_hat - 3e5 * t_hat + np.array([0, 0, 2e5]))
-    rng = np.random.default_rng(0)
-    names = ("m1", "rho_s1", "m2", "rho_s2", "rho_s3")
-    draws = np.array([2e-4, 0.015, 2e-4, 0.7, 300.0]) * (1 + 0.05 * rng.normal(size=(S, 5)))
-    out = {}
-    for label, n_post, rings, n_draws in (("2 array facets of 10 carry the posterior, point Sun", 2, 0, S),
-                                          ("all 10 facets carry the posterior, point Sun", 10, 0, S),
-                                          ("2 array facets carry the posterior, disk 16 rings (979 nodes)", 2, 16, max(2, S // 100))):
-        fac = Facets.build([f"f{j}" for j in range(J)], np.ones(J), rng.normal(size=(J, 3)), tracking=[j < 2 for j in range(J)])
-        sat = Satellite(fac, (bj.solar_cell(), bj.Model({"d": bj.Lambertian(0.3)})), Attitude.nadir(),
-                        tuple(0 if j < n_post else 1 for j in range(J)))
-        disk = SunDisk.rings(rings)
-
-        def run(sat=sat, disk=disk, n_draws=n_draws):
-            return np.asarray(posterior_total_flux(sat, geo, disk, 550e-9, 0, names, draws[:n_draws], chunk=1000))
-
-        t0 = time.perf_counter()
-        run()
-        t1 = time.perf_counter()
-        run()
-        t2 = time.perf_counter()
-        per_draw = (t2 - t1) / n_draws
-        out[label] = {"T": T, "J": J, "draws": n_draws, "first_s": t1 - t0, "second_s": t2 - t1,
-                      "extrapolated_1000_draws_s": per_draw * 1000, "load": load()}
-        print(f"[speed] {label}: {T} steps x {J} facets x {n_draws} draws: {t2 - t1:.1f} s "
-              f"(first call {t1 - t0:.1f} s, compiling); 1,000 draws: {per_draw * 1000:.0f} s ({load()})")
-    return out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--only", default="shipped,map,height,speed")
+    ap.add_argument("--only", default="shipped,map,height")
     args = ap.parse_args()
     parts = args.only.split(",")
     # parts run separately (--only) are merged into the same results file
@@ -208,8 +171,6 @@ def main() -> None:
         res["shipped"] = shipped(args.quick)
     if "map" in parts:
         res["glint_map"] = glint_maps(args.quick)
-    if "speed" in parts:
-        res["speed"] = speed(args.quick)
     write_json_atomic(args.out, res, allow_nan=False)
     print(f"wrote {args.out}")
 
