@@ -10,6 +10,7 @@ import pytest
 
 import brdfjax as bj
 from brdfjax.diagnose import diagnose
+from brdfjax.diagnose.report import markdown_report
 from brdfjax.fit import Param, TableData, fit
 from brdfjax.fit.internal import lobe_fwhm
 
@@ -69,8 +70,6 @@ def test_diagnosis_ranks_angular_sampling_and_says_the_peak_is_unresolved(table)
     assert d.ranking[0].delta_bic < 10 and "ranked by its own detection" in c.note and "not in chi^2" in c.note
     assert d.to_dict()["ranking"][0]["ranked_by"] == "detection"
     assert "ranked by its detection: peak unresolved" in d.summary()
-    from brdfjax.diagnose.report import markdown_report
-
     md = markdown_report(d)
     assert "| 1 (detected) | angular_sampling |" in md and "Detected (angular_sampling, ranked first" in md
     assert d.gap["sigma_estimated"] and "sigma ESTIMATED" in d.summary()
