@@ -144,14 +144,21 @@ def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = Fals
         if sample_steps and label == runs[-1][0]:
             # the same likelihood sampled (emcee, started from this fit): equal-tailed 68 % / 95 % intervals
             t0 = time.perf_counter()
-            # log-uniform priors on the weights (two decades either side of the truth): the ND error is log-normal,
-            # and a prior flat in rho pushes the flux-scaled weights' posterior up by the ridge's length
-            priors = ({k: Prior.log_uniform(truth[k] / 100, truth[k] * 100) for k in GROUPS["weights"]}
+            # log-uniform priors on the weights: the ND error is log-normal, and a prior flat in rho pushes the
+            # flux-scaled weights' posterior up by the ridge's length. They span two decades either side of the fit's
+            # optimum (the value the sampler starts from), which a user has without knowing the truth; the truth
+            # enters only the coverage count.
+            centre = {k: r.value(k) for k in GROUPS["weights"]}
+            priors = ({k: Prior.log_uniform(centre[k] / 100, centre[k] * 100) for k in GROUPS["weights"]}
                       if log_weights_prior else None)
             post = sample(model, [frame], spec, start=r, fit_kwargs={"nuisance": nuis}, n_steps=sample_steps,
                           seed=i, figures=False, predictive_draws=0, priors=priors)
             iv = {k: {"i68": post.interval(k, 0.68), "i95": post.interval(k, 0.95)} for k in FREE}
-            out["sampled"] = {"of": label, "prior": "log_uniform weights" if log_weights_prior else "flat", "params": iv, "tau_max": float(np.max(post.diagnostics.tau)),
+            out["sampled"] = {"of": label, "prior": "log_uniform weights" if log_weights_prior else "flat",
+                              **({"prior_centre": "fit optimum", "prior_bounds": {k: [centre[k] / 100, centre[k] * 100]
+                                                                                 for k in GROUPS["weights"]}}
+                                 if log_weights_prior else {}),
+                              "params": iv, "tau_max": float(np.max(post.diagnostics.tau)),
                               "n_steps": sample_steps, "wall_s": time.perf_counter() - t0}
     return out
 
@@ -200,7 +207,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sample-steps", type=int, default=0,
                     help="also sample each realisation's last likelihood with emcee for this many steps (0: off)")
     ap.add_argument("--log-uniform-weights", action="store_true",
-                    help="with --sample-steps: log-uniform priors on rho_s1, rho_s3 (else flat in rho)")
+                    help="with --sample-steps: log-uniform priors on rho_s1, rho_s3, two decades either side of the "
+                         "fit's optimum (else flat in rho)")
     ap.add_argument("--budget-s", type=float, default=math.inf, help="stop starting new realisations after this long")
     args = ap.parse_args(argv)
     out = Path(args.out)
