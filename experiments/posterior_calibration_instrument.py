@@ -10,7 +10,7 @@ tolerances, §4.3, read as standard uncertainties as Eq 97 does; the
 instrument's own ``nd_error`` effect draws uniformly within the tolerance,
 see ``--uniform``).  The raw set is reduced (weighted merge, non-linearity
 corrected), read back (``sigma = "noise"`` with the 0.68 % per-pixel gain
-floor, as the shipped configs) and fitted twice (m1, rho_s1, rho_s3, c free;
+floor, as the shipped configs) and fitted (m1, rho_s1, rho_s3, c free;
 the rest at the truth):
 
 - **without** nuisance parameters (what brdfjax did before issue 15);
@@ -18,12 +18,15 @@ the rest at the truth):
   :mod:`brdfjax.fit._nuisance`).
 
 Intervals are the Laplace approximation's (fit +- z sigma; marginal sigma for
-the run with nuisance parameters): a sampler run per realisation would not fit
-the 2-core budget, and on these posteriors (Gaussian in the weights up to the
-log-normal flux scale) the Laplace interval is what the sampler reproduces
-(``brdfjax sample`` reports both).  Coverage of the 68 % and 95 % intervals is
-counted per parameter group -- shape (m1, c) and flux-scaled weights (rho_s1,
-rho_s3) -- and overall.
+the runs with nuisance parameters); ``--footprint`` adds a third fit with the
+footprint width free (4 % prior), and ``--sample-steps N`` also samples the last
+fit's likelihood with emcee (N steps from the fit; equal-tailed intervals),
+``--log-uniform-weights`` with log-uniform priors on the weights spanning two
+decades either side of the fit's optimum (what a user has; the truth enters
+only the coverage count).  Coverage of the 68 % and 95 % intervals is counted
+per parameter group -- shape (m1, c) and flux-scaled weights (rho_s1, rho_s3)
+-- and overall, each with its standard error and a 95 % Wilson interval counted
+by realisation (rho_s1 and rho_s3 share the ND error: one draw, not two).
 
 Resumable: per-realisation results go to ``OUT/realisations.jsonl`` and are
 skipped on a rerun; ``--n`` sets how many (default 50).
