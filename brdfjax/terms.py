@@ -31,7 +31,7 @@ from .distributions import AbstractDistribution, Beckmann
 from .fields import check_param, param
 from .fresnel import fresnel_microfacet, q_factor_parts
 from .geometry import Directions, Ry, Rz, fast_cos, fast_sinc
-from .shadowing import SHADOWING, shadowing_factor, shadowing_parts
+from .shadowing import SHADOWING, shadowing_factor, shadowing_parts, smith_mixture_g2_parts
 
 __all__ = [
     "AbstractTerm",
@@ -129,7 +129,8 @@ class Specular(AbstractTerm):
     form is never larger.  ``G`` is the masking-shadowing factor
     (:mod:`brdfjax.shadowing`): ``"none"`` (G = 1, the seed), ``"smith"``
     (height-correlated Smith G2 with the distribution's Lambda) or
-    ``"v_cavity"`` (Cook-Torrance).  ``fresnel="q_factor"`` (the default) is the
+    ``"v_cavity"`` (Cook-Torrance); ``"smith_mixture"`` is ``"smith"`` for one
+    distribution (it differs for :class:`MultiLobeSpecular`).  ``fresnel="q_factor"`` (the default) is the
     seed's polarization factor ``Q`` of Eq 69, evaluated at the macro angles
     ``theta_i, theta_s``; ``fresnel="microfacet"`` replaces it with ``F_s + F_p``
     at the microfacet angle ``theta_d`` (``cos theta_d = w_i . w_h``;
@@ -177,7 +178,11 @@ class MultiLobeSpecular(AbstractTerm):
 
     ``f = sum_l rho_l D_l(w_h) G_l Q(n + i k) N(theta_i, theta_s)`` with the
     normalisation ``N``, shadowing ``G`` and Fresnel factor (``fresnel``) of
-    :class:`Specular` (each lobe's G uses its own distribution).  Each lobe is normalised (Eq 54), so the
+    :class:`Specular`.  With ``shadowing="smith"`` each lobe's G uses its own
+    distribution's Lambda; ``shadowing="smith_mixture"`` is Smith's G2 of the
+    surface as a whole, whose slope distribution is the mixture of the lobes
+    (``Lambda = sum_l w_l Lambda_l``, ``w_l = rho_l / sum rho``;
+    :func:`brdfjax.shadowing.smith_mixture_g2_parts`), the same G for every lobe.  Each lobe is normalised (Eq 54), so the
     weights ``rho_l`` play the role of :class:`Specular`'s ``rho_s``.  Parameter
     names are ``<lobe>.<name>``: ``spike.m``, ``spike.rho_s``, ``halo.alpha``, ...
     and the shared ``n``, ``k``.
@@ -205,11 +210,15 @@ class MultiLobeSpecular(AbstractTerm):
 
     def __call__(self, dirs, wavelength):
         tx2, ty2, upper = dirs.half_slopes()
-        common = _q_times_geometry(self.n, self.k, dirs, self.normalisation, fresnel=self.fresnel)
+        mixture = self.shadowing == "smith_mixture"
+        extra = (smith_mixture_g2_parts([lb.distribution for lb in self.lobes.values()],
+                                        [lb.rho_s for lb in self.lobes.values()], dirs) if mixture else (1.0, 1.0))
+        common = _q_times_geometry(self.n, self.k, dirs, self.normalisation, extra, self.fresnel)
         total = 0.0
         for lobe in self.lobes.values():
             D = jnp.where(upper, lobe.distribution(tx2, ty2), 0.0)
-            total = total + lobe.rho_s * D * shadowing_factor(self.shadowing, lobe.distribution, dirs)
+            G = 1.0 if mixture else shadowing_factor(self.shadowing, lobe.distribution, dirs)
+            total = total + lobe.rho_s * D * G
         return jnp.where(_both_above(dirs), total * common, 0.0)
 
 
