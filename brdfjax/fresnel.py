@@ -14,7 +14,7 @@ from jaxtyping import Array, ArrayLike
 
 from .geometry import Directions, safe_hypot, safe_sqrt
 
-__all__ = ["fresnel", "q_factor", "q_factor_parts"]
+__all__ = ["fresnel", "fresnel_microfacet", "q_factor", "q_factor_parts"]
 
 
 def _csqrt_abs2(a: Array, b: Array) -> tuple[Array, Array, Array]:
@@ -60,6 +60,33 @@ def fresnel(n: ArrayLike, theta: ArrayLike, k: ArrayLike = 0.0) -> tuple[Array, 
     theta = jnp.asarray(theta)
     n2r, n2i = _index_squared(n, k)
     return _fresnel_cs(n2r, n2i, jnp.cos(theta), jnp.sin(theta))
+
+
+def fresnel_microfacet(n: ArrayLike, dirs: Directions, k: ArrayLike = 0.0) -> Array:
+    """``F_s + F_p`` at the microfacet angle ``theta_d`` (``cos theta_d = w_i . w_h = w_s . w_h``).
+
+    The Fresnel factor of the standard microfacet BRDF (Cook and Torrance
+    1982; Walter et al. 2007): each facet reflects with its own local
+    incidence angle.  It is twice the unpolarised reflectance, so that it
+    equals :func:`q_factor` in the specular direction (``theta_d = theta_i``
+    there) and replaces ``Q`` in Eq 70 or in the Torrance-Sparrow form
+    without changing either normalisation.  Symmetric in ``w_i``, ``w_s``
+    (reciprocal).  ``sin^2 theta_d`` is ``|w_i x w_sum|^2 / |w_sum|^2``
+    (no cancellation near ``theta_d = 0``).
+    """
+    (ix, iy, iz), (sx, sy, sz) = dirs.i, dirs.t
+    n2 = sx * sx + sy * sy + sz * sz
+    pos = n2 > 0
+    inv = jnp.where(pos, 1.0 / jnp.where(pos, n2, 1.0), 0.0)
+    dot = ix * sx + iy * sy + iz * sz
+    cos_d = jnp.where(pos, dot * safe_sqrt(inv), 1.0)
+    cx, cy, cz = iy * sz - iz * sy, iz * sx - ix * sz, ix * sy - iy * sx
+    sin2_d = jnp.where(pos, (cx * cx + cy * cy + cz * cz) * inv, 0.0)
+    n2r, n2i = _index_squared(n, k)
+    Ar, Ai = _csqrt(n2r - sin2_d, n2i)
+    rs = _abs2(cos_d - Ar, -Ai) / _abs2(cos_d + Ar, Ai)
+    rp = _abs2(n2r * cos_d - Ar, n2i * cos_d - Ai) / _abs2(n2r * cos_d + Ar, n2i * cos_d + Ai)
+    return rs + rp
 
 
 def q_factor(n: ArrayLike, dirs: Directions, k: ArrayLike = 0.0) -> Array:

@@ -65,8 +65,9 @@ TERMS: dict[str, Any] = {
     "binomial": Binomial,
 }
 
-#: Term kinds built around microfacet distributions, which take the ``shadowing`` and
-#: ``normalisation`` options (:data:`brdfjax.shadowing.SHADOWING`, :data:`brdfjax.terms.NORMALISATIONS`).
+#: Term kinds built around microfacet distributions, which take the ``shadowing``, ``normalisation`` and
+#: ``fresnel`` options (:data:`brdfjax.shadowing.SHADOWING`, :data:`brdfjax.terms.NORMALISATIONS`,
+#: :data:`brdfjax.terms.FRESNELS`).
 MICROFACET_KINDS = ("specular", "offset_specular", "multi_lobe")
 
 #: Model presets: the seed's solar cell and its other materials (``brdfjax.presets``: mirror, polished
@@ -115,19 +116,21 @@ def build_term(
     shadowing: str | None = None,
     normalisation: str | None = None,
     l1: int | None = None,
+    fresnel: str | None = None,
 ) -> AbstractTerm:
     """Build a term from its kind and a flat parameter dict (stored units).
 
     Specular kinds take a distribution name; ``multi_lobe`` takes ``lobes``
     (lobe name -> distribution name) and parameters ``<lobe>.<name>`` plus the
-    shared ``n``, ``k``; the microfacet kinds take the ``shadowing`` and
-    ``normalisation`` options (``None``: the seed's defaults); ``binomial``
+    shared ``n``, ``k``; the microfacet kinds take the ``shadowing``,
+    ``normalisation`` and ``fresnel`` options (``None``: the seed's defaults); ``binomial``
     takes its coefficients ``b<k>_<i>``, ``c<k>_<i>``, ``d`` and the integer ``l1``
     (default 0).
     """
     cls = lookup("term", kind)
     p = dict(params)
-    options = {k: v for k, v in (("shadowing", shadowing), ("normalisation", normalisation)) if v is not None}
+    options = {k: v for k, v in (("shadowing", shadowing), ("normalisation", normalisation), ("fresnel", fresnel))
+               if v is not None}
     if options and kind not in MICROFACET_KINDS:
         raise KeyError(f"{owner}: a '{kind}' term takes no {' or '.join(repr(k) for k in options)} "
                        f"(only {', '.join(MICROFACET_KINDS)} do)")

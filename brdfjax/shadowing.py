@@ -96,13 +96,16 @@ __all__ = [
     "smith_g1",
     "smith_g2",
     "smith_g2_parts",
+    "smith_lambda_pair",
+    "smith_mixture_g2_parts",
     "v_cavity",
     "shadowing_factor",
     "shadowing_parts",
 ]
 
-#: Shadowing-masking forms a specular term accepts.
-SHADOWING = ("none", "smith", "v_cavity")
+#: Shadowing-masking forms a specular term accepts.  ``smith_mixture``: Smith G2 of the whole surface when
+#: it has several lobes (:func:`smith_mixture_g2_parts`); for one distribution it is ``smith``.
+SHADOWING = ("none", "smith", "v_cavity", "smith_mixture")
 
 _SQRT_PI = math.sqrt(math.pi)
 
@@ -356,18 +359,50 @@ def smith_g2(dist: AbstractDistribution, dirs: Directions, method: str = "auto")
     return num / den
 
 
-def smith_g2_parts(dist: AbstractDistribution, dirs: Directions, method: str = "auto") -> tuple[Array, Array]:
-    """:func:`smith_g2` as ``(numerator, denominator)``: a caller can fold the division into its own."""
+def smith_lambda_pair(dist: AbstractDistribution, dirs: Directions, method: str = "auto") -> tuple[Array, Array]:
+    """``(Lambda(w_i), Lambda(w_s))`` of ``dist`` (a tabulated Lambda is built once for both)."""
     if method == "auto" and type(dist) not in (Beckmann, BeckmannAniso, GGX, GGXAniso, StudentTAniso):
         table = lambda_table(dist)
-        lam_i = _lambda_tabulated(table, dirs.i)
-        lam_s = _lambda_tabulated(table, dirs.s)
-    else:
-        lam_i = smith_lambda(dist, dirs.i, method)
-        lam_s = smith_lambda(dist, dirs.s, method)
+        return _lambda_tabulated(table, dirs.i), _lambda_tabulated(table, dirs.s)
+    return smith_lambda(dist, dirs.i, method), smith_lambda(dist, dirs.s, method)
+
+
+def _g2_from_lambdas(lam_i: Array, lam_s: Array, dirs: Directions) -> tuple[Array, Array]:
     ok = jnp.isfinite(lam_i) & jnp.isfinite(lam_s) & _positive_side(dirs.i, dirs.t) & _positive_side(dirs.s, dirs.t)
     total = jnp.where(ok, lam_i + lam_s, 0.0)
     return jnp.where(ok, 1.0, 0.0), 1.0 + total
+
+
+def smith_g2_parts(dist: AbstractDistribution, dirs: Directions, method: str = "auto") -> tuple[Array, Array]:
+    """:func:`smith_g2` as ``(numerator, denominator)``: a caller can fold the division into its own."""
+    return _g2_from_lambdas(*smith_lambda_pair(dist, dirs, method), dirs)
+
+
+def smith_mixture_g2_parts(dists, weights, dirs: Directions, method: str = "auto") -> tuple[Array, Array]:
+    """Height-correlated Smith G2 of a surface whose slope distribution is a mixture of ``dists``.
+
+    A multi-lobe surface is one surface: its slope distribution is the
+    normalised mixture ``P22 = sum_l w_l P22_l`` with ``w_l = weights_l /
+    sum(weights)`` (each lobe's D is normalised, Eq 54), and Lambda is linear
+    in P22 (Heitz 2014 Eq 72), so ``Lambda = sum_l w_l Lambda_l`` exactly;
+    ``G2 = 1 / (1 + Lambda(w_i) + Lambda(w_s))`` then masks every lobe's
+    microfacets alike (the narrow lobe's facets are masked by the wide
+    lobe's slopes).  For one distribution this is :func:`smith_g2_parts`.
+    Weights are the lobes' ``rho_s`` (they share the Fresnel factor); where
+    they sum to 0 the lobes count equally.
+    """
+    w = [jnp.asarray(x) for x in weights]
+    total = sum(w[1:], w[0])
+    pos = total > 0
+    inv = jnp.where(pos, 1.0 / jnp.where(pos, total, 1.0), 0.0)
+    lam_i = lam_s = 0.0
+    for d, wl in zip(dists, w):
+        li, ls = smith_lambda_pair(d, dirs, method)
+        frac = jnp.where(pos, wl * inv, 1.0 / len(w))
+        # inf (below the horizon) stays inf: only finite values are weighted
+        lam_i = lam_i + jnp.where(jnp.isfinite(li), frac * jnp.where(jnp.isfinite(li), li, 0.0), jnp.inf)
+        lam_s = lam_s + jnp.where(jnp.isfinite(ls), frac * jnp.where(jnp.isfinite(ls), ls, 0.0), jnp.inf)
+    return _g2_from_lambdas(lam_i, lam_s, dirs)
 
 
 def v_cavity(dirs: Directions) -> Array:
@@ -392,7 +427,7 @@ def shadowing_parts(kind: str, dist: AbstractDistribution, dirs: Directions) -> 
     """:func:`shadowing_factor` as ``(numerator, denominator)`` (the denominator a float 1.0 when there is none)."""
     if kind == "none":
         return 1.0, 1.0
-    if kind == "smith":
+    if kind in ("smith", "smith_mixture"):  # a single distribution is its own mixture
         return smith_g2_parts(dist, dirs)
     if kind == "v_cavity":
         return v_cavity(dirs), 1.0

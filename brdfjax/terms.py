@@ -29,14 +29,15 @@ from jaxtyping import Array, ArrayLike
 
 from .distributions import AbstractDistribution, Beckmann
 from .fields import check_param, param
-from .fresnel import q_factor_parts
+from .fresnel import fresnel_microfacet, q_factor_parts
 from .geometry import Directions, Ry, Rz, fast_cos, fast_sinc
-from .shadowing import SHADOWING, shadowing_factor, shadowing_parts
+from .shadowing import SHADOWING, shadowing_factor, shadowing_parts, smith_mixture_g2_parts
 
 __all__ = [
     "AbstractTerm",
     "Specular",
     "NORMALISATIONS",
+    "FRESNELS",
     "Lambertian",
     "Lobe",
     "MultiLobeSpecular",
@@ -70,7 +71,14 @@ def _both_above(dirs: Directions) -> Array:
 NORMALISATIONS = ("seed", "torrance_sparrow")
 
 
-def _check_options(owner: str, shadowing: str, normalisation: str) -> None:
+#: Fresnel factors of the specular term: the seed's Q polarization factor (Eq 69) at the macro angles, or
+#: the Fresnel reflectance at each microfacet's own angle (Cook-Torrance / Walter et al. 2007).
+FRESNELS = ("q_factor", "microfacet")
+
+
+def _check_options(owner: str, shadowing: str, normalisation: str, fresnel: str = "q_factor") -> None:
+    if fresnel not in FRESNELS:
+        raise ValueError(f"{owner}: unknown fresnel '{fresnel}'; known: {', '.join(FRESNELS)}")
     if shadowing not in SHADOWING:
         raise ValueError(f"{owner}: unknown shadowing '{shadowing}'; known: {', '.join(SHADOWING)}")
     if normalisation not in NORMALISATIONS:
@@ -92,9 +100,16 @@ def _specular_geometry_parts(dirs: Directions, normalisation: str) -> tuple[floa
     return 0.125, jnp.where(prod > 0, prod, 1.0)
 
 
-def _q_times_geometry(n, k, dirs: Directions, normalisation: str, extra: tuple = (1.0, 1.0)) -> Array:
-    """``Q * geometry`` (times ``extra[0] / extra[1]``, e.g. the shadowing) with a single per-pixel division."""
-    q_num, q_den = q_factor_parts(n, dirs, k)
+def _q_times_geometry(n, k, dirs: Directions, normalisation: str, extra: tuple = (1.0, 1.0),
+                      fresnel: str = "q_factor") -> Array:
+    """``Q * geometry`` (times ``extra[0] / extra[1]``, e.g. the shadowing) with a single per-pixel division.
+
+    ``fresnel="microfacet"``: ``F_s + F_p`` at the microfacet angle instead of ``Q``.
+    """
+    if fresnel == "microfacet":
+        q_num, q_den = fresnel_microfacet(n, dirs, k), 1.0
+    else:
+        q_num, q_den = q_factor_parts(n, dirs, k)
     g_num, g_den = _specular_geometry_parts(dirs, normalisation)
     e_num, e_den = extra
     den = q_den * g_den if isinstance(e_den, float) and e_den == 1.0 else q_den * g_den * e_den
@@ -114,7 +129,15 @@ class Specular(AbstractTerm):
     form is never larger.  ``G`` is the masking-shadowing factor
     (:mod:`brdfjax.shadowing`): ``"none"`` (G = 1, the seed), ``"smith"``
     (height-correlated Smith G2 with the distribution's Lambda) or
-    ``"v_cavity"`` (Cook-Torrance).  The defaults reproduce the seed exactly.
+    ``"v_cavity"`` (Cook-Torrance); ``"smith_mixture"`` is ``"smith"`` for one
+    distribution (it differs for :class:`MultiLobeSpecular`).  ``fresnel="q_factor"`` (the default) is the
+    seed's polarization factor ``Q`` of Eq 69, evaluated at the macro angles
+    ``theta_i, theta_s``; ``fresnel="microfacet"`` replaces it with ``F_s + F_p``
+    at the microfacet angle ``theta_d`` (``cos theta_d = w_i . w_h``;
+    :func:`brdfjax.fresnel.fresnel_microfacet`), the Fresnel factor of
+    Cook-Torrance and Walter et al. (2007): the two agree in the specular
+    direction and differ off it, most for wide lobes of a conductor.  The
+    defaults reproduce the seed exactly.
     """
 
     kind: ClassVar[str] = "specular"
@@ -124,18 +147,19 @@ class Specular(AbstractTerm):
     k: Array = param("1", "imaginary part of the refractive index", default=0.0)
     shadowing: str = eqx.field(static=True, default="none")
     normalisation: str = eqx.field(static=True, default="seed")
+    fresnel: str = eqx.field(static=True, default="q_factor")
 
     def __check_init__(self):
         check_param("specular", "rho_s", self.rho_s, lambda v: v >= 0, "rho_s >= 0")
         check_param("specular", "n", self.n, lambda v: v > 0, "n > 0")
         check_param("specular", "k", self.k, lambda v: v >= 0, "k >= 0")
-        _check_options("specular", self.shadowing, self.normalisation)
+        _check_options("specular", self.shadowing, self.normalisation, self.fresnel)
 
     def __call__(self, dirs, wavelength):
         tx2, ty2, upper = dirs.half_slopes()
         D = jnp.where(upper, self.distribution(tx2, ty2), 0.0)
         G = shadowing_parts(self.shadowing, self.distribution, dirs)  # its division folded into Q's
-        f = self.rho_s * D * _q_times_geometry(self.n, self.k, dirs, self.normalisation, G)
+        f = self.rho_s * D * _q_times_geometry(self.n, self.k, dirs, self.normalisation, G, self.fresnel)
         return jnp.where(_both_above(dirs), f, 0.0)
 
 
@@ -153,8 +177,12 @@ class MultiLobeSpecular(AbstractTerm):
     """Several microfacet lobes (e.g. a narrow spike and a wide halo) sharing one index ``n + i k``.
 
     ``f = sum_l rho_l D_l(w_h) G_l Q(n + i k) N(theta_i, theta_s)`` with the
-    normalisation ``N`` and shadowing ``G`` of :class:`Specular` (each lobe's G
-    uses its own distribution).  Each lobe is normalised (Eq 54), so the
+    normalisation ``N``, shadowing ``G`` and Fresnel factor (``fresnel``) of
+    :class:`Specular`.  With ``shadowing="smith"`` each lobe's G uses its own
+    distribution's Lambda; ``shadowing="smith_mixture"`` is Smith's G2 of the
+    surface as a whole, whose slope distribution is the mixture of the lobes
+    (``Lambda = sum_l w_l Lambda_l``, ``w_l = rho_l / sum rho``;
+    :func:`brdfjax.shadowing.smith_mixture_g2_parts`), the same G for every lobe.  Each lobe is normalised (Eq 54), so the
     weights ``rho_l`` play the role of :class:`Specular`'s ``rho_s``.  Parameter
     names are ``<lobe>.<name>``: ``spike.m``, ``spike.rho_s``, ``halo.alpha``, ...
     and the shared ``n``, ``k``.
@@ -166,6 +194,7 @@ class MultiLobeSpecular(AbstractTerm):
     k: Array = param("1", "imaginary part of the refractive index", default=0.0)
     shadowing: str = eqx.field(static=True, default="none")
     normalisation: str = eqx.field(static=True, default="seed")
+    fresnel: str = eqx.field(static=True, default="q_factor")
 
     def __check_init__(self):
         if not self.lobes:
@@ -177,15 +206,19 @@ class MultiLobeSpecular(AbstractTerm):
                 raise ValueError(f"multi_lobe: lobe name '{name}' must not contain '.'")
         check_param("multi_lobe", "n", self.n, lambda v: v > 0, "n > 0")
         check_param("multi_lobe", "k", self.k, lambda v: v >= 0, "k >= 0")
-        _check_options("multi_lobe", self.shadowing, self.normalisation)
+        _check_options("multi_lobe", self.shadowing, self.normalisation, self.fresnel)
 
     def __call__(self, dirs, wavelength):
         tx2, ty2, upper = dirs.half_slopes()
-        common = _q_times_geometry(self.n, self.k, dirs, self.normalisation)
+        mixture = self.shadowing == "smith_mixture"
+        extra = (smith_mixture_g2_parts([lb.distribution for lb in self.lobes.values()],
+                                        [lb.rho_s for lb in self.lobes.values()], dirs) if mixture else (1.0, 1.0))
+        common = _q_times_geometry(self.n, self.k, dirs, self.normalisation, extra, self.fresnel)
         total = 0.0
         for lobe in self.lobes.values():
             D = jnp.where(upper, lobe.distribution(tx2, ty2), 0.0)
-            total = total + lobe.rho_s * D * shadowing_factor(self.shadowing, lobe.distribution, dirs)
+            G = 1.0 if mixture else shadowing_factor(self.shadowing, lobe.distribution, dirs)
+            total = total + lobe.rho_s * D * G
         return jnp.where(_both_above(dirs), total * common, 0.0)
 
 

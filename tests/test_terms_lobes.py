@@ -132,9 +132,9 @@ def test_config_round_trip_of_the_new_terms_and_options():
     "body, where, message",
     [
         ('kind = "specular"\ndistribution = "ggx"\nshadowing = "smit"\nparams = { alpha = 0.1, rho_s = 1, n = 1.5 }',
-         "model.terms.x.shadowing", "unknown shadowing 'smit' (did you mean 'smith'?); known: none, smith, v_cavity"),
+         "model.terms.x.shadowing", "unknown shadowing 'smit' (did you mean 'smith'?); known: none, smith, smith_mixture, v_cavity"),
         ('kind = "lambertian"\nshadowing = "smith"\nparams = { rho_d = 0.1 }',
-         "model.terms.x", "'shadowing' and 'normalisation' apply only to microfacet terms (specular, offset_specular, multi_lobe)"),
+         "model.terms.x", "'shadowing', 'normalisation' and 'fresnel' apply only to microfacet terms (specular, offset_specular, multi_lobe)"),
         ('kind = "multi_lobe"\nparams = { n = 1.5 }', "model.terms.x", "a 'multi_lobe' term needs 'lobes'"),
         ('kind = "multi_lobe"\nlobes = { a = "ggx" }\nparams = { n = 1.5, a = { alpha = 0.1 } }',
          "model.terms.x.params", "missing parameter 'a.rho_s'"),

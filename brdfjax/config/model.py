@@ -21,7 +21,7 @@ from pydantic import Field, field_validator, model_validator
 
 from .. import registry
 from ..shadowing import SHADOWING
-from ..terms import NORMALISATIONS, AbstractTerm, Diffraction, Lobe, Model, MultiLobeSpecular, OffsetNormal, Specular
+from ..terms import FRESNELS, NORMALISATIONS, AbstractTerm, Diffraction, Lobe, Model, MultiLobeSpecular, OffsetNormal, Specular
 from .base import ConfigError, StrictModel, raise_unknown, unknown_key_message
 
 __all__ = [
@@ -88,6 +88,11 @@ class TermConfig(StrictModel):
         None,
         description=f"microfacet kinds only: one of {', '.join(NORMALISATIONS)} (default seed: the seed's Eq 70)",
     )
+    fresnel: str | None = Field(
+        None,
+        description=f"microfacet kinds only: one of {', '.join(FRESNELS)} (default q_factor: the seed's Eq 69 Q at the "
+        "macro angles; microfacet: F_s + F_p at the microfacet angle, Cook-Torrance / Walter)",
+    )
 
     @field_validator("params", mode="before")
     @classmethod
@@ -106,6 +111,13 @@ class TermConfig(StrictModel):
     def _known_normalisation(cls, v: str | None) -> str | None:
         if v is not None and v not in NORMALISATIONS:
             raise_unknown("normalisation", v, NORMALISATIONS)
+        return v
+
+    @field_validator("fresnel")
+    @classmethod
+    def _known_fresnel(cls, v: str | None) -> str | None:
+        if v is not None and v not in FRESNELS:
+            raise_unknown("fresnel", v, FRESNELS)
         return v
 
     @field_validator("lobes")
@@ -145,9 +157,12 @@ class TermConfig(StrictModel):
                 "a 'multi_lobe' term needs 'lobes' (lobe name -> distribution; known: "
                 f"{', '.join(sorted(registry.DISTRIBUTIONS))})"
             )
-        if self.kind not in registry.MICROFACET_KINDS and (self.shadowing is not None or self.normalisation is not None):
+        if self.kind not in registry.MICROFACET_KINDS and (
+            self.shadowing is not None or self.normalisation is not None or self.fresnel is not None
+        ):
             raise ValueError(
-                f"'shadowing' and 'normalisation' apply only to microfacet terms ({', '.join(registry.MICROFACET_KINDS)})"
+                f"'shadowing', 'normalisation' and 'fresnel' apply only to microfacet terms "
+                f"({', '.join(registry.MICROFACET_KINDS)})"
             )
         specular = self.kind in ("specular", "offset_specular")
         if specular and self.distribution is None:
@@ -336,7 +351,7 @@ def build_term(source: str, loc: str, t: TermConfig) -> AbstractTerm:
     try:
         term = registry.build_term(
             t.kind, stored, t.distribution, owner=loc, lobes=t.lobes, shadowing=t.shadowing, normalisation=t.normalisation,
-            l1=t.l1,
+            l1=t.l1, fresnel=t.fresnel,
         )
         if isinstance(term, Diffraction) and (t.grating_factor is not None or t.distance_m is not None):
             opts: dict[str, Any] = {}
@@ -380,7 +395,7 @@ def describe_model(m: ModelConfig) -> str:
         dist = f"/{t.distribution}" if t.distribution else ""
         opts = "".join(
             f", {k}={getattr(t, k)}"
-            for k in ("grating_factor", "distance_m", "lobes", "shadowing", "normalisation", "l1")
+            for k in ("grating_factor", "distance_m", "lobes", "shadowing", "normalisation", "fresnel", "l1")
             if getattr(t, k) is not None
         )
         parts.append(f"{name}: {t.kind}{dist}({ps}{opts})")

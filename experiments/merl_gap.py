@@ -1,0 +1,199 @@
+"""Where the physically based fit of MERL aluminium loses to the binomial, and what structure closes the gap (issue 14).
+
+Two parts, both from the fits stored in
+``experiments/results/real_data_fits_merl_aluminium.json`` (no fit is rerun):
+
+1. Residuals ``r = ln(f_model / f_data)`` of the stored best physically based
+   fit and of the binomial, per incident angle and per region of the
+   offset from the mirror direction ``d = theta_s - theta_i`` (in-plane,
+   signed, + on the specular side): the peak core ``|d| < 2 deg``, the near
+   wings ``2-8 deg``, the wings ``8-25 deg``, the far floor ``>= 25 deg``
+   forward and backward, and grazing ``|theta_s| > 75 deg``.  Each region's
+   share of the total mean square (the square of the overall log-RMS is the
+   sum of the shares of the disjoint regions) and its rms.
+
+2. Floors: the lowest log-RMS that ANY function of the half-angle
+   ``D(theta_h)`` times a fixed angular factor can reach on these data
+   (least squares of ``ln f - ln A`` on a cubic B-spline basis in
+   ``ln tan theta_h``, 40 knots), optionally with an arbitrary
+   reciprocal per-direction factor ``g(theta_i) + g(theta_s)`` (a
+   shadowing-like factor; 12 knots), an arbitrary factor of ``theta_d``, or the
+   binomial's second variable ``V = sin theta_i sin theta_s``.  A model of
+   the form ``D(theta_h) A(theta_i, theta_s)`` cannot go below its floor,
+   whatever its distribution; the floors say which kind of angular
+   structure the data need.  Angular factors: the seed's Eq 70 (``Q / (2
+   (cos ti + cos ts)^2)``), Torrance-Sparrow with ``Q / 2`` or with the
+   Fresnel reflectance at the microfacet angle ``F(theta_d)``, and none in the
+   projected distance ``|beta - beta0|`` (ABg's and the binomial's variable).
+   The index is scanned over a grid (n, k) for each factor, and a Smith
+   GGX G2 of a free width (0, 0.2, 0.4, 0.7) multiplied in.
+
+Prints both tables and writes ``experiments/results/merl_gap.json`` (atomically).
+
+    python3 experiments/merl_gap.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+from scipy.interpolate import BSpline  # noqa: E402
+
+import brdfjax as bj  # noqa: E402
+from brdfjax.fresnel import fresnel, q_factor  # noqa: E402
+from brdfjax.io import write_json_atomic  # noqa: E402
+from brdfjax.shadowing import lambda_ggx  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+import real_data_fits as R  # noqa: E402
+
+REGIONS = ("core <2", "near 2-8", "wing 8-25", "far fwd >=25", "far back >=25", "grazing ts>75")
+
+
+def regions(signed_deg: np.ndarray, ti_deg: np.ndarray) -> dict[str, np.ndarray]:
+    off = signed_deg - ti_deg
+    a = np.abs(off)
+    return {
+        "core <2": a < 2,
+        "near 2-8": (a >= 2) & (a < 8),
+        "wing 8-25": (a >= 8) & (a < 25),
+        "far fwd >=25": (a >= 25) & (signed_deg > 0),
+        "far back >=25": (a >= 25) & (signed_deg <= 0),
+        "grazing ts>75": np.abs(signed_deg) > 75,  # overlaps the others
+    }
+
+
+def bspline(x: np.ndarray, knots: int, lo: float | None = None, hi: float | None = None) -> np.ndarray:
+    lo = float(x.min()) if lo is None else lo
+    hi = float(x.max()) if hi is None else hi
+    t = np.r_[[lo] * 3, np.linspace(lo, hi, knots), [hi] * 3]
+    return BSpline.design_matrix(np.clip(x, lo, hi), t, 3).toarray()
+
+
+def lsq_rms(y: np.ndarray, *blocks: np.ndarray) -> float:
+    X = np.concatenate(blocks, 1)
+    c, *_ = np.linalg.lstsq(X, y, rcond=None)
+    return float(np.sqrt(np.mean(np.square(y - X @ c))))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--results", type=Path, default=ROOT / "experiments" / "results" / "real_data_fits_merl_aluminium.json")
+    p.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "merl_gap.json")
+    p.add_argument("--physical", default=None, help="stored physical model to compare (default: the stored best)")
+    args = p.parse_args(argv)
+    name = "merl_aluminium"
+    stored = json.loads(args.results.read_text())
+    fits = stored["fits"]
+    physical = args.physical or stored["best_physical"]
+    table = R.read(name)
+    ti, pi, ts, ps = (np.asarray(getattr(table, f), float) for f in ("theta_i", "phi_i", "theta_s", "phi_s"))
+    f = np.asarray(table.brdf, float)
+    wl = np.asarray(table.wavelength)
+    dirs = bj.Directions.from_angles(ti, pi, ts, ps)
+    fwd = np.cos(ps - pi) < 0
+    signed = np.degrees(np.where(fwd, ts, -ts))
+    ti_deg = np.degrees(ti)
+    angles = np.unique(np.round(ti_deg, 2))
+    reg = regions(signed, ti_deg)
+    out: dict = {"dataset": name, "physical": physical, "empirical": "binomial", "n_points": int(f.size)}
+
+    # 1. residuals per region and angle
+    res = {}
+    for label in (physical, "binomial"):
+        model = R._stored_model(label, name, fits)
+        res[label] = np.log(np.asarray(model(dirs, wl)) / f)
+    N = f.size
+    print(f"1. residuals ln(model/data): {physical} vs binomial; log-RMS "
+          f"{np.sqrt(np.mean(res[physical] ** 2)):.3f} vs {np.sqrt(np.mean(res['binomial'] ** 2)):.3f}")
+    print(f"   {'region':14s} {'n':>5s}  share of mean square (phys, binom)  rms (phys, binom)  mean (phys, binom)")
+    out["regions"] = {}
+    for rn in REGIONS:
+        sel = reg[rn]
+        a, b = res[physical][sel], res["binomial"][sel]
+        row = {"n": int(sel.sum()), "share_physical": float(np.sum(a**2) / N), "share_binomial": float(np.sum(b**2) / N),
+               "rms_physical": float(np.sqrt(np.mean(a**2))), "rms_binomial": float(np.sqrt(np.mean(b**2))),
+               "mean_physical": float(a.mean()), "mean_binomial": float(b.mean())}
+        out["regions"][rn] = row
+        print(f"   {rn:14s} {row['n']:5d}  {row['share_physical']:.4f} {row['share_binomial']:.4f}"
+              f"                      {row['rms_physical']:.3f} {row['rms_binomial']:.3f}      "
+              f"{row['mean_physical']:+.3f} {row['mean_binomial']:+.3f}")
+    print("   rms per incident angle and region (phys/binom):")
+    print("   theta_i  " + "  ".join(f"{rn:>13s}" for rn in REGIONS) + "        all")
+    out["per_angle"] = {}
+    for a in angles:
+        s = np.round(ti_deg, 2) == a
+        cells = {}
+        for rn in REGIONS:
+            q = s & reg[rn]
+            cells[rn] = [float(np.sqrt(np.mean(res[m][q] ** 2))) if q.any() else None for m in (physical, "binomial")]
+        cells["all"] = [float(np.sqrt(np.mean(res[m][s] ** 2))) for m in (physical, "binomial")]
+        out["per_angle"][f"{a:g}"] = cells
+        print(f"   {a:7.2f}  " + "  ".join(
+            f"{'-':>13s}" if cells[rn][0] is None else f"{cells[rn][0]:6.2f}/{cells[rn][1]:<6.2f}" for rn in REGIONS)
+            + f"  {cells['all'][0]:.2f}/{cells['all'][1]:.2f}")
+
+    # 2. floors
+    tx2, ty2, _ = (np.asarray(x) for x in dirs.half_slopes())
+    th = np.arctan(np.sqrt(tx2 + ty2))
+    wi = np.stack([np.asarray(c) for c in dirs.i], -1)
+    ws = np.stack([np.asarray(c) for c in dirs.s], -1)
+    h = (wi + ws) / np.linalg.norm(wi + ws, axis=1, keepdims=True)
+    td = np.arccos(np.clip(np.sum(wi * h, 1), -1.0, 1.0))
+    ci, cs = np.cos(ti), np.cos(ts)
+    beta = np.abs(np.sin(np.where(fwd, ts, -ts)) - np.sin(ti))
+    V = np.sin(ti) * np.sin(np.where(fwd, ts, -ts))
+    xh = bspline(np.log(np.maximum(np.tan(th), 1e-5)), 40)
+    xb = bspline(np.log(np.maximum(beta, 1e-5)), 40)
+    xg = bspline(ti, 12, 0.0, np.pi / 2) + bspline(ts, 12, 0.0, np.pi / 2)
+    xd = bspline(td, 12, 0.0, np.pi / 2)
+    xv = bspline(V, 12)
+    y0 = np.log(f)
+    floors = {}
+    # fixed index of the shipped configs first
+    Q0 = np.asarray(q_factor(0.96, dirs, 6.69))
+    for label, A, basis in (("seed Eq 70, D(theta_h), Al 0.96+6.69i", Q0 / (2 * (ci + cs) ** 2), xh),
+                            ("Torrance-Sparrow Q/2, D(theta_h), Al 0.96+6.69i", Q0 / (8 * ci * cs), xh),
+                            ("no factor, S(|beta - beta0|)", np.ones_like(ci), xb)):
+        y = y0 - np.log(A)
+        floors[label] = {"alone": lsq_rms(y, basis), "+ g(ti) + g(ts)": lsq_rms(y, basis, xg),
+                         "+ e(theta_d)": lsq_rms(y, basis, xd), "+ e(theta_d) + g(ti) + g(ts)": lsq_rms(y, basis, xd, xg),
+                         "+ V": lsq_rms(y, basis, xv)}
+    # the index and a Smith GGX G2 scanned
+    scan = {}
+    for n in (0.3, 0.6, 1.0, 1.5, 2.0, 3.0, 5.0):
+        for k in (0.0, 0.5, 1.0, 2.0, 4.0, 7.0):
+            Q = np.asarray(q_factor(n, dirs, k))
+            Fs, Fp = (np.asarray(x) for x in fresnel(n, td, k))
+            F = 0.5 * (Fs + Fp)
+            for a in (0.0, 0.2, 0.4, 0.7):
+                G = 1.0 / (1.0 + np.asarray(lambda_ggx((a * np.tan(ti)) ** 2)) + np.asarray(lambda_ggx((a * np.tan(ts)) ** 2)))
+                for label, A in (("seed Eq 70 (Q)", Q / (2 * (ci + cs) ** 2)), ("Torrance-Sparrow Q/2", Q / (8 * ci * cs)),
+                                 ("Torrance-Sparrow F(theta_d)", F / (4 * ci * cs))):
+                    r = lsq_rms(y0 - np.log(A * G), xh)
+                    if label not in scan or r < scan[label]["floor"]:
+                        scan[label] = {"floor": r, "n": n, "k": k, "smith_ggx_width": a}
+    out["floors"] = floors
+    out["floors_index_scanned"] = scan
+    print("\n2. floors: the lowest log-RMS of ANY D(theta_h) (40-knot spline) times a fixed angular factor")
+    for label, row in floors.items():
+        print(f"   {label:48s} " + "  ".join(f"{k} {v:.3f}" for k, v in row.items()))
+    print("   with the index (n, k) and a Smith GGX G2 width scanned, D(theta_h) alone:")
+    for label, row in scan.items():
+        print(f"   {label:30s} floor {row['floor']:.3f} at n = {row['n']}, k = {row['k']}, G2 width {row['smith_ggx_width']}")
+    path = write_json_atomic(args.out, out, allow_nan=False)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
