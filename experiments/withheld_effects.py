@@ -296,6 +296,7 @@ def run_reference_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str
                      path_pool=args.path_pool, effects=effects, progress=say)
         wall = time.perf_counter() - t0
         true = _truth_chi2(fitted, clean)
+        d.set_truth_gap(true, source="the reference generator's noiseless frames on the fitted pixels")
     return _clean(_trial_record(t, seed, d, true, wall, info))
 
 
@@ -305,7 +306,7 @@ def _trial_record(t, seed, d, true, wall, info) -> dict[str, Any]:
     return {
         **t, "seed": seed, "truth": info,
         "top1": j["ranking"][0]["effect"] if j["ranking"] else None,
-        "ranking": [(c["effect"], c["delta_bic"], c["signature"].get("score"), c["flags"]) for c in j["ranking"]],
+        "ranking": [(c["effect"], c["delta_bic"], c["signature"].get("score"), c["flags"], c["refit_start"]) for c in j["ranking"]],
         "skipped": [(c["effect"], c["status"], c["note"]) for c in j["skipped"]],
         "path": path,
         "path_steps": [(s["action"], s["effect"], s["chi2_reduced"], s["heldout_rms_log10"], s["flags"]) for s in j["path"]],
@@ -316,6 +317,7 @@ def _trial_record(t, seed, d, true, wall, info) -> dict[str, Any]:
         "chi2_reduced_before": j["path"][0]["chi2_reduced"],
         "chi2_reduced_after": j["path"][-1]["chi2_reduced"],
         "chi2_reduced_true": true["chi2_reduced"],
+        "chi2_final_over_true": j["path"][-1]["chi2_reduced"] / true["chi2_reduced"],
         "rms_log10_before": j["path"][0]["rms_log10"],
         "rms_log10_after": j["path"][-1]["rms_log10"],
         "rms_log10_true": true["rms_log10"],
