@@ -755,8 +755,11 @@ def diagnose(
             weak = [c for c in ranked if c.flags and all("presence threshold" in f for f in c.flags)]
             best = _specific_first(best, admissible + weak, state, library, bic_threshold, step_notes, say)
         new_state = _with_context(best.state)
-        fresh = _fresh_refit(new_state, params)
-        if fresh is not None:
+        # a candidate refitted from the fresh start already is the joint refit from fresh starts (the same spec)
+        fresh = None if best.refit_start == "fresh" else _fresh_refit(new_state, params)
+        if best.refit_start == "fresh":
+            step_notes.append("refitted from the fresh starts already (the fit had moved far from them); no second joint refit")
+        elif fresh is not None:
             warm_chi2, fresh_chi2 = float(new_state.result.chi2), float(fresh.result.chi2)
             if fresh_chi2 < warm_chi2 * (1 - 1e-6):
                 new_state = _with_context(fresh)
