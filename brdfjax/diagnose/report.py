@@ -151,10 +151,24 @@ def _headline(d: Diagnosis) -> str:
     flags = "".join(f" Flag at {_name(s)}: {f}." for s in d.path for f in s.flags)
     flags += "".join(f" Detected ({c.effect}, ranked first by its own signature, not by a BIC gain): "
                      f"{c.signature.get('detail', '')}." for c in d.ranking if c.ranked_by == "detection")
+    truth = "" if getattr(d, "truth_gap", None) is None else f" The {truth_line(d.truth_gap)}."
     if d.significant:
-        return (f"The gap is most likely caused by **{d.explained_by[0]}**. Explanation path (reduced chi^2): {p}.{sides}{flags} "
-                f"{noise_line(d.gap)}.")
-    return f"No candidate effect is significant (BIC gain > {d.bic_threshold:g}). Path: {p}.{sides}{flags} {noise_line(d.gap)}."
+        return (f"The gap is most likely caused by **{d.explained_by[0]}**. Explanation path (reduced chi^2): {p}.{sides}{flags}"
+                f"{truth} {noise_line(d.gap)}.")
+    return (f"No candidate effect is significant (BIC gain > {d.bic_threshold:g}). Path: {p}.{sides}{flags}{truth} "
+            f"{noise_line(d.gap)}.")
+
+
+def truth_line(t: dict[str, Any]) -> str:
+    """The truth's own reduced chi^2 on the fitted frames and the final model's against it, in words."""
+    ratio = t.get("final_over_truth")
+    verdict = ""
+    if ratio is not None and math.isfinite(ratio):
+        verdict = (f"; final / truth = {ratio:.3g} ("
+                   + ("within" if abs(ratio - 1.0) <= 0.2 else "NOT within") + " 20 %)")
+    return (f"truth's own reduced chi^2 on these frames (the generator's model, nothing fitted): "
+            f"{_f(t.get('chi2_reduced'), '.4g')} (rms log10 {_f(t.get('rms_log10'), '.3g')}, "
+            f"{t.get('n_points', '?')} points); the final model's {_f(t.get('final_chi2_reduced'), '.4g')}{verdict}")
 
 
 def noise_line(gap: dict[str, Any]) -> str:

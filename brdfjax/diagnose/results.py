@@ -18,7 +18,7 @@ import numpy as np
 
 from ..fit import FitResult
 from ..io import atomic_output
-from .report import html_report, markdown_report, noise_line
+from .report import html_report, markdown_report, noise_line, truth_line
 from .zones import Region, zone_label
 
 __all__ = ["Candidate", "Step", "Diagnosis", "json_ready", "finite_or_none"]
@@ -73,6 +73,9 @@ class Candidate:
     wall_s: float = 0.0
     # "delta_bic" (the refit's BIC gain) or "detection" (the effect's own detection, e.g. an unresolved peak)
     ranked_by: str = "delta_bic"
+    # "warm" (refitted from the model it extends, at its optimum) or "fresh" (from the fresh starts: kept because
+    # it ended lower; the engine does it where the fit moved far from its starts)
+    refit_start: str = "warm"
     # not serialised: the refit's state, to continue the path from it
     state: Any = field(default=None, repr=False)
 
@@ -87,6 +90,7 @@ class Candidate:
                 "admissible": self.status == "ranked" and not self.flags,
                 "flags": self.flags,
                 "ranked_by": self.ranked_by,
+                "refit_start": self.refit_start,
                 "parameters": self.parameters,
                 "delta_chi2": self.delta_chi2,
                 "delta_bic": self.delta_bic,
@@ -163,6 +167,21 @@ class Diagnosis:
     final_effects: list[tuple[str, str]] = field(default_factory=list)  # (effect, side) in the final model
     final_config: str | None = None  # the final model as a fit config (TOML), where the config path knows it
     final_params: dict[str, Any] = field(default_factory=dict, repr=False)  # the final fit's spec (bounds)
+    # the generator's truth evaluated on the fitted frames (nothing fitted), where the truth is known (a config's
+    # [diagnose.truth], a benchmark's generator): chi2_reduced, rms_log10, n_points, final_over_truth
+    truth_gap: dict[str, Any] | None = None
+
+    def set_truth_gap(self, gap: dict[str, Any], source: str = "") -> None:
+        """Record the truth's own gap on the fitted frames and the final model's reduced chi^2 relative to it."""
+        g = dict(gap)
+        final = self.path[-1].gap["chi2_reduced"] if self.path else math.nan
+        t = float(g.get("chi2_reduced", math.nan))
+        g["final_chi2_reduced"] = final
+        g["final_over_truth"] = final / t if t > 0 and math.isfinite(t) else math.nan
+        g["within_20pct"] = bool(abs(g["final_over_truth"] - 1.0) <= 0.2) if math.isfinite(g["final_over_truth"]) else None
+        if source:
+            g["source"] = source
+        self.truth_gap = g
 
     @property
     def zones(self) -> list[dict[str, Any]]:
@@ -194,6 +213,7 @@ class Diagnosis:
                 "explained_by": self.explained_by,
                 "explained_by_side": self.effects_by_side(),
                 "stop_reason": self.stop_reason,
+                "truth": self.truth_gap,
                 "bic_threshold": self.bic_threshold,
                 "blocks": self.block_names,
                 "notes": self.notes,
@@ -223,6 +243,8 @@ class Diagnosis:
         by = self.effects_by_side()
         lines.append(f"material effects: {', '.join(by['material']) or 'none'}; instrument effects: {', '.join(by['instrument']) or 'none'}")
         lines.append(f"stopped: {self.stop_reason}")
+        if self.truth_gap is not None:
+            lines.append(truth_line(self.truth_gap))
         for s in self.path:
             for f in s.flags:
                 lines.append(f"  flag at {_step_name(s)}: {f}")
