@@ -135,6 +135,11 @@ def report_warnings(d: Diagnosis) -> list[str]:
             if "on its bound" in w:
                 out.append(f"{label}: {w}")
     out += [w for _, w in _column_checks(d)]
+    t = getattr(d, "truth_gap", None)
+    if t is not None and t.get("within_20pct") is False:
+        out.append(f"the final reduced chi^2 {_f(t.get('final_chi2_reduced'), '.4g')} is {_f(t.get('final_over_truth'), '.3g')} "
+                   f"times the truth's own ({_f(t.get('chi2_reduced'), '.4g')}) on these frames: the path has not reached the "
+                   "truth's structure (an effect the library lacks, or a dead end)")
     return out
 
 
