@@ -96,26 +96,49 @@ class _Plan(eqx.Module):
     """How one block's free parameters reach its model's terms (static)."""
 
     names: tuple[tuple[str, str], ...] = eqx.field(static=True)  # (base, kind) of each local parameter
-    # per term: (term name, indices of the local parameters it is differentiated by, local index of its scale or -1)
-    terms: tuple[tuple[str, tuple[int, ...], int], ...] = eqx.field(static=True)
+    # per term: (term name, indices of the local parameters it is differentiated by, local index of its scale or
+    # -1, (j, i) pairs: the term's column for local parameter j is its column for i, not differentiated again)
+    terms: tuple[tuple[str, tuple[int, ...], int, tuple[tuple[int, int], ...]], ...] = eqx.field(static=True)
+
+
+def _turn_invariant(term: Any) -> bool:
+    """Whether the term is unchanged when both directions turn about the normal (``phi_ref`` does not reach it).
+
+    A :class:`Specular` term without shadowing on an isotropic distribution (one with an anisotropic
+    partner: a function of ``tan^2 theta_h``) depends on the zenith angles, ``tan^2 theta_h`` and
+    ``cos^2 dphi`` only; a :class:`Lambertian` on nothing.
+    """
+    if type(term) is Lambertian:
+        return True
+    return type(term) is Specular and term.shadowing == "none" and type(term.distribution).anisotropic is not None
 
 
 def _plan(template: Model, names: tuple[tuple[str, str], ...]) -> _Plan:
     paths = template._paths()
     per: dict[str, tuple[list[int], int]] = {t: ([], -1) for t in template.terms}
+    flat_of = {j: template._resolve(base) for j, (base, kind) in enumerate(names) if kind == "model"}
+    alias: dict[str, list[tuple[int, int]]] = {t: [] for t in template.terms}
     for j, (base, kind) in enumerate(names):
         if kind == "frame":  # phi_ref turns the directions every term sees
             for t in per:
-                per[t][0].append(j)
+                term = template.terms[t]
+                if _turn_invariant(term):
+                    continue  # its column is 0
+                # an OffsetNormal turns the directions by Rz(-dphi0) after Rz(-phi_ref): both columns are one
+                dphi0 = next((i for i, f in flat_of.items() if f == f"{t}.dphi0"), None) if type(term) is OffsetNormal else None
+                if dphi0 is not None and paths[f"{t}.dphi0"][0] == ("terms", t, "dphi0"):
+                    alias[t].append((j, dphi0))
+                else:
+                    per[t][0].append(j)
             continue
-        flat = template._resolve(base)
+        flat = flat_of[j]
         t = flat.split(".", 1)[0]
         scale = _scale_path(template.terms[t])
         if scale is not None and paths[flat][0] == ("terms", t) + scale:
             per[t] = (per[t][0], j)
         else:
             per[t][0].append(j)
-    return _Plan(names, tuple((t, tuple(js), s) for t, (js, s) in per.items()))
+    return _Plan(names, tuple((t, tuple(js), s, tuple(alias[t])) for t, (js, s) in per.items()))
 
 
 def _isolated(fn, x: Array, gate: Array) -> Array:
@@ -144,7 +167,7 @@ def _columns(block: Any, plan: _Plan, xs: Array, gate: Array) -> tuple[Array, Ar
     scaled: list[tuple[int, int]] = []  # (row of f1_t, local index of the scale)
     cols: list[Array | None] = [None] * p
     template = block.template
-    for tname, js, s in plan.terms:
+    for tname, js, s, alias in plan.terms:
 
         def value(theta, tname=tname, js=js, s=s):
             vals = dict(model_flat)
@@ -176,8 +199,12 @@ def _columns(block: Any, plan: _Plan, xs: Array, gate: Array) -> tuple[Array, Ar
             rows.append(f1)
         else:
             fixed_sum = f1 if fixed_sum is None else fixed_sum + f1
+        own = {}
         for q, j in enumerate(js):
-            c = df1[:, q] if scale is None else scale * df1[:, q]
+            own[j] = df1[:, q] if scale is None else scale * df1[:, q]
+        for j, i in alias:
+            own[j] = own[i]
+        for j, c in own.items():
             cols[j] = c if cols[j] is None else cols[j] + c
     n_pts = rows[0].shape[0] if rows else fixed_sum.shape[0]
     zero = jnp.zeros(n_pts, xs.dtype)
