@@ -118,7 +118,7 @@ def _plan(template: Model, names: tuple[tuple[str, str], ...]) -> _Plan:
     per: dict[str, tuple[list[int], int]] = {t: ([], -1) for t in template.terms}
     flat_of = {j: template._resolve(base) for j, (base, kind) in enumerate(names) if kind == "model"}
     alias: dict[str, list[tuple[int, int]]] = {t: [] for t in template.terms}
-    for j, (base, kind) in enumerate(names):
+    for j, (_, kind) in enumerate(names):
         if kind == "frame":  # phi_ref turns the directions every term sees
             for t in per:
                 term = template.terms[t]
