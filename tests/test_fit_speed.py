@@ -3,14 +3,15 @@ reaches the same point as one without (stepped from Python, no host callback in 
 
 import time
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax.fit import FrameData, LevenbergMarquardt, TableData, fit, prepare
+from brdfjax.fit import FrameData, LevenbergMarquardt, TableData, _problem as problem_mod, fit, prepare
 from brdfjax.fit._jacobian import _local, _plan, supports
-from brdfjax.fit._problem import jacobian, jacobian_jacfwd
+from brdfjax.fit._problem import evaluate, jacobian, jacobian_jacfwd
 from brdfjax.instrument.synthetic import convolve_footprint, footprint_kernel
 
 # a tilted specular peak (turned by dtheta, dphi0 + phi_ref) beside an untilted one (phi_ref cannot reach it)
@@ -48,13 +49,17 @@ def test_turn_shortcuts_equal_jacfwd(kernel):
     j_dphi0 = [b for b, _ in names].index("offset.dphi0")
     assert j_phi not in plan["center"][0] and not plan["center"][1]  # not differentiated, no alias
     assert j_phi not in plan["offset"][0] and plan["offset"][1] == ((j_phi, j_dphi0),)
-    v = np.zeros(problem.u0.shape[0])  # the start (off the truth; unscaled coordinates: a unit step is a radian)
+    # off the start (where the frame's own phi_ref differs from the free one), unscaled coordinates: a
+    # unit step is a radian, or a factor e
+    v = 1e-3 * np.linspace(-1.0, 1.0, problem.u0.shape[0])
     J = np.asarray(jacobian(v, problem))
     ref = np.asarray(jacobian_jacfwd(v, problem))
     norms = np.linalg.norm(ref, axis=0)
     assert np.all(norms > 0)
     err = np.max(np.abs(J - ref), axis=0) / norms
     assert np.all(err < 1e-10), err
+    r_struct = np.asarray(eqx.filter_jit(problem_mod._residuals_and_jacobian)(v, problem)[0])
+    np.testing.assert_allclose(r_struct, np.asarray(evaluate(v, problem)[1]), rtol=1e-10, atol=1e-10)
     assert time.perf_counter() - t0 < 60.0  # (20 s on an idle 2-core box; the margin is for a loaded one)
 
 

@@ -181,7 +181,8 @@ def _columns(block: Any, plan: _Plan, xs: Array, gate: Array) -> tuple[Array, Ar
             if frame is None:
                 dirs = base_dirs
             else:
-                phi = frame.phi_ref
+                # a free phi_ref at its current value, also where it is not differentiated (_plan)
+                phi = frame.phi_ref if phi_j is None else xs[phi_j]
                 if phi_j is not None and phi_j in js:
                     phi = theta[js.index(phi_j)]
                 dirs = base_dirs.rotated(Rz(-phi))
