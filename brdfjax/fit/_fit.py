@@ -237,7 +237,9 @@ def _separable(usable: np.ndarray, reach: np.ndarray, k: np.ndarray) -> dict[str
 
 def _directions(detector, theta_i: float, n_h: np.ndarray, n_v: np.ndarray) -> Directions:
     d = detector.directions(jnp.asarray(n_h), jnp.asarray(n_v), jnp.asarray(np.float64(theta_i)))
-    return Directions(*(np.asarray(a).reshape(-1, 3) for a in (d.w_i, d.w_s, d.w_sum)))
+    # the incident direction stays one per frame (scalar components): terms compute its factors once
+    w_i = tuple(np.asarray(c, np.float64) for c in d.i)
+    return Directions(w_i, *(np.asarray(a).reshape(-1, 3) for a in (d.w_s, d.w_sum)))
 
 
 def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame, floor: float, use_footprint: bool,

@@ -272,7 +272,12 @@ def stack_frames(blocks: list[FrameBlock]) -> FrameStack:
         return np.concatenate([a, np.repeat(a[:1], k - a.shape[0], axis=0)])
 
     def pad_dirs(d: Directions | None, k: int) -> Directions | None:
-        return None if d is None else Directions(rep(d.w_i, k), rep(d.w_s, k), rep(d.w_sum, k))
+        if d is None:
+            return None
+        # a frame's one incident direction stays one (scalar components): the terms' per-frame factors
+        # (the Q factor's A(theta_i), ...) are then computed once, not at every point
+        w_i = d.i if all(np.ndim(c) == 0 for c in d.i) else rep(d.w_i, k)
+        return Directions(w_i, rep(d.w_s, k), rep(d.w_sum, k))
 
     def pad(b: FrameBlock, k: int) -> FrameBlock:
         if b.kernel is None:

@@ -25,12 +25,13 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
 from ._common import FitInputError
-from ._problem import Problem, half_sum_squares, listening, residuals
+from ._problem import Problem, _emit, half_sum_squares, listening, residuals
 
 __all__ = ["SolveOutcome", "AbstractSolver", "LevenbergMarquardt", "LBFGSB", "SOLVERS", "get_solver"]
 
@@ -74,6 +75,49 @@ def _lm_solve(v0, problem, rtol, atol, max_steps):
     return sol.value, sol.result, sol.stats["num_steps"]
 
 
+_TAGS: frozenset = frozenset()
+
+
+def _lm_fn(v, problem):
+    return residuals(v, problem), None
+
+
+@eqx.filter_jit
+def _lm_init(solver, v0, problem):
+    f_struct = jax.eval_shape(residuals, v0, problem)
+    state = solver.init(_lm_fn, v0, problem, {}, f_struct, None, _TAGS)
+    terminate, result = solver.terminate(_lm_fn, v0, problem, {}, state, _TAGS)
+    return state, terminate, optx.RESULTS.where(jnp.all(jnp.isfinite(v0)), result, optx.RESULTS.nonfinite)
+
+
+@eqx.filter_jit
+def _lm_step(solver, v, state, problem):
+    # one iteration of optimistix's own loop (optimistix._iterate: step, then terminate at the old point)
+    new_v, new_state, _ = solver.step(_lm_fn, v, problem, {}, state, _TAGS)
+    terminate, result = solver.terminate(_lm_fn, v, problem, {}, new_state, _TAGS)
+    result = optx.RESULTS.where(jnp.all(jnp.isfinite(v)), result, optx.RESULTS.nonfinite)
+    return new_v, new_state, terminate, result, jnp.sum(jnp.square(new_state.f_info.residual))
+
+
+def _lm_stepwise(v0, problem, rtol, atol, max_steps, report):
+    """``_lm_solve`` stepped from Python: ``report(chi2)`` after each step, no host callback in any program.
+
+    The same iterations as ``optx.least_squares`` (its loop body, run one step per call), so the compiled
+    step and its start come from JAX's persistent compilation cache in a later process (a program with
+    a host callback never does), and a fit with progress reaches the same point as one without.
+    """
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    state, terminate, result = _lm_init(solver, v0, problem)
+    v, n = v0, 0
+    while n < max_steps and not bool(terminate) and result == optx.RESULTS.successful:
+        v, state, terminate, result, chi2 = _lm_step(solver, v, state, problem)
+        n += 1
+        report(float(chi2))
+    if result == optx.RESULTS.successful and not bool(terminate):
+        result = optx.RESULTS.nonlinear_max_steps_reached
+    return v, result, n
+
+
 class LevenbergMarquardt(AbstractSolver):
     """optimistix Levenberg-Marquardt (``optx.least_squares``, ``throw=False``).
 
@@ -88,9 +132,13 @@ class LevenbergMarquardt(AbstractSolver):
     max_steps: int = eqx.field(static=True, default=256)
 
     def solve(self, problem, v0, box=None):
-        # without listeners, no progress callback: the compiled solve can then come from the persistent cache
-        problem = dataclasses.replace(problem, report=listening())
-        value, result, steps = _lm_solve(jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps)
+        # No host callback in the compiled programs (they can then come from the persistent cache): a solve
+        # somebody listens to is stepped from Python and reports the chi^2 after each step.
+        problem = dataclasses.replace(problem, report=False)
+        if listening():
+            value, result, steps = _lm_stepwise(jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, _emit)
+        else:
+            value, result, steps = _lm_solve(jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps)
         v = np.asarray(value)
         n = int(steps)
         if result == optx.RESULTS.successful:

@@ -1,0 +1,85 @@
+"""Issue 19 (fit speed): the structured Jacobian's shortcuts equal jax.jacfwd, and a fit with progress
+reaches the same point as one without (stepped from Python, no host callback in its programs)."""
+
+import time
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+
+import brdfjax as bj
+from brdfjax.fit import FrameData, LevenbergMarquardt, TableData, _problem as problem_mod, fit, prepare
+from brdfjax.fit._jacobian import _local, _plan, supports
+from brdfjax.fit._problem import evaluate, jacobian, jacobian_jacfwd
+from brdfjax.instrument.synthetic import convolve_footprint, footprint_kernel
+
+# a tilted specular peak (turned by dtheta, dphi0 + phi_ref) beside an untilted one (phi_ref cannot reach it)
+MODEL = bj.Model(
+    terms={
+        "center": bj.Specular(bj.Beckmann(1.5e-3), rho_s=0.05, n=3.0),
+        "offset": bj.OffsetNormal(bj.Specular(bj.Beckmann(1.5e-3), rho_s=0.7, n=1.4), dtheta=np.radians(0.15),
+                                  dphi0=np.radians(45.0)),
+    }
+)
+SPEC = {"center.m": 1.6e-3, "center.n": 2.9, "offset.m": 1.4e-3, "offset.n": 1.5, "offset.dtheta": np.radians(0.16),
+        "offset.dphi0": np.radians(44.0), "offset.rho_s": 0.65, "phi_ref": 0.002}
+
+
+def _frame(kernel):
+    det = bj.Detector.seed()
+    g = det.grid(16, (-320, 640, -320, 640))
+    img = np.asarray(bj.render(MODEL, bj.Frame.from_degrees(20.0), det, grid=g, precision="float64"))
+    if kernel is not None:
+        img = np.clip(convolve_footprint(img, kernel / kernel.sum()), 0.0, None)
+    noisy = img * np.exp(0.03 * np.random.default_rng(0).standard_normal(img.shape))
+    return FrameData(noisy, 0.03, np.radians(20.0), det, g, mask=img > 1e-4 * img.max(), footprint=kernel)
+
+
+@pytest.mark.parametrize("kernel", [None, footprint_kernel(25.0 / 16, tail=1e-6)], ids=["no_footprint", "footprint"])
+def test_turn_shortcuts_equal_jacfwd(kernel):
+    """phi_ref skipped for the untilted peak and taken from dphi0 for the tilted one: == jacfwd to 1e-10."""
+    t0 = time.perf_counter()
+    prep = prepare(MODEL, [_frame(kernel)], SPEC, solver=LevenbergMarquardt())
+    problem = prep.problem
+    assert supports(problem)
+    names = tuple((b, kd) for _, b, kd in _local(problem, 0))
+    plan = {t: (js, alias) for t, js, _, alias in _plan(problem.blocks[0].template, names).terms}
+    j_phi = [b for b, _ in names].index("phi_ref")
+    j_dphi0 = [b for b, _ in names].index("offset.dphi0")
+    assert j_phi not in plan["center"][0] and not plan["center"][1]  # not differentiated, no alias
+    assert j_phi not in plan["offset"][0] and plan["offset"][1] == ((j_phi, j_dphi0),)
+    # off the start (where the frame's own phi_ref differs from the free one), unscaled coordinates: a
+    # unit step is a radian, or a factor e
+    v = 1e-3 * np.linspace(-1.0, 1.0, problem.u0.shape[0])
+    J = np.asarray(jacobian(v, problem))
+    ref = np.asarray(jacobian_jacfwd(v, problem))
+    norms = np.linalg.norm(ref, axis=0)
+    assert np.all(norms > 0)
+    err = np.max(np.abs(J - ref), axis=0) / norms
+    assert np.all(err < 1e-10), err
+    r_struct = np.asarray(eqx.filter_jit(problem_mod._residuals_and_jacobian)(v, problem)[0])
+    np.testing.assert_allclose(r_struct, np.asarray(evaluate(v, problem)[1]), rtol=1e-10, atol=1e-10)
+    assert time.perf_counter() - t0 < 60.0  # (20 s on an idle 2-core box; the margin is for a loaded one)
+
+
+def test_progress_is_reported_per_step_without_changing_the_fit():
+    """With progress= the Levenberg-Marquardt solve is stepped from Python: the same steps, chi^2 and values."""
+    ts = np.radians(np.linspace(25.0, 35.0, 41))
+    dirs = dict(theta_i=np.full(41, np.radians(30.0)), phi_i=np.zeros(41), theta_s=ts, phi_s=np.full(41, np.pi))
+    model = bj.Model(terms={"peak": bj.Specular(bj.Beckmann(0.05), rho_s=0.5, n=1.5), "floor": bj.Lambertian(rho_d=0.01)})
+    brdf = np.asarray(model(bj.Directions.from_angles(dirs["theta_i"], dirs["phi_i"], ts, dirs["phi_s"]), 632.8e-9))
+    brdf = brdf * np.exp(0.02 * np.random.default_rng(1).standard_normal(41))
+    tab = TableData(**dirs, brdf=brdf, sigma_rel=0.02, wavelength=632.8e-9)
+    spec = {"peak.m": 0.08, "peak.rho_s": 0.3, "floor.rho_d": 0.02}
+    quiet = fit(model, tab, spec, first_stage=None)
+    heard = []
+    loud = fit(model, tab, spec, first_stage=None, progress=lambda k, chi2: heard.append((k, chi2)))
+    assert quiet.converged and loud.converged, (quiet.message, loud.message)
+    assert quiet.n_iterations == loud.n_iterations >= 3
+    assert [k for k, _ in heard] == list(range(1, loud.n_iterations + 1))  # one report per step
+    assert loud.chi2 == pytest.approx(quiet.chi2, rel=1e-10)
+    for name in spec:
+        assert loud.value(name) == pytest.approx(quiet.value(name), rel=1e-8)
+    assert heard[-1][1] == pytest.approx(loud.cost, rel=1e-6)
+    jax.clear_caches()
