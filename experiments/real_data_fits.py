@@ -33,9 +33,21 @@ configs unless said otherwise):
     Gaussian term, l1 = 1) + Lambertian, started at ABg's fit (with
     ``c0_0 = -g``, ``d = B^(-2/g)`` it is ABg's form); all three empirical.
 
-``--add`` runs only (c') and ``binomial``, from the starts stored in the
-dataset's results json (the other fits are kept as they are there), and
-merges them in.
+(e) ``mixture_shadowing``: the best multi-lobe model of (c)/(c') (lobes whose
+    weight is below 1e-3 of the total dropped first: Krylon's three-lobe fit
+    had parked its halo there, which kept that fit from converging) with
+    ``shadowing = "smith_mixture"``: Smith G2 of the surface as one surface,
+    the Lambda of the lobes' mixture masking every lobe, index fixed;
+    ``mixture_index``: the same with the index free within the material's
+    physical range (``INDEX_RANGE``), started from ``mixture_shadowing``;
+    ``pruned_smith``: the pruned model refitted with each lobe's own Lambda
+    (``smith``), as (c') (where a lobe was pruned).
+
+``--add`` runs only the named parts (``binomial``, (c') ``three_lobes``,
+``abg``, ``refine``, (e) ``mixture``) from the starts stored in the dataset's
+results json (the other fits are kept as they are there), and merges them in.
+New fits store their model as a ``[model.terms]`` table (``terms``), from
+which the figure and later ``--add`` runs rebuild them.
 
 Prints a table of log-RMS per incident angle and overall per model, writes
 ``experiments/results/real_data_fits_<dataset>.json`` (atomically) and one figure per
@@ -46,7 +58,8 @@ Run::
 
     python3 experiments/real_data_fits.py                 # all three datasets
     python3 experiments/real_data_fits.py --datasets merl_aluminium
-    python3 experiments/real_data_fits.py --add --datasets merl_aluminium   # (c') and binomial only, merged
+    python3 experiments/real_data_fits.py --add three_lobes binomial --datasets merl_aluminium   # merged in
+    python3 experiments/real_data_fits.py --add mixture            # (e) on every dataset, from the stored fits
 """
 
 from __future__ import annotations
@@ -63,6 +76,8 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import brdfjax as bj  # noqa: E402
+from brdfjax.config.model import ModelConfig, build_model  # noqa: E402
+from brdfjax.diagnose.engine import model_terms_config  # noqa: E402
 from brdfjax.fit import fit, read_cornell_brdf, read_merl_inplane  # noqa: E402
 from brdfjax.io import write_json_atomic  # noqa: E402
 from brdfjax.terms import ABg, Binomial, Lobe, MultiLobeSpecular, Phong  # noqa: E402
@@ -78,9 +93,16 @@ DATASETS = {
 }
 WIDTH = {"ggx": "alpha", "beckmann": "m"}
 DIST = {"ggx": bj.GGX, "beckmann": bj.Beckmann}
+#: The physical range of the index where (e) frees it: aluminium at 550-650 nm (Rakic 1995: 0.96 + 6.69 i at
+#: 550 nm, 1.37 + 7.62 i at 633 nm) with margin; a paint's binder (n = 1.3-2.0, no absorption).
+INDEX_RANGE = {
+    "merl_aluminium": {"n": (0.5, 2.0), "k": (5.0, 9.0)},
+    "cornell_krylon_blue": {"n": (1.3, 2.0)},
+    "cornell_cayman": {"n": (1.3, 2.0)},
+}
 #: Physically based model names (the rest are empirical).
 PHYSICAL = ("today", "smith_seed", "smith_ts", "tail_hc", "multi_lobe", "multi_lobe_no_shadowing", "three_lobes",
-            "three_lobes_no_shadowing")
+            "three_lobes_no_shadowing", "pruned_smith", "mixture_shadowing", "mixture_index")
 EMPIRICAL = ("abg", "phong", "binomial")
 TAIL = {"value": 2.5, "lower": 1.5, "upper": 30.0}  # Smith's Lambda is finite for a Hyper-Cauchy gamma > 1.5
 
@@ -92,7 +114,9 @@ def read(name: str):
 
 def _summary(res, t0: float) -> dict:
     block = res.blocks[0]
+    terms, _ = model_terms_config(res.models[0])
     return {
+        "terms": terms,
         "log_rms": block.log_rms,
         "per_angle": {f"{g['theta_i_deg']:g}": g["log_rms"] for g in block.groups},
         "converged": bool(res.converged),
@@ -236,12 +260,50 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
     return out, models
 
 
-ADD_PARTS = ("binomial", "three_lobes", "abg", "refine")
+ADD_PARTS = ("binomial", "three_lobes", "abg", "refine", "mixture")
+
+
+def pruned(model: bj.Model, rel: float = 1e-3) -> tuple[bj.Model, list[str]]:
+    """``model`` without the multi-lobe term's lobes whose weight is below ``rel`` of the total, and their names."""
+    spec = model.terms["spec"]
+    total = sum(float(lb.rho_s) for lb in spec.lobes.values())
+    keep = {k: lb for k, lb in spec.lobes.items() if float(lb.rho_s) >= rel * total}
+    dropped = [k for k in spec.lobes if k not in keep]
+    return bj.Model(terms={**model.terms, "spec": dataclasses.replace(spec, lobes=keep)}), dropped
+
+
+def _free_spec(model: bj.Model, index: dict | None = None) -> dict:
+    """Every parameter free but the index (tails bounded as in TAIL); ``index``: {name: (lower, upper)} freed too."""
+    params = model.params()
+    spec = {k: "free" for k in params if not k.endswith((".n", ".k"))}
+    spec.update({k: dict(TAIL, value=float(params[k])) for k in spec if k.endswith(".gamma")})
+    for key, (lo, hi) in (index or {}).items():
+        spec[f"spec.{key}"] = {"value": float(np.clip(float(params[f"spec.{key}"]), lo, hi)), "lower": lo, "upper": hi}
+    return spec
+
+
+def mixture_runs(run, name: str, fits: dict) -> None:
+    """(e): the best multi-lobe model (pruned) with Smith G2 of the lobes' mixture, index fixed, then free."""
+    base = "three_lobes" if fits.get("three_lobes", {}).get("log_rms", np.inf) < fits["multi_lobe"]["log_rms"] else "multi_lobe"
+    model, dropped = pruned(_stored_model(base, name, fits))
+    steps = 600  # the three-lobe fits had stopped at 256
+    if dropped:
+        run("pruned_smith", model, _free_spec(model), first_stage=None, solver_options={"max_steps": steps})
+        run.out["pruned_smith"].update(base=base, dropped=dropped)
+        model = run.models["pruned_smith"]
+    mix = bj.Model(terms={**model.terms, "spec": dataclasses.replace(model.terms["spec"], shadowing="smith_mixture")})
+    run("mixture_shadowing", mix, _free_spec(mix), first_stage=None, solver_options={"max_steps": steps})
+    run.out["mixture_shadowing"].update(base=base, dropped=dropped)
+    start = run.models["mixture_shadowing"]
+    run("mixture_index", start, _free_spec(start, INDEX_RANGE[name]), first_stage=None, solver_options={"max_steps": steps})
+    run.out["mixture_index"].update(base=base, dropped=dropped, index_range=INDEX_RANGE[name])
 
 
 def _stored_model(label: str, name: str, fits: dict) -> bj.Model:
-    """A stored fit's model rebuilt from its free parameters (the labels the figure shows)."""
+    """A stored fit's model rebuilt from its stored ``[model.terms]`` table, or from its free parameters."""
     _, _, dname, index = DATASETS[name]
+    if "terms" in fits.get(label, {}):
+        return build_model(f"{label} (results json)", ModelConfig.model_validate({"terms": fits[label]["terms"]}))
     if label == "today":
         return single_lobe(dname, 0.1, 0.5, 0.05, index).with_params(fits["today"]["parameters"])
     if label == "multi_lobe":
@@ -285,6 +347,8 @@ def add_to_dataset(name: str, stored: dict, parts=ADD_PARTS, verbose: bool = Tru
             out["abg"] = dict(out["abg_refit"], note="refitted from the stored optimum without the soft first stage")
             abg = models["abg_refit"]
         out.pop("abg_refit")
+    if "mixture" in parts:
+        mixture_runs(run, name, {**fits, **out})
     if "refine" in parts and "three_lobes" in fits:
         # the stored three-lobe optimum refitted without the soft first stage (a fit that stopped at its
         # iteration limit goes on from there); kept if lower
@@ -298,7 +362,7 @@ def add_to_dataset(name: str, stored: dict, parts=ADD_PARTS, verbose: bool = Tru
             models["three_lobes"] = models["three_lobes_refined"]
         out.pop("three_lobes_refined")
     models.setdefault("multi_lobe", two)
-    for label in ("today", "three_lobes", "binomial"):
+    for label in ("today", "three_lobes", "binomial", "mixture_index"):
         if label not in models and label in fits:
             models[label] = _stored_model(label, name, fits)
     models["abg"] = abg
@@ -342,7 +406,7 @@ def figure(name: str, models: dict, path: Path) -> None:
     ncol = 4
     nrow = int(np.ceil(len(angles) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 3.2 * nrow), squeeze=False)
-    shown = ("today", "tail_hc", "multi_lobe", "three_lobes", "abg", "phong", "binomial")
+    shown = ("today", "multi_lobe", "three_lobes", "mixture_index", "abg", "phong", "binomial")
     for ax, a in zip(axes.ravel(), angles):
         sel = plane & (np.round(np.degrees(ti), 4) == a) & (f > 0)
         order = np.argsort(signed[sel])
@@ -370,7 +434,7 @@ def main(argv=None) -> int:
     p.add_argument("--figures", type=Path, default=ROOT / "experiments" / "figures")
     p.add_argument("--no-figures", action="store_true")
     p.add_argument("--add", nargs="*", choices=ADD_PARTS, default=None,
-                   help="run only these fits (default: all of binomial, three_lobes, abg) from the stored results, merged in")
+                   help="run only these fits (default: all of them) from the stored results, merged in")
     args = p.parse_args(argv)
     for name in args.datasets:
         print(f"{name}: model, overall log-RMS | per incident angle | wall time", flush=True)
