@@ -217,8 +217,13 @@ def test_cli_withheld_diffraction_from_disk(tmp_path, capsys):
     assert doc["path"][1]["chi2_reduced"] < 0.8 * doc["path"][0]["chi2_reduced"]
     assert any(z["name"] == "band" for z in doc["zones"])
     assert "truth" not in json.dumps(doc["settings"])
+    # the generator's truth, evaluated on the fitted frames after the diagnosis (issue 18), and the final against it
+    t = doc["truth"]
+    assert t["n_points"] == doc["gap"]["n_points"] and 0.5 < t["chi2_reduced"] < doc["gap"]["chi2_reduced"]
+    assert t["final_over_truth"] == pytest.approx(doc["path"][-1]["chi2_reduced"] / t["chi2_reduced"], rel=1e-9)
     md = (out / "report.md").read_text()
     assert "most likely caused by **diffraction**" in md
+    assert "truth's own reduced chi^2 on these frames" in md and "final / truth" in md
     assert (out / "report.html").read_text().startswith("<!DOCTYPE html>")
 
 
