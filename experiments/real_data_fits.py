@@ -41,7 +41,8 @@ configs unless said otherwise):
     ``mixture_index``: the same with the index free within the material's
     physical range (``INDEX_RANGE``), started from ``mixture_shadowing``;
     ``pruned_smith``: the pruned model refitted with each lobe's own Lambda
-    (``smith``), as (c') (where a lobe was pruned).
+    (``smith``), as (c') (where a lobe was pruned); ``smith_index``: the
+    pruned model (each lobe's own Lambda) with the index free in that range.
 
 ``--add`` runs only the named parts (``binomial``, (c') ``three_lobes``,
 ``abg``, ``refine``, (e) ``mixture``) from the starts stored in the dataset's
@@ -102,7 +103,7 @@ INDEX_RANGE = {
 }
 #: Physically based model names (the rest are empirical).
 PHYSICAL = ("today", "smith_seed", "smith_ts", "tail_hc", "multi_lobe", "multi_lobe_no_shadowing", "three_lobes",
-            "three_lobes_no_shadowing", "pruned_smith", "mixture_shadowing", "mixture_index")
+            "three_lobes_no_shadowing", "pruned_smith", "mixture_shadowing", "mixture_index", "smith_index")
 EMPIRICAL = ("abg", "phong", "binomial")
 TAIL = {"value": 2.5, "lower": 1.5, "upper": 30.0}  # Smith's Lambda is finite for a Hyper-Cauchy gamma > 1.5
 
@@ -297,6 +298,8 @@ def mixture_runs(run, name: str, fits: dict) -> None:
     start = run.models["mixture_shadowing"]
     run("mixture_index", start, _free_spec(start, INDEX_RANGE[name]), first_stage=None, solver_options={"max_steps": steps})
     run.out["mixture_index"].update(base=base, dropped=dropped, index_range=INDEX_RANGE[name])
+    run("smith_index", model, _free_spec(model, INDEX_RANGE[name]), first_stage=None, solver_options={"max_steps": steps})
+    run.out["smith_index"].update(base=base, dropped=dropped, index_range=INDEX_RANGE[name])
 
 
 def _stored_model(label: str, name: str, fits: dict) -> bj.Model:
@@ -362,7 +365,7 @@ def add_to_dataset(name: str, stored: dict, parts=ADD_PARTS, verbose: bool = Tru
             models["three_lobes"] = models["three_lobes_refined"]
         out.pop("three_lobes_refined")
     models.setdefault("multi_lobe", two)
-    for label in ("today", "three_lobes", "binomial", "mixture_index"):
+    for label in ("today", "three_lobes", "binomial", "mixture_index", "smith_index"):
         if label not in models and label in fits:
             models[label] = _stored_model(label, name, fits)
     models["abg"] = abg
@@ -406,7 +409,7 @@ def figure(name: str, models: dict, path: Path) -> None:
     ncol = 4
     nrow = int(np.ceil(len(angles) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 3.2 * nrow), squeeze=False)
-    shown = ("today", "multi_lobe", "three_lobes", "mixture_index", "abg", "phong", "binomial")
+    shown = ("today", "multi_lobe", "three_lobes", "mixture_index", "smith_index", "abg", "phong", "binomial")
     for ax, a in zip(axes.ravel(), angles):
         sel = plane & (np.round(np.degrees(ti), 4) == a) & (f > 0)
         order = np.argsort(signed[sel])
