@@ -45,7 +45,8 @@ configs unless said otherwise):
     pruned model (each lobe's own Lambda) with the index free in that range.
 
 ``--add`` runs only the named parts (``binomial``, (c') ``three_lobes``,
-``abg``, ``refine``, (e) ``mixture``) from the starts stored in the dataset's
+``abg``, ``refine``, (e) ``mixture``, ``continue``: (e) fits that stopped at
+their iteration limit go on from there) from the starts stored in the dataset's
 results json (the other fits are kept as they are there), and merges them in.
 New fits store their model as a ``[model.terms]`` table (``terms``), from
 which the figure and later ``--add`` runs rebuild them.
@@ -261,7 +262,7 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
     return out, models
 
 
-ADD_PARTS = ("binomial", "three_lobes", "abg", "refine", "mixture")
+ADD_PARTS = ("binomial", "three_lobes", "abg", "refine", "mixture", "continue")
 
 
 def pruned(model: bj.Model, rel: float = 1e-3) -> tuple[bj.Model, list[str]]:
@@ -352,6 +353,18 @@ def add_to_dataset(name: str, stored: dict, parts=ADD_PARTS, verbose: bool = Tru
         out.pop("abg_refit")
     if "mixture" in parts:
         mixture_runs(run, name, {**fits, **out})
+    if "continue" in parts:
+        # (e) fits that stopped at their iteration limit go on from where they stopped (600 more steps, the
+        # same bounds); the continued fit replaces the stored one, with the steps of both in its note
+        for label in ("mixture_index", "smith_index"):
+            prev = {**fits, **out}.get(label)
+            if prev is None or prev["converged"]:
+                continue
+            start = _stored_model(label, name, {**fits, **out})
+            spec = _free_spec(start, prev.get("index_range") and {k: tuple(v) for k, v in prev["index_range"].items()})
+            run(label, start, spec, first_stage=None, solver_options={"max_steps": 600})
+            out[label].update({k: prev[k] for k in ("base", "dropped", "index_range") if k in prev},
+                              note=f"continued from a fit that stopped at its iteration limit ({prev['message'][:40]}...)")
     if "refine" in parts and "three_lobes" in fits:
         # the stored three-lobe optimum refitted without the soft first stage (a fit that stopped at its
         # iteration limit goes on from there); kept if lower
