@@ -41,10 +41,12 @@ configs unless said otherwise):
     ``mixture_index``: the same with the index free within the material's
     physical range (``INDEX_RANGE``), started from ``mixture_shadowing``;
     ``pruned_smith``: the pruned model refitted with each lobe's own Lambda
-    (``smith``), as (c') (where a lobe was pruned).
+    (``smith``), as (c') (where a lobe was pruned); ``smith_index``: the
+    pruned model (each lobe's own Lambda) with the index free in that range.
 
 ``--add`` runs only the named parts (``binomial``, (c') ``three_lobes``,
-``abg``, ``refine``, (e) ``mixture``) from the starts stored in the dataset's
+``abg``, ``refine``, (e) ``mixture``, ``continue``: (e) fits that stopped at
+their iteration limit go on from there) from the starts stored in the dataset's
 results json (the other fits are kept as they are there), and merges them in.
 New fits store their model as a ``[model.terms]`` table (``terms``), from
 which the figure and later ``--add`` runs rebuild them.
@@ -102,7 +104,7 @@ INDEX_RANGE = {
 }
 #: Physically based model names (the rest are empirical).
 PHYSICAL = ("today", "smith_seed", "smith_ts", "tail_hc", "multi_lobe", "multi_lobe_no_shadowing", "three_lobes",
-            "three_lobes_no_shadowing", "pruned_smith", "mixture_shadowing", "mixture_index")
+            "three_lobes_no_shadowing", "pruned_smith", "mixture_shadowing", "mixture_index", "smith_index")
 EMPIRICAL = ("abg", "phong", "binomial")
 TAIL = {"value": 2.5, "lower": 1.5, "upper": 30.0}  # Smith's Lambda is finite for a Hyper-Cauchy gamma > 1.5
 
@@ -260,7 +262,7 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
     return out, models
 
 
-ADD_PARTS = ("binomial", "three_lobes", "abg", "refine", "mixture")
+ADD_PARTS = ("binomial", "three_lobes", "abg", "refine", "mixture", "continue")
 
 
 def pruned(model: bj.Model, rel: float = 1e-3) -> tuple[bj.Model, list[str]]:
@@ -297,6 +299,8 @@ def mixture_runs(run, name: str, fits: dict) -> None:
     start = run.models["mixture_shadowing"]
     run("mixture_index", start, _free_spec(start, INDEX_RANGE[name]), first_stage=None, solver_options={"max_steps": steps})
     run.out["mixture_index"].update(base=base, dropped=dropped, index_range=INDEX_RANGE[name])
+    run("smith_index", model, _free_spec(model, INDEX_RANGE[name]), first_stage=None, solver_options={"max_steps": steps})
+    run.out["smith_index"].update(base=base, dropped=dropped, index_range=INDEX_RANGE[name])
 
 
 def _stored_model(label: str, name: str, fits: dict) -> bj.Model:
@@ -349,6 +353,18 @@ def add_to_dataset(name: str, stored: dict, parts=ADD_PARTS, verbose: bool = Tru
         out.pop("abg_refit")
     if "mixture" in parts:
         mixture_runs(run, name, {**fits, **out})
+    if "continue" in parts:
+        # (e) fits that stopped at their iteration limit go on from where they stopped (600 more steps, the
+        # same bounds); the continued fit replaces the stored one, with the steps of both in its note
+        for label in ("mixture_index", "smith_index"):
+            prev = {**fits, **out}.get(label)
+            if prev is None or prev["converged"]:
+                continue
+            start = _stored_model(label, name, {**fits, **out})
+            spec = _free_spec(start, prev.get("index_range") and {k: tuple(v) for k, v in prev["index_range"].items()})
+            run(label, start, spec, first_stage=None, solver_options={"max_steps": 600})
+            out[label].update({k: prev[k] for k in ("base", "dropped", "index_range") if k in prev},
+                              note=f"continued from a fit that stopped at its iteration limit ({prev['message'][:40]}...)")
     if "refine" in parts and "three_lobes" in fits:
         # the stored three-lobe optimum refitted without the soft first stage (a fit that stopped at its
         # iteration limit goes on from there); kept if lower
@@ -362,7 +378,7 @@ def add_to_dataset(name: str, stored: dict, parts=ADD_PARTS, verbose: bool = Tru
             models["three_lobes"] = models["three_lobes_refined"]
         out.pop("three_lobes_refined")
     models.setdefault("multi_lobe", two)
-    for label in ("today", "three_lobes", "binomial", "mixture_index"):
+    for label in ("today", "three_lobes", "binomial", "mixture_index", "smith_index"):
         if label not in models and label in fits:
             models[label] = _stored_model(label, name, fits)
     models["abg"] = abg
@@ -406,7 +422,7 @@ def figure(name: str, models: dict, path: Path) -> None:
     ncol = 4
     nrow = int(np.ceil(len(angles) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 3.2 * nrow), squeeze=False)
-    shown = ("today", "multi_lobe", "three_lobes", "mixture_index", "abg", "phong", "binomial")
+    shown = ("today", "multi_lobe", "three_lobes", "mixture_index", "smith_index", "abg", "phong", "binomial")
     for ax, a in zip(axes.ravel(), angles):
         sel = plane & (np.round(np.degrees(ti), 4) == a) & (f > 0)
         order = np.argsort(signed[sel])

@@ -17,7 +17,7 @@ import pytest
 import brdfjax as bj
 from brdfjax.fit import fit, read_cornell_brdf, read_merl_inplane
 from brdfjax.fit.config import build_fit_job, load_fit_config
-from brdfjax.terms import ABg, MultiLobeSpecular, Specular
+from brdfjax.terms import ABg, Binomial, MultiLobeSpecular, Specular
 
 REAL = Path(__file__).resolve().parent / "data" / "real"
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -88,7 +88,7 @@ def test_shipped_config_beats_todays_model(config, today):
           {g["theta_i_deg"]: round(g["log_rms"], 3) for g in block.groups})
     assert block.log_rms < today - 0.02
     microfacet = [t for t in job.model.terms.values() if isinstance(t, Specular | MultiLobeSpecular)]
-    assert microfacet and all(t.shadowing == "smith" for t in microfacet)
+    assert microfacet and all(t.shadowing in ("smith", "smith_mixture") for t in microfacet)
 
 
 def test_merl_physical_model_is_at_least_as_good_as_abg():
@@ -110,3 +110,56 @@ def test_merl_physical_model_is_at_least_as_good_as_abg():
     print(f"\nMERL: physically based {phys.log_rms:.3f} {per_p}\n      ABg {a.log_rms:.3f} {per_a}")
     assert phys.log_rms <= a.log_rms
     assert per_p[78.75] <= per_a[78.75]
+
+
+RESULTS = Path(__file__).resolve().parents[1] / "experiments" / "results"
+
+
+def _stored_binomial(dataset):
+    """The binomial + Lambertian fit of experiments/real_data_fits.py (its stored optimum)."""
+    import json  # function-local: only these tests read the experiment's results
+
+    fits = json.loads((RESULTS / f"real_data_fits_{dataset}.json").read_text())["fits"]
+    model = bj.Model(terms={"spec": Binomial(np.zeros((2, 3)), np.zeros((2, 1)), 1.0, l1=1), "diffuse": bj.Lambertian(0.01)})
+    return model.with_params(fits["binomial"]["parameters"]), fits["binomial"]["log_rms"]
+
+
+@pytest.mark.parametrize("config, dataset", [("fit_cornell_krylon_blue.toml", "cornell_krylon_blue"),
+                                             ("fit_cornell_cayman.toml", "cornell_cayman")], ids=["krylon", "cayman"])
+def test_shipped_physical_model_is_at_least_as_good_as_the_binomial(config, dataset):
+    """Krylon and Cayman: the shipped physically based config at its values has a log-RMS no higher than the
+    binomial + Lambertian fit of experiments/real_data_fits.py, its stored optimum evaluated here on the same
+    table (no solve on either side: the binomial's own fit takes 1-3 min here)."""
+    job = build_fit_job(load_fit_config(CONFIGS / config))
+    phys = fit(job.model, job.blocks, {}).blocks[0]
+    model, stored = _stored_binomial(dataset)
+    binom = fit(model, job.blocks, {}).blocks[0]
+    assert binom.log_rms == pytest.approx(stored, rel=1e-6)  # the same data and measure as the experiment's
+    print(f"\n{dataset}: physically based {phys.log_rms:.3f}, binomial {binom.log_rms:.3f}")
+    assert phys.log_rms <= binom.log_rms
+
+
+def test_merl_binomial_is_below_the_floor_of_any_single_lobe_shape():
+    """MERL aluminium, where the physically based fits stay above the binomial (issue 14, not met): no
+    distribution D(theta_h) whatever, times Eq 70's factor with the aluminium index, reaches the binomial's
+    log-RMS (the least-squares floor over a 40-knot spline in ln tan theta_h); the gap is in the angular
+    factor, not in the lobe's shape (experiments/merl_gap.py has the floors of other factors)."""
+    from scipy.interpolate import BSpline  # function-local: only this test builds a spline basis
+
+    table = read_merl_inplane(REAL / "merl_aluminium_inplane.txt")
+    dirs = bj.Directions.from_angles(*(np.asarray(getattr(table, f)) for f in ("theta_i", "phi_i", "theta_s", "phi_s")))
+    f = np.asarray(table.brdf)
+    tx2, ty2, _ = (np.asarray(v) for v in dirs.half_slopes())
+    x = np.log(np.maximum(np.sqrt(tx2 + ty2), 1e-5))
+    knots = np.r_[[x.min()] * 3, np.linspace(x.min(), x.max(), 40), [x.max()] * 3]
+    basis = BSpline.design_matrix(x, knots, 3).toarray()
+    ci, cs = np.asarray(dirs.cos_theta_i), np.asarray(dirs.cos_theta_s)
+    y = np.log(f * 2 * (ci + cs) ** 2 / np.asarray(bj.q_factor(ALUMINIUM["n"], dirs, ALUMINIUM["k"])))
+    coef, *_ = np.linalg.lstsq(basis, y, rcond=None)
+    floor = float(np.sqrt(np.mean((y - basis @ coef) ** 2)))
+    model, _ = _stored_binomial("merl_aluminium")
+    binom = fit(model, table, {}).blocks[0].log_rms
+    job = build_fit_job(load_fit_config(CONFIGS / "fit_merl_aluminium.toml"))
+    phys = fit(job.model, job.blocks, {}).blocks[0].log_rms
+    print(f"\nMERL: any D(theta_h) x Eq 70 >= {floor:.3f}; shipped physically based {phys:.3f}; binomial {binom:.3f}")
+    assert binom < floor - 0.1 and binom < phys
