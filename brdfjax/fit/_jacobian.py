@@ -45,6 +45,7 @@ from jaxtyping import Array
 
 from ..geometry import Rz
 from ..terms import ABg, Diffraction, Lambertian, Model, OffsetNormal, Oriented, Phong, Specular
+from ._analytic import PHI, term_columns
 from ._residuals import block_log_residuals
 
 __all__ = ["SCALES", "supports", "residuals_and_jacobian"]
@@ -167,6 +168,7 @@ def _columns(block: Any, plan: _Plan, xs: Array, gate: Array) -> tuple[Array, Ar
     scaled: list[tuple[int, int]] = []  # (row of f1_t, local index of the scale)
     cols: list[Array | None] = [None] * p
     template = block.template
+    paths = template._paths()
     for tname, js, s, alias in plan.terms:
 
         def value(theta, tname=tname, js=js, s=s):
@@ -189,7 +191,20 @@ def _columns(block: Any, plan: _Plan, xs: Array, gate: Array) -> tuple[Array, Ar
             return term(dirs, wl)
 
         theta = jnp.stack([xs[j] for j in js]) if js else jnp.zeros(0, xs.dtype)
-        if js:
+        hand = None
+        if frame is not None:  # columns written by hand for the common terms (._analytic)
+            vals = dict(model_flat)
+            if s >= 0:
+                vals[plan.names[s][0]] = jnp.ones_like(xs[s])
+            vals = {k_: vals[k_] for k_ in vals if template._resolve(k_).split(".", 1)[0] == tname}
+            term = template.with_params(vals).terms[tname] if vals else template.terms[tname]
+            phi = frame.phi_ref if phi_j is None else xs[phi_j]
+            wanted = [PHI if plan.names[j][1] == "frame" else paths[template._resolve(plan.names[j][0])][0][2:] for j in js]
+            hand = term_columns(term, base_dirs.rotated(Rz(-phi)), wl, wanted)
+        if hand is not None:
+            f1 = hand[0]
+            df1 = jnp.stack(hand[1], axis=1) if js else None
+        elif js:
             basis = jnp.eye(len(js), dtype=xs.dtype)
             f1, df1 = jax.vmap(lambda t, value=value, theta=theta: jax.jvp(value, (theta,), (t,)), out_axes=(None, 1))(basis)
         else:
@@ -207,23 +222,26 @@ def _columns(block: Any, plan: _Plan, xs: Array, gate: Array) -> tuple[Array, Ar
             own[j] = own[i]
         for j, c in own.items():
             cols[j] = c if cols[j] is None else cols[j] + c
-    n_pts = rows[0].shape[0] if rows else fixed_sum.shape[0]
-    zero = jnp.zeros(n_pts, xs.dtype)
     n_fixed = 0
     if fixed_sum is not None:
         rows.insert(0, fixed_sum)
         n_fixed = 1
         scaled = [(r + 1, s) for r, s in scaled]
     first_col = len(rows)
-    rows.extend(zero if c is None else c for c in cols)
+    live = [j for j, c in enumerate(cols) if c is not None]  # a scale's own column is its term's f1 (a row)
+    rows.extend(cols[j] for j in live)
     stacked = jnp.stack(rows, axis=1)
     conv = _isolated(lambda a: block.convolve(a), stacked, gate)  # (n, rows): the points first (the fast layout)
     g = conv[:, 0] if n_fixed else jnp.zeros(conv.shape[0], conv.dtype)
     for r, s in scaled:
         g = g + xs[s] * conv[:, r]
-    dg = conv[:, first_col:]
+    out = [None] * p
+    for q, j in enumerate(live):
+        out[j] = conv[:, first_col + q]
     for r, s in scaled:
-        dg = dg.at[:, s].add(conv[:, r])
+        out[s] = conv[:, r] if out[s] is None else out[s] + conv[:, r]
+    zero = jnp.zeros(conv.shape[0], conv.dtype)
+    dg = jnp.stack([zero if c is None else c for c in out], axis=1)
     return g, dg
 
 
