@@ -93,12 +93,12 @@ def test_shipped_config_beats_todays_model(config, today):
 
 def test_merl_physical_model_is_at_least_as_good_as_abg():
     """MERL aluminium: the shipped physically based model (spike + mid + halo microfacet lobes sharing the
-    index, Smith G2, + Lambertian) at its shipped values has a log-RMS no higher than an ABg + Lambertian fit of
+    index, Smith G2 of their mixture, + Lambertian) at its shipped values has a log-RMS no higher than an ABg + Lambertian fit of
     the same data, overall and at the grazing 78.75 deg (ABg fitted here from a plain start: about 20 s; the
     multi-lobe fit itself takes minutes, experiments/real_data_fits.py)."""
     job = build_fit_job(load_fit_config(CONFIGS / "fit_merl_aluminium.toml"))
     spec = job.model.terms["spec"]
-    assert isinstance(spec, MultiLobeSpecular) and len(spec.lobes) == 3 and spec.shadowing == "smith"
+    assert isinstance(spec, MultiLobeSpecular) and len(spec.lobes) == 3 and spec.shadowing in ("smith", "smith_mixture")
     phys = fit(job.model, job.blocks, {}).blocks[0]
     abg_model = bj.Model(terms={"spec": ABg(0.003, 4e-6, 2.0), "diffuse": bj.Lambertian(1e-3)})
     free = {"spec.A": "free", "spec.B": "free", "spec.g": "free", "diffuse.rho_d": "free"}
@@ -158,8 +158,6 @@ def test_merl_binomial_is_below_the_floor_of_any_single_lobe_shape():
     coef, *_ = np.linalg.lstsq(basis, y, rcond=None)
     floor = float(np.sqrt(np.mean((y - basis @ coef) ** 2)))
     model, _ = _stored_binomial("merl_aluminium")
-    binom = fit(model, table, {}).blocks[0].log_rms
-    job = build_fit_job(load_fit_config(CONFIGS / "fit_merl_aluminium.toml"))
-    phys = fit(job.model, job.blocks, {}).blocks[0].log_rms
-    print(f"\nMERL: any D(theta_h) x Eq 70 >= {floor:.3f}; shipped physically based {phys:.3f}; binomial {binom:.3f}")
-    assert binom < floor - 0.1 and binom < phys
+    binom = float(np.sqrt(np.mean(np.log(np.asarray(model(dirs, np.asarray(table.wavelength))) / f) ** 2)))
+    print(f"\nMERL: any D(theta_h) x Eq 70 >= {floor:.3f}; binomial {binom:.3f}")
+    assert binom < floor - 0.1

@@ -46,7 +46,7 @@ def test_microfacet_fresnel_equals_q_in_the_specular_direction(n, k):
 
 
 def test_microfacet_fresnel_term_is_reciprocal_and_differs_off_specular():
-    lobes = {"spike": Lobe(dist.Beckmann(0.05), 0.6), "halo": Lobe(dist.HyperCauchy(0.3, 2.5), 0.2)}
+    lobes = {"spike": Lobe(dist.Beckmann(0.05), 0.6), "halo": Lobe(dist.GGX(0.3), 0.2)}
     for norm in ("seed", "torrance_sparrow"):
         term = MultiLobeSpecular(lobes, n=1.37, k=7.62, shadowing="smith", normalisation=norm, fresnel="microfacet")
         np.testing.assert_allclose(np.asarray(term(DIRS, 5e-7)), np.asarray(term(SWAP, 5e-7)), rtol=1e-10)
@@ -64,7 +64,7 @@ def test_microfacet_fresnel_gradients_are_finite_at_normal_incidence_and_the_mir
         term = Specular(dist.GGX(p[0]), p[1], p[2], p[3], shadowing="smith", fresnel="microfacet")
         return jnp.sum(jnp.log(term(dirs, 5e-7)))
 
-    g = jax.grad(loss)(jnp.array([0.2, 0.5, 1.37, 7.62]))
+    g = jax.jit(jax.grad(loss))(jnp.array([0.2, 0.5, 1.37, 7.62]))
     assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g)[2:] != 0)
 
 

@@ -47,13 +47,13 @@ def test_mixture_g2_is_the_weighted_lambda_of_the_lobes():
 
 
 def test_one_lobe_mixture_is_smith_and_g2_is_at_most_one():
-    one = {"a": Lobe(dist.HyperCauchy(0.2, 2.5), 0.5)}
+    one = {"a": Lobe(dist.Beckmann(0.2), 0.5)}
     a = MultiLobeSpecular(one, n=1.5, shadowing="smith_mixture")(DIRS, 5e-7)
     b = MultiLobeSpecular(one, n=1.5, shadowing="smith")(DIRS, 5e-7)
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
     s = bj.Specular(dist.GGX(0.3), 0.5, 1.5, shadowing="smith_mixture")(DIRS, 5e-7)
     np.testing.assert_allclose(np.asarray(s), np.asarray(bj.Specular(dist.GGX(0.3), 0.5, 1.5, shadowing="smith")(DIRS, 5e-7)))
-    num, den = smith_mixture_g2_parts([dist.GGX(0.02), dist.HyperCauchy(0.4, 2.2)], [0.6, 0.0], DIRS)
+    num, den = smith_mixture_g2_parts([dist.GGX(0.02), dist.Beckmann(0.4)], [0.6, 0.0], DIRS)
     g = np.asarray(num / den)
     assert np.all((g >= 0) & (g <= 1))
 
@@ -68,7 +68,7 @@ def test_mixture_shadowing_is_reciprocal_with_finite_gradients(halo):
         lobes = {"spike": Lobe(dist.GGX(p[0]), p[1]), "halo": Lobe(dist.GGX(p[2]), p[3])}
         return jnp.sum(jnp.log(MultiLobeSpecular(lobes, n=1.37, k=7.62, shadowing="smith_mixture")(dirs, 5e-7)))
 
-    g = np.asarray(jax.grad(loss)(jnp.array([0.02, 0.6, 0.5, 0.2])))
+    g = np.asarray(jax.jit(jax.grad(loss))(jnp.array([0.02, 0.6, 0.5, 0.2])))
     assert np.all(np.isfinite(g)) and g[2] != 0  # the halo's width changes the spike's masking
 
 
