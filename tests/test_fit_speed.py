@@ -13,7 +13,8 @@ from brdfjax.fit._problem import evaluate, jacobian, jacobian_jacfwd
 from brdfjax.instrument.synthetic import convolve_footprint, footprint_kernel
 
 # a tilted specular peak (turned by dtheta, dphi0 + phi_ref) beside an untilted one (phi_ref cannot reach it)
-# and the bars' diffraction (every column written by hand: brdfjax.fit._analytic)
+# and the bars' diffraction (every column written by hand: brdfjax.fit._analytic; its rho held fixed, so the
+# hand-written columns carry it)
 MODEL = bj.Model(
     terms={
         "center": bj.Specular(bj.Beckmann(1.5e-3), rho_s=0.05, n=3.0),
@@ -24,7 +25,7 @@ MODEL = bj.Model(
 )
 SPEC = {"center.m": 1.6e-3, "center.n": 2.9, "offset.m": 1.4e-3, "offset.n": 1.5, "offset.dtheta": np.radians(0.16),
         "offset.dphi0": np.radians(44.0), "offset.rho_s": 0.65,
-        "bars.rho": 25.0, "bars.a": 8.1e-4, "bars.b": 1.1e-5, "bars.c": 3.9e-4, "phi_ref": 0.002}
+        "bars.a": 8.1e-4, "bars.b": 1.1e-5, "bars.c": 3.9e-4, "phi_ref": 0.002}
 
 
 def _frame(kernel):

@@ -113,7 +113,8 @@ def _diffraction(term: Diffraction, dirs: Directions, wl: Any, wanted: list[tupl
         return df_dhx * hy - df_dhy * hx  # phi_ref turns h: dh_x = h_y, dh_y = -h_x
 
     ok = _both_above(dirs)
-    return jnp.where(ok, f1, 0.0), [jnp.where(ok, col(w), 0.0) for w in wanted]
+    rho = term.rho  # 1 where rho is free (the caller's scale), else its fixed value
+    return jnp.where(ok, rho * f1, 0.0), [jnp.where(ok, rho * col(w), 0.0) for w in wanted]
 
 
 def term_columns(term: Any, dirs: Directions, wavelength: Any, wanted: list[tuple[str, ...]]):
