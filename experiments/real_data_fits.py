@@ -259,6 +259,7 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
         {"spec.rho": "free", "spec.k": "free", "diffuse.rho_d": "free"})
     binomial_run(run, out["abg"]["parameters"], d0)
     three_lobe_runs(run, name, models["multi_lobe"])
+    mixture_runs(run, name, out)
     return out, models
 
 
