@@ -15,11 +15,15 @@ assembled from its pieces:
    gets its column analytically: the term is evaluated with the scale at 1,
    ``f_t = s f1_t`` and ``df_t/ds = f1_t``.  The directions of the points in
    the scatter frame are computed once per problem (``FrameBlock.dirs``).
+   ``phi_ref`` is not differentiated through a term it cannot turn (:func:`_turn_invariant`), and an
+   :class:`~brdfjax.OffsetNormal` takes its ``dphi0`` column for it.  The common terms' columns are
+   written by hand (:mod:`._analytic`); the rest go through batched forward mode.
 2. **The footprint, once for all columns.**  The convolution is linear, so the
    Jacobian of the convolved model is the convolution of the pointwise
    Jacobian: every column goes through one batched FFT on the small FFT box
    (``FrameBlock.convolve``), together with the scaled terms' values, which
-   give the convolved model itself (``g = sum_t s_t conv(f1_t) + ...``).
+   give the convolved model itself (``g = sum_t s_t conv(f1_t) + ...``), compiled apart from the
+   pointwise work (:func:`_isolated`).
 3. **The rest is elementwise.**  The log residuals, the nuisance offsets, the
    robust loss and the reparametrisation ``x = g(u)`` are small functions of
    the convolved model and the parameters: their derivatives are forward-mode
