@@ -261,11 +261,9 @@ def main(argv=None) -> int:
         jf = med(r["jacfwd_s"] for r in bj)
         print(f"{'jax.jacfwd Jacobian (CPU s), / residual':44s} {jf:10.4f} {'':>10s} {jf / res_s:6.2f}x")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=args.json.parent, suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            json.dump(dict(rows=rows, load=os.getloadavg()), f, indent=2)
-        os.replace(tmp, args.json)
+        from brdfjax.io.atomic import write_json_atomic  # noqa: PLC0415 -- the timed children import brdfjax, not this parent
+
+        write_json_atomic(args.json, dict(rows=rows, load=os.getloadavg()))
     return 0
 
 

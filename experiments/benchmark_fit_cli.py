@@ -53,11 +53,9 @@ def main(argv=None) -> int:
               flush=True)
     print(f"second process / first: {runs[1]['wall_s'] / runs[0]['wall_s']:.2f}")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=args.json.parent, suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            json.dump(dict(runs=runs, load=os.getloadavg()), f, indent=2)
-        os.replace(tmp, args.json)
+        from brdfjax.io.atomic import write_json_atomic  # noqa: PLC0415 -- the timed children import brdfjax, not this parent
+
+        write_json_atomic(args.json, dict(runs=runs, load=os.getloadavg()))
     shutil.rmtree(work, ignore_errors=True)
     return 0
 

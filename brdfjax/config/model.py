@@ -17,12 +17,15 @@ from typing import Any
 
 import equinox as eqx
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from .. import registry
 from ..shadowing import SHADOWING
 from ..terms import FRESNELS, NORMALISATIONS, AbstractTerm, Diffraction, Lobe, Model, MultiLobeSpecular, OffsetNormal, Specular
 from .base import ConfigError, StrictModel, raise_unknown, unknown_key_message
+
+# the microfacet terms' string options and their allowed values (one validator checks all three)
+_TERM_OPTIONS = {"shadowing": SHADOWING, "normalisation": NORMALISATIONS, "fresnel": FRESNELS}
 
 __all__ = [
     "TermConfig",
@@ -99,25 +102,12 @@ class TermConfig(StrictModel):
     def _dotted_keys(cls, v: Any) -> Any:
         return _flatten_params(v)
 
-    @field_validator("shadowing")
+    @field_validator("shadowing", "normalisation", "fresnel")
     @classmethod
-    def _known_shadowing(cls, v: str | None) -> str | None:
-        if v is not None and v not in SHADOWING:
-            raise_unknown("shadowing", v, SHADOWING)
-        return v
-
-    @field_validator("normalisation")
-    @classmethod
-    def _known_normalisation(cls, v: str | None) -> str | None:
-        if v is not None and v not in NORMALISATIONS:
-            raise_unknown("normalisation", v, NORMALISATIONS)
-        return v
-
-    @field_validator("fresnel")
-    @classmethod
-    def _known_fresnel(cls, v: str | None) -> str | None:
-        if v is not None and v not in FRESNELS:
-            raise_unknown("fresnel", v, FRESNELS)
+    def _known_option(cls, v: str | None, info: ValidationInfo) -> str | None:
+        choices = _TERM_OPTIONS[info.field_name]
+        if v is not None and v not in choices:
+            raise_unknown(info.field_name, v, choices)
         return v
 
     @field_validator("lobes")
