@@ -5,6 +5,8 @@ Float32 behaviour is tested explicitly through ``precision="float32"``.
 
 import os
 
+import pytest
+
 os.environ.setdefault("MPLBACKEND", "Agg")
 # The CLI turns on JAX's persistent compilation cache in the user's cache folder; tests that call
 # brdfjax.cli.main in this process leave it alone (tests/test_compile_cache.py turns it on in a subprocess).
@@ -13,3 +15,30 @@ os.environ.setdefault("BRDFJAX_NO_CACHE", "1")
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture
+def assert_jacobian_matches_jacfwd():
+    """``check(problem, v, residual_rtol=1e-9)``: the structured Jacobian at ``v`` equals ``jax.jacfwd``'s to 1e-10
+    of each column's norm (every column non-zero), and its residuals equal ``evaluate``'s."""
+    import equinox as eqx  # noqa: PLC0415 -- only the Jacobian tests need the fit stack
+    import numpy as np  # noqa: PLC0415
+
+    from brdfjax.fit import _problem  # noqa: PLC0415
+    from brdfjax.fit._jacobian import supports  # noqa: PLC0415
+
+    def check(problem, v, residual_rtol=1e-9):
+        assert supports(problem)
+        J = np.asarray(_problem.jacobian(v, problem))
+        ref = np.asarray(_problem.jacobian_jacfwd(v, problem))
+        assert J.shape == ref.shape == (sum(problem.counts), problem.u0.shape[0])
+        norms = np.linalg.norm(ref, axis=0)
+        assert np.all(norms > 0)
+        err = np.max(np.abs(J - ref), axis=0) / norms
+        assert np.all(err < 1e-10), err
+        r_struct = np.asarray(eqx.filter_jit(_problem._residuals_and_jacobian)(v, problem)[0])
+        # the same residuals (the FFT box sums the terms after the transform: rounding of the largest value)
+        np.testing.assert_allclose(r_struct, np.asarray(_problem.evaluate(v, problem)[1]),
+                                   rtol=residual_rtol, atol=residual_rtol)
+
+    return check
