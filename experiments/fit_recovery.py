@@ -62,7 +62,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -74,6 +73,7 @@ import numpy as np  # noqa: E402
 
 import brdfjax as bj  # noqa: E402
 from brdfjax.fit import Param, fit, frame_data_from_reduced  # noqa: E402
+from brdfjax.io.atomic import write_json_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTRUMENT_TOML = ROOT / "configs" / "instrument_seed.toml"
@@ -89,10 +89,7 @@ NEB_FACTOR = 5.0
 
 def _atomic_json(path: Path, obj) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(obj, f, indent=2)
-    os.replace(tmp, path)
+    write_json_atomic(path, obj)
 
 
 # --- data ---------------------------------------------------------------------------------------
