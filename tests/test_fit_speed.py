@@ -75,3 +75,24 @@ def test_progress_is_reported_per_step_without_changing_the_fit():
         assert loud.value(name) == pytest.approx(quiet.value(name), rel=1e-8)
     assert heard[-1][1] == pytest.approx(loud.cost, rel=1e-6)
     jax.clear_caches()
+
+
+def test_ftol_stops_earlier_at_the_same_chi2():
+    """scipy-like ftol: fewer steps than the Cauchy test alone (ftol=0, which on this frame runs to max_steps
+    without its test firing), chi^2 within 1e-6 relative of that long solve's."""
+    frame = _frame(None)
+    tight = fit(MODEL, frame, SPEC, first_stage=None, solver_options={"ftol": 0.0})
+    quick = fit(MODEL, frame, SPEC, first_stage=None)
+    assert quick.converged, quick.message
+    assert quick.n_iterations < tight.n_iterations, (quick.n_iterations, tight.n_iterations)
+    assert quick.chi2 == pytest.approx(tight.chi2, rel=1e-6)
+    jax.clear_caches()
+
+
+@pytest.mark.parametrize("bad", [-1e-8, "1e-8", float("nan"), True])
+def test_bad_ftol_is_a_clear_error(bad):
+    from brdfjax.fit._common import FitInputError
+    from brdfjax.fit._solvers import get_solver
+
+    with pytest.raises(FitInputError, match="'ftol'"):
+        get_solver("levenberg_marquardt", ftol=bad)

@@ -68,9 +68,57 @@ class AbstractSolver(eqx.Module):
         raise NotImplementedError
 
 
+class _FtolLM(optx.AbstractLeastSquaresSolver):
+    """optimistix Levenberg-Marquardt that also stops like scipy's ``ftol``.
+
+    After an accepted step that lowers chi^2 by at most ``ftol`` relative to the previous accepted
+    chi^2, the solve terminates (optimistix's own Cauchy test on step and residual change still applies).
+    The chi^2 is final long before that test fires: the solve runs about 30 steps where 12 give the
+    final chi^2 to 1e-6 relative.
+    """
+
+    inner: optx.LevenbergMarquardt
+    ftol: float = eqx.field(static=True)
+
+    @property
+    def rtol(self):
+        return self.inner.rtol
+
+    @property
+    def atol(self):
+        return self.inner.atol
+
+    @property
+    def norm(self):
+        return self.inner.norm
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        return self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+
+    def step(self, fn, y, args, options, state, tags):
+        new_y, new_state, aux = self.inner.step(fn, y, args, options, state, tags)
+        if self.ftol > 0:
+            old = jnp.sum(jnp.square(state.f_info.residual))
+            new = jnp.sum(jnp.square(new_state.f_info.residual))
+            accepted = new_state.num_accepted_steps > state.num_accepted_steps
+            small = accepted & (state.num_accepted_steps > 0) & (old - new <= self.ftol * old)
+            new_state = eqx.tree_at(lambda s: s.terminate, new_state, new_state.terminate | small)
+        return new_y, new_state, aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return self.inner.terminate(fn, y, args, options, state, tags)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state, tags, result)
+
+
+def _lm(rtol, atol, ftol):
+    return _FtolLM(optx.LevenbergMarquardt(rtol=rtol, atol=atol), ftol)
+
+
 @eqx.filter_jit
-def _lm_solve(v0, problem, rtol, atol, max_steps):
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+def _lm_solve(v0, problem, rtol, atol, max_steps, ftol=0.0):
+    solver = _lm(rtol, atol, ftol)
     sol = optx.least_squares(residuals, solver, v0, args=problem, max_steps=max_steps, throw=False)
     return sol.value, sol.result, sol.stats["num_steps"]
 
@@ -99,14 +147,14 @@ def _lm_step(solver, v, state, problem):
     return new_v, new_state, terminate, result, jnp.sum(jnp.square(new_state.f_info.residual))
 
 
-def _lm_stepwise(v0, problem, rtol, atol, max_steps, report):
+def _lm_stepwise(v0, problem, rtol, atol, max_steps, report, ftol=0.0):
     """``_lm_solve`` stepped from Python: ``report(chi2)`` after each step, no host callback in any program.
 
     The same iterations as ``optx.least_squares`` (its loop body, run one step per call), so the compiled
     step and its start come from JAX's persistent compilation cache in a later process (a program with
     a host callback never does), and a fit with progress reaches the same point as one without.
     """
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    solver = _lm(rtol, atol, ftol)
     state, terminate, result = _lm_init(solver, v0, problem)
     v, n = v0, 0
     while n < max_steps and not bool(terminate) and result == optx.RESULTS.successful:
@@ -124,27 +172,39 @@ class LevenbergMarquardt(AbstractSolver):
     ``rtol``/``atol``: the Cauchy termination of optimistix (step and residual
     change both below ``atol + rtol * |value|``), in solver coordinates where
     a unit step is about one standard deviation of the start's Jacobian.
+    ``ftol``: also stop after an accepted step that lowers chi^2 by at most
+    ``ftol`` relative (scipy ``least_squares``' rule; 0 turns it off).
     """
 
     name: ClassVar[str] = "levenberg_marquardt"
     rtol: float = eqx.field(static=True, default=1e-5)
     atol: float = eqx.field(static=True, default=1e-5)
     max_steps: int = eqx.field(static=True, default=256)
+    ftol: float = eqx.field(static=True, default=1e-8)
+
+    def __check_init__(self):
+        f = self.ftol
+        if isinstance(f, bool) or not isinstance(f, (int, float, np.floating, np.integer)) or not np.isfinite(f) or f < 0:
+            raise FitInputError(f"solver option 'ftol' must be a finite number >= 0 (0 turns it off), got {f!r}")
 
     def solve(self, problem, v0, box=None):
         # No host callback in the compiled programs (they can then come from the persistent cache): a solve
         # somebody listens to is stepped from Python and reports the chi^2 after each step.
         problem = dataclasses.replace(problem, report=False)
         if listening():
-            value, result, steps = _lm_stepwise(jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, _emit)
+            value, result, steps = _lm_stepwise(
+                jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, _emit, float(self.ftol)
+            )
         else:
-            value, result, steps = _lm_solve(jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps)
+            value, result, steps = _lm_solve(
+                jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, float(self.ftol)
+            )
         v = np.asarray(value)
         n = int(steps)
         if result == optx.RESULTS.successful:
             if not np.all(np.isfinite(v)):
                 return SolveOutcome(v, False, SolveStatus.failed, "the solution is not finite", n)
-            return SolveOutcome(v, True, SolveStatus.successful, f"converged in {n} steps (rtol={self.rtol:g}, atol={self.atol:g})", n)
+            return SolveOutcome(v, True, SolveStatus.successful, f"converged in {n} steps (rtol={self.rtol:g}, atol={self.atol:g}, ftol={self.ftol:g})", n)
         message = str(optx.RESULTS[result])
         if result == optx.RESULTS.nonlinear_max_steps_reached:
             return SolveOutcome(
