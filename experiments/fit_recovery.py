@@ -87,11 +87,6 @@ MODEL = bj.solar_cell()
 NEB_FACTOR = 5.0
 
 
-def _atomic_json(path: Path, obj) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(path, obj)
-
-
 # --- data ---------------------------------------------------------------------------------------
 
 
@@ -292,7 +287,7 @@ def coverage(out: Path, seeds: list[int], bin_: int, step: int, fixed_mask: bool
             rec = dict(seed=s, converged=bool(r.converged), chi2_reduced=r.chi2_reduced,
                        inside={k: bool(abs(v["value"] - v["truth"]) <= v["sigma"]) for k, v in rows.items()},
                        pulls={k: v["pull"] for k, v in rows.items()}, data_s=t1 - t0, fit_s=r.wall_s, fit_cpu_s=cpu)
-            _atomic_json(cache, rec)
+            write_json_atomic(cache, rec)
         n_in = sum(rec["inside"].values())
         inside += n_in
         total += len(rec["inside"])
@@ -354,7 +349,7 @@ def main(argv=None) -> int:
             converged=reference.converged, message=reference.message, timings=reference.timings,
             wall_s=reference.wall_s, cpu_s=cpu_fit, data_s=t_data, warnings=list(reference.warnings),
         )
-        _atomic_json(result_path, report)
+        write_json_atomic(result_path, report)
     if "robustness" in parts:
         print(f"\nrobustness: {args.starts} random starts (auto disabled)", flush=True)
         t0 = time.perf_counter()
@@ -362,7 +357,7 @@ def main(argv=None) -> int:
         rob["wall_s"] = time.perf_counter() - t0
         print(f"robustness: {rob['n_same']}/{rob['n_starts']} starts reach the reference optimum (target >= 19/20)")
         report["robustness"] = rob
-        _atomic_json(result_path, report)
+        write_json_atomic(result_path, report)
     if "coverage" in parts:
         print(f"\ncoverage: {args.datasets} noise seeds", flush=True)
         t0 = time.perf_counter()
@@ -373,9 +368,9 @@ def main(argv=None) -> int:
               f"(dataset, parameter) pairs (target 0.55-0.80); pulls mean {cov['pull_mean']:+.3f}, "
               f"std {cov['pull_std']:.3f}")
         report["coverage"] = cov
-        _atomic_json(result_path, report)
+        write_json_atomic(result_path, report)
     report["wall_s_last_run"] = time.perf_counter() - t_all
-    _atomic_json(result_path, report)
+    write_json_atomic(result_path, report)
     print(f"\nwrote {result_path} ({report['wall_s_last_run']:.0f} s)")
     return 0
 
