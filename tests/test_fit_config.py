@@ -176,6 +176,11 @@ def test_unknown_keys_and_bad_values_name_the_key(tmp_path, reduced_example):
     assert "fit.solvr: unknown key (did you mean 'solver'?)" in msg
     msg = _error(_config(tmp_path, "[fit]\nsolver = 'newton'\n", reduced_example))
     assert "fit.solver: unknown solver 'newton'; known: levenberg_marquardt, lbfgsb" in msg
+    # solver options are checked at loading, before any data are made or read
+    msg = _error(_config(tmp_path, "[fit]\nsolver_options = { ftol = -1.0 }\n", reduced_example))
+    assert "fit: solver_options: solver option 'ftol' must be a finite number >= 0 (0 turns it off), got -1.0" in msg
+    msg = _error(_config(tmp_path, "[fit]\nsolver_options = { tolerance = 1e-3 }\n", reduced_example))
+    assert "fit: solver_options: solver 'levenberg_marquardt': unknown option(s) ['tolerance']" in msg
     msg = _error(_config(tmp_path, "[fit]\nloss = 'l1'\n", reduced_example))
     assert "fit.loss:" in msg and "'linear', 'huber' or 'cauchy'" in msg
     msg = _error(_config(tmp_path, "[params]\nn1 = { value = 1.5, lowr = 1.0 }\n", reduced_example))

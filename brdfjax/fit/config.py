@@ -142,7 +142,7 @@ from ._nuisance import NuisanceOptions, build_nuisance, check_sigma_choice
 from ._params import SPEC_KEYS, Param, param_problems
 from ._residuals import LOSSES
 from ._result import FitResult
-from ._solvers import SOLVERS
+from ._solvers import SOLVERS, get_solver
 from ._tables import Screen, read_astm_e1392, read_cornell_brdf, read_merl_inplane, read_table
 
 __all__ = [
@@ -373,6 +373,15 @@ class FitSection(StrictModel):
         if v is not None and v not in INITIALIZERS:
             raise ValueError(f"unknown initializer '{v}'; known: {', '.join(INITIALIZERS)}")
         return v
+
+    @model_validator(mode="after")
+    def _solver_options(self) -> "FitSection":
+        # built here so that a bad option (e.g. a negative ftol) stops at loading, before any data are made or read
+        try:
+            get_solver(self.solver, **self.solver_options)
+        except FitInputError as e:
+            raise ValueError(f"solver_options: {e}") from None
+        return self
 
 
 class OutputConfig(StrictModel):
