@@ -262,12 +262,16 @@ def reference_case(kind: str, rng: np.random.Generator, out_dir: Path, step: int
                                     seed=seed)
     blocks = [read_frame_data(p, sigma="total") for p in paths]
     model = bj.solar_cell()
-    drop = {"bars"} | (set() if offset else {"offset"})
+    withheld = REFERENCE_KINDS[kind][0]
+    in_base = offset and "offset_normal_peak" not in withheld  # a withheld offset peak is not in the base
+    drop = {"bars"} | (set() if in_base else {"offset"})
     base = bj.Model(terms={k: v for k, v in model.terms.items() if k not in drop},
                     aliases=tuple(a for a in model.aliases if a[1].split(".")[0] not in drop))
     starts = {"m1": truth["m1"] * float(rng.uniform(0.7, 1.4)), "rho_s1": 0.015 * float(rng.uniform(0.7, 1.4))}
     if offset:
-        starts |= {"m2": truth["m2"] * float(rng.uniform(0.7, 1.4)), "rho_s2": 0.7 * float(rng.uniform(0.7, 1.4))}
+        offset_starts = {"m2": truth["m2"] * float(rng.uniform(0.7, 1.4)), "rho_s2": 0.7 * float(rng.uniform(0.7, 1.4))}
+        if in_base:
+            starts |= offset_starts
     info = {"theta_i_deg": ti, "heldout_theta_i_deg": held_ti, "phi_ref_deg": phi_ref, "floor_sr": level, **truth}
     return blocks[:1], blocks[1:], clean[:1], base, starts, info
 

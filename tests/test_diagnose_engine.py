@@ -281,3 +281,19 @@ def test_reference_withheld_diffraction_quick(tmp_path):
     r = mod.run_reference_trial(t, args)
     assert r["top1"] == "diffraction" and r["path"] == ["diffraction"]
     assert abs(r["chi2_reduced_after"] / r["chi2_reduced_true"] - 1) <= 0.2
+
+
+def test_reference_cases_withhold_what_they_name(tmp_path):
+    """The reference benchmark's base lacks the withheld effect (a withheld offset peak was left in the base: the
+    trial withheld nothing) and keeps what the truth has and nobody withholds."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    want = {"offset_normal_peak": ["center"], "lambertian": ["center", "offset"], "diffraction": ["center", "offset"]}
+    for kind, terms in want.items():
+        *_, base, starts, info = mod.reference_case(kind, np.random.default_rng(1), tmp_path / kind, 64, 1)
+        assert list(base.terms) == terms, kind
+        assert ("m2" in starts) == ("offset" in terms), kind
+        assert info["rho_s2"] == 0.7  # the truth has the offset peak in every one of these kinds
