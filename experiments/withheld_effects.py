@@ -256,6 +256,15 @@ def reference_case(kind: str, rng: np.random.Generator, out_dir: Path, step: int
     phi_ref = float(rng.uniform(0.0, 180.0))
     truth = {"a": float(rng.uniform(5e-4, 9e-4)), "rho_s3": 300.0 if bars else 0.0, "rho_s2": 0.7 if offset else 0.0,
              "m1": float(rng.uniform(1.6e-4, 2.4e-4)), "m2": float(rng.uniform(1.6e-4, 2.4e-4))}
+    if "offset_normal_peak" in REFERENCE_KINDS[kind][0]:
+        # The reference's own tilt (0.5 deg) puts the offset peak 1 deg from the centre one, outside the frames'
+        # +-0.23 deg: both peaks must be in view for a withheld offset peak to show (measured: with the default
+        # tilt the one-lobe base fitted to the truth's own chi^2, 0.772 against 0.769).  And both must be
+        # resolved by the decimated grid (0.0155 deg a sample at step 16): the seed's widths (m ~ 2e-4 rad, FWHM
+        # about one sample) left a peak between samples (measured: offset signature 0, path misalignment +
+        # second_lobe + stray_light at 1413 against the truth's 0.817).
+        truth["dtheta"] = float(np.radians(rng.uniform(0.05, 0.08)))
+        truth["m1"], truth["m2"] = (float(rng.uniform(6e-4, 9e-4)) for _ in range(2))
     peak = float(ref.solar_cell(np.radians(ti), np.radians(ti), np.pi, np.radians(phi_ref), **truth))
     level = peak * 10 ** float(rng.uniform(-3.3, -2.7)) if floor else 0.0
     paths, clean = reference_frames(out_dir, [ti, held_ti], phi_ref_deg=phi_ref, truth=truth, floor=np.pi * level, step=step,

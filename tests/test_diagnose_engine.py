@@ -297,3 +297,6 @@ def test_reference_cases_withhold_what_they_name(tmp_path):
         assert list(base.terms) == terms, kind
         assert ("m2" in starts) == ("offset" in terms), kind
         assert info["rho_s2"] == 0.7  # the truth has the offset peak in every one of these kinds
+    # a withheld offset peak is in view (the frames span +-0.23 deg) and resolved (0.0155 deg a sample at step 16)
+    *_, info = mod.reference_case("offset_normal_peak", np.random.default_rng(2), tmp_path / "o2", 64, 2)
+    assert 2 * info["dtheta"] < np.radians(0.2) and min(info["m1"], info["m2"]) >= 6e-4
