@@ -250,6 +250,16 @@ def test_covariance_oracle_linear_model():
     np.testing.assert_allclose(np.diag(cov.correlation), 1.0)
     scaled = covariance(J, np.ones(3), chi2_reduced=4.0, absolute=False)
     np.testing.assert_allclose(scaled.matrix, 4.0 * np.linalg.inv(J.T @ J), rtol=1e-10)
+    # a transform that overflowed at the solution (dx/dv = inf): that parameter's sigma is infinite, the others
+    # keep theirs (no NaN spread across the matrix, no RuntimeWarning)
+    import warnings as _w
+
+    with _w.catch_warnings():
+        _w.simplefilter("error")
+        sat = covariance(J, np.array([1.0, np.inf, 0.5]), chi2_reduced=4.0, absolute=True)
+    assert sat.saturated == (1,) and sat.sigma[1] == np.inf and np.isnan(sat.correlation[0, 1])
+    np.testing.assert_allclose(sat.sigma[[0, 2]], np.sqrt(np.diag(expect))[[0, 2]], rtol=1e-10)
+    assert sat.correlation[0, 0] == 1.0 and np.isnan(sat.correlation[1, 1])
 
 
 def test_residual_jacobian_matches_finite_differences():

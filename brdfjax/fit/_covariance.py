@@ -43,6 +43,9 @@ class Covariance:
     rank: int
     undetermined: tuple[int, ...]  # indices of parameters on undetermined directions
     factor: float  # s^2
+    # indices of parameters whose transform's derivative dx/dv is not finite at the solution (a parameter
+    # stored as a log or a logit that ran to an extreme): their sigma is infinite, their correlations NaN
+    saturated: tuple[int, ...] = ()
 
 
 def covariance(
@@ -70,13 +73,19 @@ def covariance(
     cov_v = (v * inv_s2) @ v.T
     undetermined = tuple(int(i) for i in np.nonzero(np.any(np.abs(v[:, ~keep]) > 1e-8, axis=1))[0]) if rank < p else ()
     d = np.asarray(dx_dv, dtype=np.float64)
+    bad = ~np.isfinite(d)
+    saturated = tuple(int(i) for i in np.nonzero(bad)[0])
+    d = np.where(bad, 0.0, d)  # inf * 0 would be NaN (and a RuntimeWarning) across the whole row
     cov = factor * cov_v * np.outer(d, d)
     sigma = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(sigma, sigma)
-    for i in undetermined:
+    for i in saturated:
+        cov[i, :] = cov[:, i] = np.nan
+        cov[i, i] = np.inf
+    for i in tuple(undetermined) + saturated:
         sigma[i] = np.inf
         corr[i, :] = np.nan
         corr[:, i] = np.nan
-    np.fill_diagonal(corr, [1.0 if i not in undetermined else np.nan for i in range(p)])
-    return Covariance(cov, sigma, corr, rank, undetermined, factor)
+    np.fill_diagonal(corr, [1.0 if i not in undetermined and i not in saturated else np.nan for i in range(p)])
+    return Covariance(cov, sigma, corr, rank, undetermined, factor, saturated)

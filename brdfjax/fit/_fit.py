@@ -733,6 +733,12 @@ def fit(
                 + ", ".join(layout.free[i].name for i in cov.undetermined)
                 + f" (Jacobian rank {cov.rank} < {n_free}): their sigmas are infinite; fix some of them"
             )
+        if cov.saturated:
+            warnings.append(
+                "the sigmas of " + ", ".join(layout.free[i].name for i in cov.saturated)
+                + " are infinite: their transform's derivative is not finite at the solution (the parameter ran to "
+                "an extreme of its stored form); fix it, bound it, or give a better start"
+            )
     else:
         cov = covariance(np.zeros((n_points, 0)), np.zeros(0), chi2_red, absolute)
     nuisance_report: dict[str, Any] = {}
