@@ -260,6 +260,11 @@ def test_covariance_oracle_linear_model():
     assert sat.saturated == (1,) and sat.sigma[1] == np.inf and np.isnan(sat.correlation[0, 1])
     np.testing.assert_allclose(sat.sigma[[0, 2]], np.sqrt(np.diag(expect))[[0, 2]], rtol=1e-10)
     assert sat.correlation[0, 0] == 1.0 and np.isnan(sat.correlation[1, 1])
+    with _w.catch_warnings():
+        _w.simplefilter("error")
+        huge = covariance(J, np.array([1.0, 1e200, 0.5]), chi2_reduced=4.0, absolute=True)  # overflows to inf
+    assert huge.saturated == (1,) and huge.sigma[1] == np.inf
+    np.testing.assert_allclose(huge.sigma[[0, 2]], np.sqrt(np.diag(expect))[[0, 2]], rtol=1e-10)
 
 
 def test_residual_jacobian_matches_finite_differences():

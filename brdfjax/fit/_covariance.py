@@ -74,9 +74,11 @@ def covariance(
     undetermined = tuple(int(i) for i in np.nonzero(np.any(np.abs(v[:, ~keep]) > 1e-8, axis=1))[0]) if rank < p else ()
     d = np.asarray(dx_dv, dtype=np.float64)
     bad = ~np.isfinite(d)
-    saturated = tuple(int(i) for i in np.nonzero(bad)[0])
     d = np.where(bad, 0.0, d)  # inf * 0 would be NaN (and a RuntimeWarning) across the whole row
-    cov = factor * cov_v * np.outer(d, d)
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge finite dx/dv overflows its variance
+        cov = factor * cov_v * np.outer(d, d)
+    bad |= ~np.isfinite(np.diag(cov))
+    saturated = tuple(int(i) for i in np.nonzero(bad)[0])
     sigma = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(sigma, sigma)
