@@ -186,7 +186,7 @@ def run_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     # a path long enough to hold every withheld effect and one spurious step (two-effect trials: 3)
     steps = max(args.max_steps, len(t["effects"]) + 1)
     d = diagnose(sc.base_model, fitted, params, heldout_blocks=held, max_steps=steps, refit_top=args.refit_top,
-                 path_pool=args.path_pool, progress=say)
+                 path_pool=args.path_pool, progress=say, **_fresh(args))
     wall = time.perf_counter() - t0
     try:
         true = _true_gap(sc, seed, fitted, ~last if tables else None) if tables or args.path == "render" else {"chi2_reduced": math.nan, "rms_log10": math.nan}
@@ -234,6 +234,12 @@ REFERENCE_KINDS = {
     "lambertian": (["lambertian"], False, True, True),
     "null": ([], False, True, False),
 }
+
+
+def _fresh(args: argparse.Namespace) -> dict[str, int]:
+    """``fresh_top`` for diagnose when ``--fresh-top`` is given (else the library's default)."""
+    n = getattr(args, "fresh_top", None)
+    return {} if n is None else {"fresh_top": n}
 
 
 def reference_trial_list(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -306,7 +312,7 @@ def run_reference_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str
         steps = max(args.max_steps, len(t["effects"]) + 1)
         effects = None if args.candidates is None else args.candidates.split(",")
         d = diagnose(base, fitted, starts, heldout_blocks=held, max_steps=steps, refit_top=args.refit_top,
-                     path_pool=args.path_pool, effects=effects, progress=say)
+                     path_pool=args.path_pool, effects=effects, progress=say, **_fresh(args))
         wall = time.perf_counter() - t0
         true = _truth_chi2(fitted, clean)
         d.set_truth_gap(true, source="the reference generator's noiseless frames on the fitted pixels")
@@ -454,6 +460,8 @@ def main(argv: list[str] | None = None) -> int:
                         "reference (brdfjax.reference) with detector noise, written to EXR and read back (kinds: "
                         + ", ".join(REFERENCE_KINDS) + "; --effects selects kinds)")
     p.add_argument("--candidates", default=None, help="reference generator: comma-separated candidate effects (default: the library)")
+    p.add_argument("--fresh-top", type=int, default=None,
+                   help="diagnose(fresh_top=N): candidates also refitted from the fresh starts (default: the library's)")
     p.add_argument("--refit-top", type=int, default=None,
                    help="refit only the K candidates with the highest signature scores (default: every candidate)")
     args = p.parse_args(argv)

@@ -181,6 +181,7 @@ def test_a_near_tie_is_decided_on_the_joint_refit_by_a_swap():
     assert any(n.startswith("close alternative: floor") for n in d.path[1].notes)
     assert any("swapped in for tail" in n for n in d.path[4].notes)
     assert any("the middle of a swap" in n for n in d.path[3].notes)
+    assert any(n.startswith("floor in place of tail: BIC -") for n in d.path[2].notes)  # the try, on the step it followed
     assert d.path[4].gap["bic"] < d.path[2].gap["bic"] - 10.0
     assert d.path[4].gap["chi2_reduced"] < 1.3 < d.path[2].gap["chi2_reduced"]
     assert sorted(d.explained_by) == ["bump", "floor"]

@@ -581,13 +581,14 @@ def _close_alternatives(best: Candidate, ranked: list[Candidate], bic_threshold:
 
 
 def _try_swaps(state: _State, base: _State, close: Mapping[str, list[str]], tried: set, removed: list[str],
-               library: Mapping[str, Any], bic_threshold: float, say: Any) -> tuple[_State, _State, str, str, float] | None:
+               library: Mapping[str, Any], bic_threshold: float, say: Any,
+               notes: list[str]) -> tuple[_State, _State, str, str, float] | None:
     """The best swap of an earlier path effect for one of its close alternatives, on the joint refit.
 
     For each earlier effect ``e`` with close alternatives ``g`` (:func:`_close_alternatives`), the path
     without ``e`` (:func:`_without`) is extended by ``g`` and refitted; the swap with the lowest BIC is
     returned as ``(without e, with g, e, g, BIC change)`` when it lowers the BIC by more than
-    ``bic_threshold``, else None.  Each pair is tried once.
+    ``bic_threshold``, else None.  Each pair is tried once; each try (and a failed refit) is noted in ``notes``.
     """
     best = None
     b_now = gap_measures(state.result)["bic"]
@@ -600,9 +601,11 @@ def _try_swaps(state: _State, base: _State, close: Mapping[str, list[str]], trie
             try:
                 w = _with_context(_without(state, e, base, library))
                 sw = _extend_state(w, g, library)
-            except Exception:  # noqa: BLE001 - a failed swap leaves the path as it is
+            except Exception as ex:  # noqa: BLE001 - reported; a failed swap leaves the path as it is
+                notes.append(f"{g} in place of {e}: the refit failed ({type(ex).__name__}: {ex})")
                 continue
             change = gap_measures(sw.result)["bic"] - b_now
+            notes.append(f"{g} in place of {e}: BIC {'+' if change >= 0 else ''}{change:.4g}")
             if change < -bic_threshold and (best is None or change < best[4]):
                 best = (w, sw, e, g, change)
     return best
@@ -844,7 +847,7 @@ def diagnose(
         close[best.effect] = _close_alternatives(best, ranked, bic_threshold)
         # swaps: an earlier effect that tied with an alternative when it entered is tried against that
         # alternative now that more of the model is in (the tie is decided on the joint refit)
-        swap = _try_swaps(state, base, close, tried_swaps, removed, library, bic_threshold, say)
+        swap = _try_swaps(state, base, close, tried_swaps, removed, library, bic_threshold, say, path[-1].notes)
         if swap is not None:
             w, sw, e, g, change = swap
             removed.append(e)
