@@ -124,6 +124,44 @@ def test_backward_elimination_takes_a_redundant_effect_out():
     assert "remove" in [s["action"] for s in doc["path"]]
 
 
+class _QuietFloor(type(EFFECT_LIBRARY["lambertian"])):
+    """The diffuse floor with its signature forced below the presence threshold (as when the base bent to hide it)."""
+
+    name = "quiet_floor"
+
+    def signature(self, ctx):
+        sig = super().signature(ctx)
+        return type(sig)(sig.value, 0.5, "forced weak (test)")
+
+
+class _FixedFloor(type(EFFECT_LIBRARY["lambertian"])):
+    """A floor held at a small value: it explains a little of the gap (an admissible alternative)."""
+
+    name = "fixed_floor"
+
+    def present_in(self, model):
+        return "fixed" in model.terms
+
+    def extend(self, ctx):
+        model = bj.Model(terms={**ctx.model.terms, "fixed": Lambertian(0.02)}, aliases=ctx.model.aliases)
+        return Extension(model, {**ctx.params, "fixed.rho_d": Param.fixed(0.02)}, 0, note="a small fixed floor")
+
+
+def test_a_weak_signature_gives_way_to_a_dominant_refit():
+    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.3)})
+    table, _ = _table(truth)
+    lib = {"quiet_floor": _QuietFloor(), "fixed_floor": _FixedFloor()}
+    d = diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, max_steps=1, fresh_top=0)
+    by = {c.effect: c for c in d.ranking}
+    q, f = by["quiet_floor"], by["fixed_floor"]
+    assert q.delta_bic >= 5.0 * f.delta_bic > 0 and not q.flags
+    assert q.note.startswith("admitted although its signature score 0.5 is below its presence threshold 3")
+    assert d.explained_by == ["quiet_floor"]
+    # without an admissible candidate to dominate, the weak signature still keeps it off the path
+    d1 = diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=["quiet_floor"], library=lib, max_steps=1, fresh_top=0)
+    assert d1.ranking[0].flags and d1.explained_by == []
+
+
 # --- near-ties decided by a swap ------------------------------------------------------------------------------
 
 
