@@ -278,6 +278,15 @@ def _natural(name: str, x: float, unit: str) -> str:
     return f"{x * to_natural(unit):.6g}" + ("" if u in ("", "1") else f" {u}")
 
 
+#: the words of the weak-signature flag (:func:`_admission_flags`), by which :func:`_weak_only` knows it
+_WEAK = "presence threshold"
+
+
+def _weak_only(c: Candidate) -> bool:
+    """Whether ``c`` is held off the path by a weak signature and nothing else."""
+    return bool(c.flags) and all(_WEAK in f for f in c.flags)
+
+
 def _admission_flags(c: Candidate, eff: Any, before: _State, presence: bool) -> list[str]:
     """Why a ranked candidate may not enter the path (issue 14); empty when it may.
 
@@ -288,7 +297,7 @@ def _admission_flags(c: Candidate, eff: Any, before: _State, presence: bool) -> 
     out = []
     score = c.signature.get("score")
     if presence and score is not None and score < getattr(eff, "presence", 3.0):
-        out.append(f"its signature score {score:.3g} is below its presence threshold {getattr(eff, 'presence', 3.0):g}")
+        out.append(f"its signature score {score:.3g} is below its {_WEAK} {getattr(eff, 'presence', 3.0):g}")
     after = c.state
     if after is None:
         return out
@@ -335,7 +344,7 @@ def _admit_dominant(ranked: list[Candidate]) -> None:
         return
     best = max(gains)
     for c in ranked:
-        if c.flags and all("presence threshold" in f for f in c.flags) and best > 0 and c.delta_bic >= DOMINANCE * best:
+        if _weak_only(c) and best > 0 and c.delta_bic >= DOMINANCE * best:
             c.note = (f"admitted although {c.flags[0]}: its refit gains delta BIC {c.delta_bic:.4g}, "
                       f"{c.delta_bic / best:.3g}x the best admissible candidate's ({best:.4g})"
                       + (f"; {c.note}" if c.note else ""))
@@ -828,7 +837,7 @@ def diagnose(
             # specific runners-up whose only flag is a weak signature are compared too: next to a floor that
             # soaks up their residual the signature is the weaker evidence (measured on reference frames with the
             # far field masked: the bars' periodogram gave 2.0 while a floor took delta BIC 1e7)
-            weak = [c for c in ranked if c.flags and all("presence threshold" in f for f in c.flags)]
+            weak = [c for c in ranked if _weak_only(c)]
             best = _specific_first(best, admissible + weak, state, library, bic_threshold, step_notes, say)
         new_state = _with_context(best.state)
         # a candidate refitted from the fresh start already is the joint refit from fresh starts (the same spec)
