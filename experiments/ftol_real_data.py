@@ -12,6 +12,7 @@ the estimated noise ``sigma_ln`` and ``-2 ln L``: the stop must not change the o
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -51,7 +52,7 @@ def main(argv=None) -> int:
         print(f"{name}: sigma_ln relative change {abs(on['sigma_ln'] - off['sigma_ln']) / off['sigma_ln']:.2e}, "
               f"-2lnL change {on['m2ll'] - off['m2ll']:+.2e}, steps {on['steps']} vs {off['steps']}")
     if args.json:
-        write_json_atomic(args.json, {"rows": rows, "cpu_count": __import__("os").cpu_count()})
+        write_json_atomic(args.json, {"rows": rows, "cpu_count": os.cpu_count()})
     return 0
 
 

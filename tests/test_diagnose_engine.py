@@ -77,6 +77,13 @@ def test_failed_refit_is_not_ranked_and_weak_effects_stay_off_the_path():
 # --- backward elimination -------------------------------------------------------------------------------------
 
 
+def _lobe_extension(ctx, name: str, alpha: float, rho_s: float, alpha_bounds: tuple[float, float], note: str) -> Extension:
+    """The model extended by a GGX lobe ``name`` (weight >= 0 and width within ``alpha_bounds`` free)."""
+    model = bj.Model(terms={**ctx.model.terms, name: Specular(bj.GGX(alpha), rho_s=rho_s, n=1.5)}, aliases=ctx.model.aliases)
+    params = {**ctx.params, f"{name}.rho_s": Param(rho_s, lower=0.0), f"{name}.alpha": Param(alpha, lower=alpha_bounds[0], upper=alpha_bounds[1])}
+    return Extension(model, params, 2, note=note)
+
+
 class _WideLobe(type(EFFECT_LIBRARY["lambertian"])):
     """A second, very wide lobe: it can stand in for a diffuse floor only in part."""
 
@@ -91,9 +98,7 @@ class _WideLobe(type(EFFECT_LIBRARY["lambertian"])):
         return type(sig)(sig.value, sig.score + 100.0, "a floor's matched filter, boosted so that it goes first")
 
     def extend(self, ctx):
-        model = bj.Model(terms={**ctx.model.terms, "wide": Specular(bj.GGX(0.6), rho_s=0.3, n=1.5)}, aliases=ctx.model.aliases)
-        params = {**ctx.params, "wide.rho_s": Param(0.3, lower=0.0), "wide.alpha": Param(0.6, lower=0.05, upper=2.0)}
-        return Extension(model, params, 2, note="a wide lobe")
+        return _lobe_extension(ctx, "wide", 0.6, 0.3, (0.05, 2.0), "a wide lobe")
 
 
 class _LateFloor(type(EFFECT_LIBRARY["lambertian"])):
@@ -193,9 +198,7 @@ class _Bump(type(EFFECT_LIBRARY["lambertian"])):
         return None if ("tail" in model.terms or "floor" in model.terms) else "waits for a floor (test)"
 
     def extend(self, ctx):
-        model = bj.Model(terms={**ctx.model.terms, "bump": Specular(bj.GGX(0.3), rho_s=0.1, n=1.5)}, aliases=ctx.model.aliases)
-        params = {**ctx.params, "bump.rho_s": Param(0.1, lower=0.0), "bump.alpha": Param(0.3, lower=0.15, upper=0.6)}
-        return Extension(model, params, 2, note="a second lobe")
+        return _lobe_extension(ctx, "bump", 0.3, 0.1, (0.15, 0.6), "a second lobe")
 
 
 class _OneFloor(type(EFFECT_LIBRARY["lambertian"])):
