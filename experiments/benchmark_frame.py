@@ -332,6 +332,13 @@ def _worker_lobe(args) -> dict:
     fns = {name: (lambda t=t: lobe(t, *ws_dev).block_until_ready()) for name, t in terms.items()}
     res = {"path": "lobe", "n_pairs": n_pairs, "m": m, "n": n, "k": k, "jax_version": jax.__version__}
     peak = {name: np.asarray(lobe(t, *ws_dev)) for name, t in terms.items()}
+
+    # the memory floor of any evaluator handed the three direction arrays: read them, write one array
+    @jax.jit
+    def floor(sx, sy, sz):
+        return sx * sy + sz
+
+    fns["memory_floor"] = lambda: floor(*ws_dev).block_until_ready()
     try:
         import drjit as dr  # noqa: PLC0415 -- optional baseline
         import mitsuba as mi  # noqa: PLC0415
@@ -601,6 +608,7 @@ def _lobe_report(lobe: dict | None) -> list[str]:
         "brdfjax_ts_smith": "brdfjax Specular(Beckmann), Torrance-Sparrow + Smith G2, x cos_s",
         "brdfjax_seed": "brdfjax Specular(Beckmann), the seed's Eq 70 (no G), x cos_s",
         "mitsuba": f"Mitsuba {lobe.get('mitsuba_version', '')} roughconductor beckmann, {lobe.get('mitsuba_variant', '')}",
+        "memory_floor": "memory floor: read the three direction arrays, write one (sx * sy + sz)",
     }
     lines = [
         "",
@@ -609,10 +617,10 @@ def _lobe_report(lobe: dict | None) -> list[str]:
         "| evaluator | median [s] | min [s] | M pairs/s (median) | value at the peak |",
         "| --- | --- | --- | --- | --- |",
     ]
-    for key in ("brdfjax_ts_smith", "brdfjax_seed", "mitsuba"):
+    for key in ("brdfjax_ts_smith", "brdfjax_seed", "mitsuba", "memory_floor"):
         if key in med:
-            lines.append(f"| {labels[key]} | {med[key]:.4f} | {mn[key]:.4f} | {lobe['n_pairs'] / med[key] / 1e6:.0f} | "
-                         f"{peak[key]:.6g} |")
+            value = f"{peak[key]:.6g}" if key in peak else "-"
+            lines.append(f"| {labels[key]} | {med[key]:.4f} | {mn[key]:.4f} | {lobe['n_pairs'] / med[key] / 1e6:.0f} | {value} |")
     if "mitsuba" in med:
         lines.append(
             f"Mitsuba / brdfjax time (>= 1: brdfjax at or above Mitsuba's rate): like-for-like (TS + Smith) "
@@ -622,6 +630,8 @@ def _lobe_report(lobe: dict | None) -> list[str]:
             f"{_paired(lobe['times_s'], 'mitsuba', 'brdfjax_seed'):.2f}x median of pairs; peak value brdfjax / Mitsuba "
             f"{peak['brdfjax_ts_smith'] / peak['mitsuba']:.5f}"
         )
+        lines.append(f"memory floor / Mitsuba {mn['memory_floor'] / mn['mitsuba']:.2f} (minima: how close an evaluator "
+                     f"handed the three arrays can get)")
     else:
         lines.append(f"Mitsuba 3: skipped ({lobe.get('mitsuba_skipped')})")
     return lines

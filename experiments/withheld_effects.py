@@ -65,23 +65,7 @@ from brdfjax.diagnose import (
 )
 from brdfjax.diagnose.effects import reference_frames  # noqa: E402
 from brdfjax.fit import Param, read_frame_data  # noqa: E402
-
-
-def _atomic_json(path: Path, obj: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(obj, indent=1, allow_nan=False, default=_default))
-    os.replace(tmp, path)
-
-
-def _default(x: Any) -> Any:
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.floating):
-        return None if not np.isfinite(x) else float(x)
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    return str(x)
+from brdfjax.io.atomic import write_json_atomic  # noqa: E402
 
 
 def _clean(obj: Any) -> Any:
@@ -89,9 +73,22 @@ def _clean(obj: Any) -> Any:
         return {str(k): _clean(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
         return [_clean(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, float | np.floating):
+        return float(obj) if math.isfinite(obj) else None
+    if obj is None or isinstance(obj, str | int | bool):
+        return obj
+    return str(obj)
+
+
+def _atomic_json(path: Path, obj: Any) -> None:
+    """``obj`` as strict JSON (numpy scalars converted, NaN as null), written atomically."""
+    write_json_atomic(path, _clean(obj), allow_nan=False)
 
 
 #: effects that need goniometer tables (their trials use effects.table_scenario)
