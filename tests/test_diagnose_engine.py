@@ -342,3 +342,34 @@ def test_reference_cases_withhold_what_they_name(tmp_path):
     # a withheld offset peak is in view (the frames span +-0.23 deg) and resolved (0.0155 deg a sample at step 16)
     *_, info = mod.reference_case("offset_normal_peak", np.random.default_rng(2), tmp_path / "o2", 64, 2)
     assert 2 * info["dtheta"] < np.radians(0.2) and min(info["m1"], info["m2"]) >= 6e-4
+
+
+def test_benchmark_keeps_frame_invisible_effects_off_frames():
+    """Smith shadowing of the frames' narrow lobe is G2 = 1 to rounding: the withheld-effect benchmark runs its
+    trials on wide tables (rough lobe, grazing) and never pairs it into a two-effect frame trial."""
+    import importlib.util
+    import types
+
+    from brdfjax.diagnose import effects as E
+
+    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    trials = mod.trial_list(types.SimpleNamespace(quick=False, trials=1, null=0, two=25, seed=2026), list(EFFECT_LIBRARY))
+    two = [t["effects"] for t in trials if t["kind"] == "two"]
+    assert len(two) == 25 and not any(e in mod.WIDE_TABLE or e in mod.TABLE_ONLY for p in two for e in p)
+    # on the wide table the effect changes the model by 20 % and more towards grazing ...
+    rng = np.random.default_rng(4)
+    sc = E.inject("shadowing", rng, E.wide_table_scenario(rng, **mod.WIDE_TABLE["shadowing"]))
+    (table,) = E.synthesize(sc, 4)
+    dirs = Directions.from_angles(table.theta_i, table.phi_i, table.theta_s, table.phi_s)
+    ratio = np.asarray(sc.truth_model(dirs, table.wavelength)) / np.asarray(sc.base_model(dirs, table.wavelength))
+    assert ratio.min() < 0.8
+    # ... and on a frame of the benchmark's geometry not at all
+    rng = np.random.default_rng(4)
+    frame = E.inject("shadowing", rng, E.base_scenario(rng, n_frames=1, step=16))
+    (block,) = E.synthesize(frame, 4, None)
+    d = block.detector.directions(block.grid.n_h[None, :], block.grid.n_v[:, None], block.theta_i)
+    truth, base = (np.asarray(m(d, block.wavelength), float) for m in (frame.truth_model, frame.base_model))
+    u = base > 1e-6 * base.max()
+    assert u.sum() > 50 and np.max(np.abs(truth[u] / base[u] - 1)) < 1e-6, np.max(np.abs(truth[u] / base[u] - 1))
