@@ -373,3 +373,47 @@ def test_benchmark_keeps_frame_invisible_effects_off_frames():
     truth, base = (np.asarray(m(d, block.wavelength), float) for m in (frame.truth_model, frame.base_model))
     u = base > 1e-6 * base.max()
     assert u.sum() > 50 and np.max(np.abs(truth[u] / base[u] - 1)) < 1e-6, np.max(np.abs(truth[u] / base[u] - 1))
+
+
+def test_a_stalled_fresh_start_path_is_compared_with_the_warm_path(monkeypatch):
+    """Where the greedy path took a fresh-start refit and ends above the noise, the warm path (fresh_top = 0)
+    runs too and the lower final BIC is kept, the other reported; a path that reaches the noise runs once."""
+    import types
+
+    from brdfjax.diagnose import engine
+
+    def fake(chi2, bic, fresh, noise, fresh_top):
+        step = types.SimpleNamespace(action="add", effect="diffraction", gap={"chi2_reduced": chi2})
+        return types.SimpleNamespace(
+            path=[types.SimpleNamespace(action="base", effect="base", gap={"chi2_reduced": 50.0}), step],
+            final_result=types.SimpleNamespace(bic=bic), notes=[], stop_reason="max_steps = 4 reached",
+            settings={"fresh_refit_on_path": fresh, "within_noise": noise, "fresh_top": fresh_top},
+            timings={"total_s": 1.0})
+
+    calls = []
+    outcomes = {3: (22.3, 5000.0, True, False), 0: (1.03, 900.0, False, True)}
+
+    def once(base_model, blocks, params, *, fresh_top, **kw):
+        calls.append(fresh_top)
+        return fake(*outcomes[fresh_top], fresh_top)
+
+    monkeypatch.setattr(engine, "_diagnose_once", once)
+    monkeypatch.setattr(engine, "gap_measures", lambda r: {"bic": r.bic})
+    d = engine.diagnose(None, [], {}, fresh_top=3)
+    assert calls == [3, 0] and d.settings["fresh_top"] == 3 and d.path[-1].gap["chi2_reduced"] == 1.03
+    assert [p["kept"] for p in d.settings["paths_compared"]] == [False, True]
+    assert d.notes[0].startswith("two paths compared") and "22.3" in d.notes[0] and d.timings["total_s"] == 2.0
+    # the fresh path is kept where its BIC is lower
+    calls.clear()
+    outcomes[0] = (40.0, 8000.0, False, False)
+    d = engine.diagnose(None, [], {}, fresh_top=3)
+    assert calls == [3, 0] and d.path[-1].gap["chi2_reduced"] == 22.3
+    # within the noise, or no fresh-start refit on the path, or fresh_top = 0: one path
+    for first in ((1.01, 900.0, True, True), (22.3, 5000.0, False, False)):
+        calls.clear()
+        outcomes[3] = first
+        engine.diagnose(None, [], {}, fresh_top=3)
+        assert calls == [3]
+    calls.clear()
+    engine.diagnose(None, [], {}, fresh_top=0)
+    assert calls == [0]

@@ -712,7 +712,64 @@ def diagnose(
     (``Effect.presence``, 3) off the path (reported with the reason; False:
     rank by the refit alone); ``noise_stop``: stop once the reduced chi^2 is
     within the noise (``1 + 3 sqrt(2/dof)``; data with sigma only); ``progress``: a callable taking a message string.
+
+    The path is greedy.  Where it took a refit from the fresh starts (``fresh_top``) and still ends above the
+    noise, the path without fresh-start refits (``fresh_top = 0``) is run as well and the final model with the
+    lower BIC is kept (the same data and likelihood, so the two BICs compare); the report says which and what
+    the other path reached.  Measured: on the shipped example (starts far from the truth) the bars refitted
+    from the fresh starts entered first and the path stalled at 21x the truth's reduced chi^2, while the warm
+    path reached it (1.028 against 1.045); on a reference frame the warm path stalled instead (840 against
+    1.112) and the fresh one reached the noise (so no second path is run there).
     """
+    kw = dict(effects=effects, heldout_blocks=heldout_blocks, fit_kwargs=fit_kwargs, bic_threshold=bic_threshold,
+              max_steps=max_steps, path_pool=path_pool, refit_top=refit_top, threshold=threshold, smooth=smooth,
+              presence=presence, noise_stop=noise_stop, library=library, progress=progress)
+    first = _diagnose_once(base_model, blocks, params, fresh_top=fresh_top, **kw)
+    if fresh_top == 0 or not first.settings["fresh_refit_on_path"] or first.settings["within_noise"]:
+        return first
+    say = progress or (lambda msg: None)
+    say("the path took a fresh-start refit and ends above the noise: trying the path without fresh-start refits")
+    second = _diagnose_once(base_model, blocks, params, fresh_top=0, **kw)
+    bics = [gap_measures(d.final_result)["bic"] for d in (first, second)]
+    keep, other = (second, first) if bics[1] < bics[0] else (first, second)
+
+    def describe(d: Diagnosis) -> str:
+        steps = " -> ".join(("- " if s_.action == "remove" else "") + s_.effect for s_ in d.path)
+        return (f"{steps} (fresh_top = {d.settings['fresh_top']}), final reduced chi^2 "
+                f"{d.path[-1].gap['chi2_reduced']:.4g}, BIC {gap_measures(d.final_result)['bic']:.6g}")
+
+    keep.notes.insert(0, f"two paths compared (the first took a fresh-start refit and ended above the noise): kept "
+                         f"{describe(keep)}; the other {describe(other)}")
+    keep.settings["paths_compared"] = [
+        {"fresh_top": d.settings["fresh_top"], "path": [[s_.action, s_.effect] for s_ in d.path],
+         "chi2_reduced": d.path[-1].gap["chi2_reduced"], "bic": gap_measures(d.final_result)["bic"],
+         "stop_reason": d.stop_reason, "kept": d is keep} for d in (first, second)]
+    keep.settings["fresh_top"] = fresh_top
+    keep.timings = {k: first.timings.get(k, 0.0) + second.timings.get(k, 0.0) for k in first.timings}
+    return keep
+
+
+def _diagnose_once(
+    base_model: Model,
+    blocks: FrameData | TableData | Sequence[FrameData | TableData],
+    params: Mapping[str, Any],
+    *,
+    effects: Sequence[str] | None = None,
+    heldout_blocks: Sequence[FrameData | TableData] | None = None,
+    fit_kwargs: Mapping[str, Any] | None = None,
+    bic_threshold: float = 10.0,
+    max_steps: int = 4,
+    path_pool: int = 4,
+    refit_top: int | None = None,
+    fresh_top: int = 3,
+    threshold: float = 4.0,
+    smooth: int = 3,
+    presence: bool = True,
+    noise_stop: bool = True,
+    library: Mapping[str, Any] | None = None,
+    progress: Any = None,
+) -> Diagnosis:
+    """One greedy path (:func:`diagnose` runs it once or twice)."""
     t_start = time.perf_counter()
     say = progress or (lambda msg: None)
     if not isinstance(base_model, Model):
@@ -763,6 +820,7 @@ def diagnose(
     first_ranked: list[Candidate] = []
     noise = _noise_level(base_gap, blocks) if noise_stop else None
     stop_reason = f"max_steps = {max_steps} reached"
+    fresh_taken = False
     if noise is not None and base_gap["chi2_reduced"] <= noise:
         stop_reason = f"the base's reduced chi^2 {base_gap['chi2_reduced']:.4g} is within the noise (<= {noise:.4g})"
     for step in range(max(max_steps, 1)):
@@ -841,6 +899,7 @@ def diagnose(
             best = _specific_first(best, admissible + weak, state, library, bic_threshold, step_notes, say)
         new_state = _with_context(best.state)
         # a candidate refitted from the fresh start already is the joint refit from fresh starts (the same spec)
+        fresh_taken = fresh_taken or best.refit_start == "fresh"
         fresh = None if best.refit_start == "fresh" else _fresh_refit(new_state, params)
         if best.refit_start == "fresh":
             step_notes.append("refitted from the fresh starts already (the fit had moved far from them); no second joint refit")
@@ -938,6 +997,8 @@ def diagnose(
             "smooth": smooth,
             "n_blocks": len(blocks),
             "n_heldout": 0 if heldout is None else len(heldout),
+            "fresh_refit_on_path": fresh_taken,
+            "within_noise": bool(noise is not None and gap_measures(state.result)["chi2_reduced"] <= noise),
         },
         context=ctx,
         final_context=current_ctx,
