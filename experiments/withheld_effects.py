@@ -336,6 +336,10 @@ def _trial_record(t, seed, d, true, wall, info) -> dict[str, Any]:
         "skipped": [(c["effect"], c["status"], c["note"]) for c in j["skipped"]],
         "path": path,
         "path_steps": [(s["action"], s["effect"], s["chi2_reduced"], s["heldout_rms_log10"], s["flags"]) for s in j["path"]],
+        # what each step tried (swaps, removals, fresh refits) and, where two paths were compared, both
+        "path_notes": [s.get("notes", []) for s in j["path"]],
+        "notes": list(j.get("notes", []))[:8],
+        "paths_compared": j.get("settings", {}).get("paths_compared"),
         "significant": j["significant"],
         "in_path": all(e in path for e in t["effects"]) if t["effects"] else None,
         "extra_in_path": [e for e in path if e not in t["effects"]],
