@@ -417,3 +417,35 @@ def test_a_stalled_fresh_start_path_is_compared_with_the_warm_path(monkeypatch):
     calls.clear()
     engine.diagnose(None, [], {}, fresh_top=0)
     assert calls == [0]
+
+
+def test_a_swap_to_a_simpler_model_needs_only_a_lower_bic(monkeypatch):
+    """A swap normally has to gain bic_threshold; one to fewer free parameters is taken on any BIC decrease
+    (a wide lobe standing for a floor gives way to the floor), one to more parameters still needs the margin."""
+    import types
+
+    from brdfjax.diagnose import engine
+
+    def st(effects, n_free, bic):
+        return types.SimpleNamespace(effects=effects, result=types.SimpleNamespace(free_names=("p",) * n_free, bic=bic))
+
+    state = st(["wide_lobe", "diffraction"], 6, 1000.0)
+    alternatives = {"floor": st(["diffraction", "floor"], 5, 994.0), "halo": st(["diffraction", "halo"], 7, 994.0)}
+    monkeypatch.setattr(engine, "gap_measures", lambda r: {"bic": r.bic})
+    monkeypatch.setattr(engine, "_with_context", lambda s: s)
+    monkeypatch.setattr(engine, "_without", lambda s, e, base, lib: st(["diffraction"], 4, 1100.0))
+    monkeypatch.setattr(engine, "_extend_state", lambda w, g, lib: alternatives[g])
+
+    def swap(close):
+        notes = []
+        out = engine._try_swaps(state, None, close, set(), [], {}, 10.0, lambda m: None, notes)
+        return out, notes
+
+    out, notes = swap({"wide_lobe": ["halo"]})
+    assert out is None and notes == ["halo in place of wide_lobe: BIC -6"]
+    out, notes = swap({"wide_lobe": ["floor"]})
+    assert out is not None and out[3] == "floor" and out[4] == -6.0
+    assert "5 free parameters against 6: a simpler model is taken on any BIC decrease" in notes[0]
+    alternatives["floor"] = st(["diffraction", "floor"], 5, 1001.0)  # simpler but worse: kept out
+    out, _ = swap({"wide_lobe": ["floor"]})
+    assert out is None
