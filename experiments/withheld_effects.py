@@ -521,7 +521,10 @@ def main(argv: list[str] | None = None) -> int:
                  f"top1 {r['top1']}, path {r['path']}, chi2_red {r['chi2_reduced_before']:.3g} -> {r['chi2_reduced_after']:.3g} "
                  f"(true {r['chi2_reduced_true'] if r['chi2_reduced_true'] is None else round(r['chi2_reduced_true'], 3)})")
               + f" [{time.perf_counter() - t0:.0f} s]", flush=True)
-        _atomic_json(out, {"settings": vars(args), "trials": results, "summary": _clean(summarise(results, names))})
+        # the finished trials later in the order are kept too: a rerun of an earlier trial (its record removed)
+        # that is killed must not drop them
+        kept = results + [r for k, r in done.items() if k not in {x["id"] for x in results}]
+        _atomic_json(out, {"settings": vars(args), "trials": kept, "summary": _clean(summarise(kept, names))})
         # Every refit compiles its own model structure; over many trials the executables exhaust the
         # process's memory mappings (vm.max_map_count 65530: LLVM "Unable to allocate section memory"
         # after 7 trials). Trials share nothing compiled, so drop the caches between them.
