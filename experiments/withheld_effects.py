@@ -86,6 +86,15 @@ def _clean(obj: Any) -> Any:
     return str(obj)
 
 
+def _with_done(results: list[dict[str, Any]], done: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """``results`` and the finished trials found in the output file that this run has not (yet) reached.
+
+    A run that reruns an earlier trial, is killed, or runs a subset (``--effects``) must not drop them.
+    """
+    ids = {r["id"] for r in results}
+    return results + [r for k, r in done.items() if k not in ids]
+
+
 def _atomic_json(path: Path, obj: Any) -> None:
     """``obj`` as strict JSON (numpy scalars converted, NaN as null), written atomically."""
     write_json_atomic(path, _clean(obj), allow_nan=False)
@@ -523,14 +532,15 @@ def main(argv: list[str] | None = None) -> int:
               + f" [{time.perf_counter() - t0:.0f} s]", flush=True)
         # the finished trials later in the order are kept too: a rerun of an earlier trial (its record removed)
         # that is killed must not drop them
-        kept = results + [r for k, r in done.items() if k not in {x["id"] for x in results}]
-        _atomic_json(out, {"settings": vars(args), "trials": kept, "summary": _clean(summarise(kept, names))})
+        _atomic_json(out, {"settings": vars(args), "trials": (kept := _with_done(results, done)),
+                           "summary": _clean(summarise(kept, names))})
         # Every refit compiles its own model structure; over many trials the executables exhaust the
         # process's memory mappings (vm.max_map_count 65530: LLVM "Unable to allocate section memory"
         # after 7 trials). Trials share nothing compiled, so drop the caches between them.
         jax.clear_caches()
-    s = summarise(results, names)
-    _atomic_json(out, {"settings": vars(args), "trials": results, "summary": _clean(s)})
+    s = summarise(results, names)  # this run's trials; the file keeps the others it found as well
+    kept = _with_done(results, done)
+    _atomic_json(out, {"settings": vars(args), "trials": kept, "summary": _clean(summarise(kept, names))})
     print_summary(s, names)
     return 0
 

@@ -449,3 +449,14 @@ def test_a_swap_to_a_simpler_model_needs_only_a_lower_bic(monkeypatch):
     alternatives["floor"] = st(["diffraction", "floor"], 5, 1001.0)  # simpler but worse: kept out
     out, _ = swap({"wide_lobe": ["floor"]})
     assert out is None
+
+
+def test_benchmark_output_keeps_the_trials_a_run_did_not_reach():
+    """A resumed benchmark run that reruns or selects some trials keeps the other finished ones in its file."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    done = {"a": {"id": "a", "run": "old"}, "b": {"id": "b", "run": "old"}}
+    assert mod._with_done([{"id": "a", "run": "new"}], done) == [{"id": "a", "run": "new"}, {"id": "b", "run": "old"}]
