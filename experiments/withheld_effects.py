@@ -488,9 +488,13 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     names = list(fx.EFFECT_LIBRARY) if args.effects is None else [e.strip() for e in args.effects.split(",")]
     if args.summarize:
-        results = []
+        # shards resumed from one shared earlier file (e.g. the quick set copied into each) carry the same
+        # finished trials: each trial id counts once, the first file's record kept
+        by_id: dict[str, dict] = {}
         for f in args.summarize:
-            results += json.loads(Path(f).read_text())["trials"]
+            for r in json.loads(Path(f).read_text())["trials"]:
+                by_id.setdefault(r["id"], r)
+        results = list(by_id.values())
         s = summarise(results, names)
         _atomic_json(out, {"sources": args.summarize, "trials": results, "summary": _clean(s)})
         print_summary(s, names)

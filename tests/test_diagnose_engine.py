@@ -460,3 +460,27 @@ def test_benchmark_output_keeps_the_trials_a_run_did_not_reach():
     spec.loader.exec_module(mod)
     done = {"a": {"id": "a", "run": "old"}, "b": {"id": "b", "run": "old"}}
     assert mod._with_done([{"id": "a", "run": "new"}], done) == [{"id": "a", "run": "new"}, {"id": "b", "run": "old"}]
+
+
+def test_benchmark_summary_of_shards_counts_a_shared_trial_once(tmp_path):
+    """Shards resumed from one copied earlier file both hold its trials: --summarize counts each id once."""
+    import importlib.util
+    import json
+
+    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    def null(i, significant):
+        return {"id": f"null:{i}", "kind": "null", "effects": [], "significant": significant, "wall_s": 1.0}
+
+    shared = null(0, False)
+    (tmp_path / "a.json").write_text(json.dumps({"trials": [shared, null(1, True)]}))
+    (tmp_path / "b.json").write_text(json.dumps({"trials": [shared, null(2, False)]}))
+    out = tmp_path / "merged.json"
+    assert mod.main(["--summarize", str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--out", str(out),
+                     "--effects", "lambertian"]) == 0
+    merged = json.loads(out.read_text())
+    assert [r["id"] for r in merged["trials"]] == ["null:0", "null:1", "null:2"]
+    assert merged["summary"]["n_trials"] == 3
+    assert merged["summary"]["null_nothing_significant_rate"] == [2 / 3, 3]
