@@ -484,3 +484,33 @@ def test_benchmark_summary_of_shards_counts_a_shared_trial_once(tmp_path):
     assert [r["id"] for r in merged["trials"]] == ["null:0", "null:1", "null:2"]
     assert merged["summary"]["n_trials"] == 3
     assert merged["summary"]["null_nothing_significant_rate"] == [2 / 3, 3]
+
+
+def test_the_second_path_reuses_the_first_paths_base_fit_and_first_warm_refits(monkeypatch):
+    """Run with the first path's stored base fit and step-1 warm refits, the fresh_top = 0 path is the same
+    diagnosis as one run from scratch, with those fits not repeated."""
+    from brdfjax.diagnose import engine
+
+    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.3)})
+    table, _ = _table(truth)
+    lib = {"lambertian": EFFECT_LIBRARY["lambertian"], "wide_lobe": _WideLobe()}
+    fits = []
+    real_fit = engine.fit
+    monkeypatch.setattr(engine, "fit", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
+    kw = dict(effects=list(lib), heldout_blocks=None, fit_kwargs=None, bic_threshold=10.0, max_steps=2, path_pool=4,
+              refit_top=None, threshold=4.0, smooth=3, presence=True, noise_stop=True, library=lib, progress=None)
+    base = bj.Model(terms=dict(LOBE))
+    scratch = engine._diagnose_once(base, [table], START, fresh_top=0, **kw)
+    n_scratch = len(fits)
+    reuse: dict = {}
+    engine._diagnose_once(base, [table], START, fresh_top=3, reuse=reuse, **kw)
+    assert "base" in reuse and {("warm", "lambertian"), ("warm", "wide_lobe")} <= set(reuse)
+    fits.clear()
+    again = engine._diagnose_once(base, [table], START, fresh_top=0, reuse=reuse, **kw)
+    # the base fit and the two warm refits of step 1 are not repeated
+    assert len(fits) == n_scratch - 3
+    assert [(s.action, s.effect) for s in again.path] == [(s.action, s.effect) for s in scratch.path]
+    assert again.final_result.chi2 == pytest.approx(scratch.final_result.chi2, rel=1e-9)
+    assert [(c.effect, c.delta_bic) for c in again.ranking] == [(c.effect, c.delta_bic) for c in scratch.ranking]
+    # the stored copies were not changed by the second path (it ran on copies of them)
+    assert reuse[("warm", "lambertian")].state is not None

@@ -46,6 +46,7 @@ The engine never sees a generator's truth: only the blocks and the library.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -270,6 +271,20 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     c.state = new
     c.wall_s = time.perf_counter() - t0
     return c
+
+
+def _candidate_copy(c: Candidate) -> Candidate:
+    """A copy of ``c`` that later changes to ``c`` (flags, a fresh-start refit, its state's context) leave alone."""
+    out = copy.copy(c)
+    out.flags, out.parameters = list(c.flags), dict(c.parameters)
+    out.state = copy.copy(c.state)
+    return out
+
+
+def _restore_candidate(c: Candidate, saved: Candidate) -> None:
+    """Fill ``c`` with a copy of ``saved`` (a :func:`_candidate_copy`), as if its refit had just run."""
+    for f in dataclasses.fields(Candidate):
+        setattr(c, f.name, getattr(_candidate_copy(saved), f.name))
 
 
 def _natural(name: str, x: float, unit: str) -> str:
@@ -740,12 +755,15 @@ def diagnose(
     kw = dict(effects=effects, heldout_blocks=heldout_blocks, fit_kwargs=fit_kwargs, bic_threshold=bic_threshold,
               max_steps=max_steps, path_pool=path_pool, refit_top=refit_top, threshold=threshold, smooth=smooth,
               presence=presence, noise_stop=noise_stop, library=library, progress=progress)
-    first = _diagnose_once(base_model, blocks, params, fresh_top=fresh_top, **kw)
+    # the second path starts as the first did: the base fit and the first step's warm refits are the same
+    # computation, so the first path's are reused
+    reuse: dict[Any, Any] = {}
+    first = _diagnose_once(base_model, blocks, params, fresh_top=fresh_top, reuse=reuse, **kw)
     if fresh_top == 0 or not first.settings["fresh_refit_on_path"] or first.settings["within_noise"]:
         return first
     say = progress or (lambda msg: None)
     say("the path took a fresh-start refit and ends above the noise: trying the path without fresh-start refits")
-    second = _diagnose_once(base_model, blocks, params, fresh_top=0, **kw)
+    second = _diagnose_once(base_model, blocks, params, fresh_top=0, reuse=reuse, **kw)
     bics = [gap_measures(d.final_result)["bic"] for d in (first, second)]
     keep, other = (second, first) if bics[1] < bics[0] else (first, second)
 
@@ -768,8 +786,15 @@ def diagnose(
 def _diagnose_once(
     base_model: Model, blocks: Any, params: Mapping[str, Any], *, effects, heldout_blocks, fit_kwargs, bic_threshold,
     max_steps, path_pool, refit_top, fresh_top, threshold, smooth, presence, noise_stop, library, progress,
+    reuse: dict | None = None,
 ) -> Diagnosis:
-    """One greedy path; :func:`diagnose` (whose signature holds the defaults) runs it once or twice."""
+    """One greedy path; :func:`diagnose` (whose signature holds the defaults) runs it once or twice.
+
+    ``reuse``: a dict shared by the two paths of one diagnosis.  The first call stores its base fit and its first
+    step's warm refits there (copies, taken before anything later changes them); a second call with the same data
+    and settings but another ``fresh_top`` starts from them instead of repeating those fits: until the first
+    fresh-start refit, the two paths are the same computation.
+    """
     t_start = time.perf_counter()
     say = progress or (lambda msg: None)
     if not isinstance(base_model, Model):
@@ -787,8 +812,14 @@ def _diagnose_once(
     has_tables = any(isinstance(b, TableData) for b in blocks)
     notes: list[str] = []
 
-    say("fitting the base model")
-    base = _fit_state(base_model, blocks, dict(params), fit_kwargs, ())
+    if reuse is not None and "base" in reuse:
+        say("the base fit: the first path's, reused")
+        base = copy.copy(reuse["base"])
+    else:
+        say("fitting the base model")
+        base = _fit_state(base_model, blocks, dict(params), fit_kwargs, ())
+        if reuse is not None:
+            reuse["base"] = copy.copy(base)
     if not base.result.converged:
         notes.append(f"the base fit did not converge: {base.result.message}")
     t_base = time.perf_counter()
@@ -853,8 +884,15 @@ def _diagnose_once(
             live = [c for c in live if c.effect in top]
         state_gap = gap_measures(state.result)
         for i, c in enumerate(live):  # "(i/n)": the CLI's progress line counts these for its time estimate
+            key = ("warm", c.effect)
+            if reuse is not None and step == 0 and key in reuse:
+                say(f"step 1: {c.effect}: the first path's warm refit, reused ({i + 1}/{len(live)})")
+                _restore_candidate(c, reuse[key])
+                continue
             say(f"step {step + 1}: refitting with {c.effect} ({i + 1}/{len(live)}, signature {_score(c):.3g})")
             _refit_effect(c, library[c.effect], current_ctx, state, zones, state_gap)
+            if reuse is not None and step == 0:
+                reuse[key] = _candidate_copy(c)
         # fresh starts: where the fit moved far from its starts (it bent the model to soak up what it lacks), the
         # fresh_top best candidates are refitted from the fresh start as well, the better refit kept
         top_fresh = _by_gain([c for c in cands if c.status == "ranked" and math.isfinite(c.delta_bic)])[:fresh_top]
