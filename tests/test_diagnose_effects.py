@@ -163,6 +163,11 @@ def test_inject_errors():
         E.inject("lambertian", rng, sc2)
     with pytest.raises(ValueError, match="'pixel_nonlinearity' cannot be withheld together with 'lambertian'"):
         E.inject("pixel_nonlinearity", rng, sc2)
+    # spectral_bandwidth puts monochromatic bars in the base: diffraction cannot be withheld beside it
+    bars = E.inject("diffraction", rng, sc)
+    assert "bars" in bars.truth_model.terms and "bars" not in bars.base_model.terms
+    with pytest.raises(ValueError, match="'spectral_bandwidth' cannot be withheld together with 'diffraction'"):
+        E.inject("spectral_bandwidth", rng, bars)
     # pixel_nonlinearity: a calibrated floor in the base and the truth, every weight fixed
     sc3 = E.inject("pixel_nonlinearity", rng, sc)
     assert "floor" in sc3.base_model.terms and "floor" in sc3.truth_model.terms
