@@ -63,7 +63,10 @@ def main(argv=None) -> int:
             "path": [[s.action, s.effect] for s in d.path], "stop_reason": d.stop_reason,
             "sigma_estimated": doc["sigma_estimated"], "sigma_ln": doc["gap"].get("sigma_ln"),
             "paths_compared": d.settings.get("paths_compared"),
-            "fresh_refit_on_path": d.settings.get("fresh_refit_on_path"), "notes": d.notes[:2],
+            "fresh_refit_on_path": d.settings.get("fresh_refit_on_path"), "notes": d.notes,
+            "rankings": [[{"effect": c.effect, "delta_bic": c.delta_bic, "flags": c.flags, "refit_start": c.refit_start}
+                          for c in r] for r in d.path_rankings],
+            "skipped": [{"effect": c.effect, "status": c.status, "note": c.note} for c in d.skipped],
         }
         rows.append(row)
         kept = " -> ".join(e for _, e in row["path"])
