@@ -514,3 +514,44 @@ def test_the_second_path_reuses_the_first_paths_base_fit_and_first_warm_refits(m
     assert [(c.effect, c.delta_bic) for c in again.ranking] == [(c.effect, c.delta_bic) for c in scratch.ranking]
     # the stored copies were not changed by the second path (it ran on copies of them)
     assert reuse[("warm", "lambertian")].state is not None
+
+
+class _PlainLobe(_WideLobe):
+    """The wide lobe without the boosted signature, available once the floor is in: at step 2 it is neither a
+    runner-up of step 1 nor among the best signatures."""
+
+    name = "plain_lobe"
+
+    def signature(self, ctx):
+        sig = EFFECT_LIBRARY["lambertian"].signature(ctx)
+        return type(sig)(sig.value, -100.0, "never among the best")
+
+    def identifiable(self, model, params, blocks):
+        return None if "floor" in model.terms else "waits for the floor (test)"
+
+
+class _NestingLobe(_WideLobe):
+    name = "nesting_lobe"
+    nests = ("plain_lobe",)
+
+    def present_in(self, model):
+        return "wide" in model.terms
+
+
+def test_an_effect_that_nests_a_simpler_one_brings_it_into_the_refits():
+    """A candidate refitted at a later step has the effects it reduces to (``Effect.nests``) refitted beside it,
+    even where they are neither runners-up nor among the best signatures (pixel_nonlinearity and flux_scale)."""
+    from brdfjax.diagnose import engine
+
+    assert EFFECT_LIBRARY["pixel_nonlinearity"].nests == ("flux_scale",)
+    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.3)})
+    table, _ = _table(truth)
+    run = lambda lib: diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib,  # noqa: E731
+                               max_steps=2, path_pool=1, noise_stop=False)
+    for nesting, refitted in ((_WideLobe(), False), (_NestingLobe(), True)):
+        lib = {"lambertian": EFFECT_LIBRARY["lambertian"], nesting.name: nesting, "plain_lobe": _PlainLobe()}
+        d = run(lib)
+        assert d.path[1].effect == "lambertian" and len(d.path_rankings) == 2
+        step2 = {c.effect: c for c in d.path_rankings[1]}  # the refitted (ranked) candidates of step 2
+        assert nesting.name in step2 and ("plain_lobe" in step2) is refitted, (nesting.name, list(step2))
+    assert engine._nested({"nesting_lobe", "lambertian"}, lib) == {"plain_lobe"}

@@ -273,6 +273,12 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     return c
 
 
+def _nested(chosen: set[str], library: Mapping[str, Any]) -> set[str]:
+    """The effects that those in ``chosen`` reduce to (``Effect.nests``): refitted with them, so that the BIC
+    can take the simpler one where the extra parameter stays neutral."""
+    return {n for e in chosen for n in getattr(library[e], "nests", ()) if n in library}
+
+
 def _candidate_copy(c: Candidate) -> Candidate:
     """A copy of ``c`` that later changes to ``c`` (flags, a fresh-start refit, its state's context) leave alone."""
     out = copy.copy(c)
@@ -867,6 +873,7 @@ def _diagnose_once(
             # re-tried: the previous step's runners-up and the best signatures of the new residual (an
             # effect masked by a larger one at step 1 shows in the residual only once that one is added)
             keep = set(retry) | {c.effect for c in live[:path_pool]}
+            keep |= _nested(keep, library)
             for c in live:
                 if c.effect not in keep:
                     c.status = "not retried"
@@ -877,6 +884,7 @@ def _diagnose_once(
             # of the gap (measured: the shipped config's diffraction, second at step 1 with delta BIC 1.2e7, was
             # cut at step 2 by four larger signatures and never entered the path)
             top = {c.effect for c in live[:refit_top]} | set(retry)
+            top |= _nested(top, library)
             for c in live:
                 if c.effect not in top:
                     c.status = "not refitted"

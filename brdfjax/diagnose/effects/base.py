@@ -92,6 +92,10 @@ class Effect:
     generic: bool = False
     #: the signature score below which the effect is not added to the path (its own evidence is too weak)
     presence: float = 3.0
+    #: effects this one reduces to at a neutral value of one of its parameters (``pixel_nonlinearity`` at
+    #: gamma = 1 is ``flux_scale``): the engine refits them whenever it refits this one, so that the BIC can
+    #: prefer the simpler where the extra parameter stays neutral
+    nests: tuple[str, ...] = ()
 
     def present_in(self, model: Model) -> bool:
         raise NotImplementedError

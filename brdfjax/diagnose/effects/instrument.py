@@ -175,6 +175,11 @@ class PixelNonlinearityEffect(Effect):
     name = "pixel_nonlinearity"
     title = "non-linear signal response (power law)"
     needs_2d = False
+    # with the scale freed beside gamma (a weight fixed by calibration), gamma = 1 is a flux scale.  Measured:
+    # in two withheld-effect trials (flux_scale with diffraction or with spectral_bandwidth) flux_scale was not
+    # retried at step 2 (neither among step 1's best nor step 2's best signatures) and pixel_nonlinearity took
+    # its place on the path with gamma = 1.0010
+    nests = ("flux_scale",)
     doc = (
         "Instrument side: the measured BRDF is f_ref (s f / f_ref)^gamma (InstrumentResponse features "
         "'nonlinearity' and 'flux_scale': instrument.gamma in [0.5, 1.5], f_ref the geometric mean of the "
