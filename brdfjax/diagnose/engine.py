@@ -732,7 +732,8 @@ def diagnose(
     passed to every fit; ``bic_threshold``: the BIC gain an effect needs to
     enter the path; ``max_steps``: the most effects added; ``path_pool``: at
     each later step, the previous step's ``path_pool`` best candidates and the
-    ``path_pool`` best signatures of the new residual are refitted;
+    ``path_pool`` best signatures of the new residual are refitted, with the simpler effects those reduce to
+    (``Effect.nests``);
     ``refit_top``: refit only the candidates with the ``refit_top``
     highest signature scores, and at later steps also the previous step's
     runners-up (default: all; the others are reported as not refitted; a
