@@ -9,6 +9,7 @@ Budget: measured 300 s at load average 9-12 on the shared 2-core box (not measur
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import re
 import textwrap
@@ -25,6 +26,14 @@ from brdfjax.geometry import Directions
 from brdfjax.terms import Lambertian, Specular
 
 README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def _withheld_module():
+    """``experiments/withheld_effects.py`` as a module (the benchmark script is not a package)."""
+    spec = importlib.util.spec_from_file_location("withheld", README.parent / "experiments" / "withheld_effects.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 LOBE = {"spec": Specular(bj.GGX(0.08), rho_s=1.0, n=1.5)}
 START = {"spec.alpha": 0.1, "spec.rho_s": 0.8}
@@ -311,12 +320,9 @@ def test_reference_frames_read_back_with_the_truths_noise(tmp_path):
 @pytest.mark.skipif(not __import__("os").environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1 (a few minutes)")
 def test_reference_withheld_diffraction_quick(tmp_path):
     """One small reference trial: diffraction withheld from the two-peak base, no floor in the truth."""
-    import importlib.util
     import types
 
-    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _withheld_module()
     args = types.SimpleNamespace(seed=2026, step=16, max_steps=2, refit_top=None, path_pool=4, verbose=False,
                                  candidates="diffraction,lambertian")
     (t,) = [t for t in mod.reference_trial_list(types.SimpleNamespace(quick=True, trials=1, effects="diffraction"))]
@@ -328,11 +334,8 @@ def test_reference_withheld_diffraction_quick(tmp_path):
 def test_reference_cases_withhold_what_they_name(tmp_path):
     """The reference benchmark's base lacks the withheld effect (a withheld offset peak was left in the base: the
     trial withheld nothing) and keeps what the truth has and nobody withholds."""
-    import importlib.util
 
-    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _withheld_module()
     want = {"offset_normal_peak": ["center"], "lambertian": ["center", "offset"], "diffraction": ["center", "offset"]}
     for kind, terms in want.items():
         *_, base, starts, info = mod.reference_case(kind, np.random.default_rng(1), tmp_path / kind, 64, 1)
@@ -347,14 +350,11 @@ def test_reference_cases_withhold_what_they_name(tmp_path):
 def test_benchmark_keeps_frame_invisible_effects_off_frames():
     """Smith shadowing of the frames' narrow lobe is G2 = 1 to rounding: the withheld-effect benchmark runs its
     trials on wide tables (rough lobe, grazing) and never pairs it into a two-effect frame trial."""
-    import importlib.util
     import types
 
     from brdfjax.diagnose import effects as E
 
-    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _withheld_module()
     trials = mod.trial_list(types.SimpleNamespace(quick=False, trials=1, null=0, two=25, seed=2026), list(EFFECT_LIBRARY))
     two = [t["effects"] for t in trials if t["kind"] == "two"]
     assert len(two) == 25 and not any(e in mod.WIDE_TABLE or e in mod.TABLE_ONLY for p in two for e in p)
@@ -453,23 +453,17 @@ def test_a_swap_to_a_simpler_model_needs_only_a_lower_bic(monkeypatch):
 
 def test_benchmark_output_keeps_the_trials_a_run_did_not_reach():
     """A resumed benchmark run that reruns or selects some trials keeps the other finished ones in its file."""
-    import importlib.util
 
-    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _withheld_module()
     done = {"a": {"id": "a", "run": "old"}, "b": {"id": "b", "run": "old"}}
     assert mod._with_done([{"id": "a", "run": "new"}], done) == [{"id": "a", "run": "new"}, {"id": "b", "run": "old"}]
 
 
 def test_benchmark_summary_of_shards_counts_a_shared_trial_once(tmp_path):
     """Shards resumed from one copied earlier file both hold its trials: --summarize counts each id once."""
-    import importlib.util
     import json
 
-    spec = importlib.util.spec_from_file_location("withheld", Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _withheld_module()
 
     def null(i, significant):
         return {"id": f"null:{i}", "kind": "null", "effects": [], "significant": significant, "wall_s": 1.0}
@@ -512,7 +506,7 @@ def test_the_second_path_reuses_the_first_paths_base_fit_and_first_warm_refits(m
     assert [(s.action, s.effect) for s in again.path] == [(s.action, s.effect) for s in scratch.path]
     assert again.final_result.chi2 == pytest.approx(scratch.final_result.chi2, rel=1e-9)
     assert [(c.effect, c.delta_bic) for c in again.ranking] == [(c.effect, c.delta_bic) for c in scratch.ranking]
-    # the stored copies were not changed by the second path (it ran on copies of them)
+    # the first path's clean-up (each candidate's state dropped at its end) did not reach the stored copies
     assert reuse[("warm", "lambertian")].state is not None
 
 

@@ -289,8 +289,9 @@ def _candidate_copy(c: Candidate) -> Candidate:
 
 def _restore_candidate(c: Candidate, saved: Candidate) -> None:
     """Fill ``c`` with a copy of ``saved`` (a :func:`_candidate_copy`), as if its refit had just run."""
+    fresh = _candidate_copy(saved)
     for f in dataclasses.fields(Candidate):
-        setattr(c, f.name, getattr(_candidate_copy(saved), f.name))
+        setattr(c, f.name, getattr(fresh, f.name))
 
 
 def _natural(name: str, x: float, unit: str) -> str:
