@@ -77,6 +77,40 @@ def test_progress_is_reported_per_step_without_changing_the_fit():
     jax.clear_caches()
 
 
+def test_a_fit_traces_its_jacobian_and_residuals_once(monkeypatch):
+    """The step scales, the solver's linearisations, the covariance and the final residuals share one trace of
+    the structured Jacobian and one of the residuals (before: the Jacobian was traced twice, the residuals
+    twice: Python tracing is what a cold process pays even with the persistent compilation cache)."""
+    import brdfjax.fit._jacobian as jac_mod
+    import brdfjax.fit._problem as problem_mod
+
+    counts = {"columns": 0, "residuals": 0}
+    columns, weighted = jac_mod._columns, problem_mod.Problem.weighted_residuals
+
+    def counted_columns(*a, **k):
+        counts["columns"] += 1
+        return columns(*a, **k)
+
+    def counted_weighted(self, v):
+        counts["residuals"] += 1
+        return weighted(self, v)
+
+    monkeypatch.setattr(jac_mod, "_columns", counted_columns)
+    monkeypatch.setattr(problem_mod.Problem, "weighted_residuals", counted_weighted)
+    ts = np.radians(np.linspace(5.0, 70.0, 53))  # the floor seen beside the peak
+    dirs = dict(theta_i=np.full(53, np.radians(30.0)), phi_i=np.zeros(53), theta_s=ts, phi_s=np.full(53, np.pi))
+    model = bj.Model(terms={"peak": bj.Specular(bj.Beckmann(0.05), rho_s=0.5, n=1.5), "floor": bj.Lambertian(rho_d=0.01)})
+    brdf = np.asarray(model(bj.Directions.from_angles(dirs["theta_i"], dirs["phi_i"], ts, dirs["phi_s"]), 632.8e-9))
+    brdf = brdf * np.exp(0.02 * np.random.default_rng(2).standard_normal(53))
+    tab = TableData(**dirs, brdf=brdf, sigma_rel=0.02, wavelength=632.8e-9)
+    jax.clear_caches()
+    res = fit(model, tab, {"peak.m": 0.08, "peak.rho_s": 0.3, "floor.rho_d": 0.02}, first_stage=None)
+    assert res.converged and res.n_iterations >= 3, res.message
+    assert res.covariance is not None
+    assert counts == {"columns": 1, "residuals": 1}, counts
+    jax.clear_caches()
+
+
 def test_ftol_stops_earlier_at_the_same_chi2():
     """scipy-like ftol: fewer steps than the Cauchy test alone (ftol=0, which on this frame runs to max_steps
     without its test firing), chi^2 within 1e-6 relative of that long solve's."""

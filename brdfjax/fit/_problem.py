@@ -33,6 +33,7 @@ the solar-cell model slowly, ~7 s per copy):
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -492,7 +493,8 @@ def report_evaluations(listener: Callable[[float], None] | None) -> Iterator[Non
 @jax.custom_jvp
 def residuals(v: Array, problem: Problem) -> Array:
     """The residual function handed to solvers (one object, so compiled programs are reused)."""
-    r = problem.residuals(v).astype(jnp.result_type(v))
+    r = problem.robust(_weighted_residuals_program(v, dataclasses.replace(problem, report=False)))
+    r = r.astype(jnp.result_type(v))
     r = jnp.where(jnp.isfinite(r), r, _BIG)
     _announce(r, problem)
     return r
@@ -502,7 +504,7 @@ def residuals(v: Array, problem: Problem) -> Array:
 def _residuals_jvp(primals, tangents):
     v, problem = primals
     t_v, _ = tangents  # the data are not differentiated
-    r, J = _residuals_and_jacobian(v, problem)
+    r, J = _residuals_and_jacobian_program(v, dataclasses.replace(problem, report=False))
     r, J = r.astype(jnp.result_type(v)), J.astype(jnp.result_type(v))
     # Far from the data (a trial step of the solver) a derivative can be 0 * inf; the solver must
     # see finite numbers to reject the step rather than fail.
@@ -529,9 +531,31 @@ STRUCTURED_JACOBIAN = True
 
 
 @eqx.filter_jit
+def _residuals_and_jacobian_program(v: Array, problem: Problem) -> tuple[Array, Array]:
+    """One traced program of the residuals and Jacobian, shared by the step scales, the covariance and the
+    solver's linearisations (each of its callers enters :func:`_solver_context`, so they hit one trace)."""
+    return _residuals_and_jacobian(v, problem)
+
+
+@eqx.filter_jit
+def _weighted_residuals_program(v: Array, problem: Problem) -> Array:
+    """``problem.weighted_residuals(v)`` as one traced program, shared by the solvers and :func:`evaluate`."""
+    return problem.weighted_residuals(v)
+
+
+def _solver_context():
+    """The tracing context that JAX sets inside a solver's program (an empty abstract mesh): a call from the
+    top level enters it too, else JAX traces the same function again (``jax_explain_cache_misses``:
+    "abstract_mesh_context_manager differs: now AbstractMesh((), axis_types=()) and before None"), and a
+    cold fit traced the structured Jacobian twice (about 1.5 s of the synthetic solar-cell fit)."""
+    return jax.sharding.use_abstract_mesh(jax.sharding.AbstractMesh((), ()))
+
+
+@eqx.filter_jit
 def jacobian(v: Array, problem: Problem) -> Array:
     """d r~ / d v, (n_points, n_free): from the problem's structure where it allows, else ``jax.jacfwd``."""
-    return _residuals_and_jacobian(v, problem)[1]
+    with _solver_context():
+        return _residuals_and_jacobian_program(v, dataclasses.replace(problem, report=False))[1]
 
 
 @eqx.filter_jit
@@ -543,7 +567,9 @@ def jacobian_jacfwd(v: Array, problem: Problem) -> Array:
 @eqx.filter_jit
 def evaluate(v: Array, problem: Problem) -> tuple[Array, Array]:
     """Raw and robust residuals at ``v``."""
-    r = problem.weighted_residuals(v)
+    # no _solver_context here: the solvers trace their residual function (optimistix's closure conversion)
+    # outside that context, and this call shares that trace
+    r = _weighted_residuals_program(v, dataclasses.replace(problem, report=False))
     return r, robust_residuals_by_id(problem.loss_index, r, problem.loss_scale)
 
 
