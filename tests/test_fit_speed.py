@@ -103,11 +103,14 @@ def test_a_fit_traces_its_jacobian_and_residuals_once(monkeypatch):
     brdf = np.asarray(model(bj.Directions.from_angles(dirs["theta_i"], dirs["phi_i"], ts, dirs["phi_s"]), 632.8e-9))
     brdf = brdf * np.exp(0.02 * np.random.default_rng(2).standard_normal(53))
     tab = TableData(**dirs, brdf=brdf, sigma_rel=0.02, wavelength=632.8e-9)
-    jax.clear_caches()
-    res = fit(model, tab, {"peak.m": 0.08, "peak.rho_s": 0.3, "floor.rho_d": 0.02}, first_stage=None)
-    assert res.converged and res.n_iterations >= 3, res.message
-    assert res.covariance is not None
-    assert counts == {"columns": 1, "residuals": 1}, counts
+    spec = {"peak.m": 0.08, "peak.rho_s": 0.3, "floor.rho_d": 0.02}
+    for progress in (None, lambda k, chi2: None):  # one optx.least_squares loop; stepped from Python (the CLI's)
+        jax.clear_caches()
+        counts.update(columns=0, residuals=0)
+        res = fit(model, tab, spec, first_stage=None, progress=progress)
+        assert res.converged and res.n_iterations >= 3, res.message
+        assert res.covariance is not None
+        assert counts == {"columns": 1, "residuals": 1}, (progress, counts)
     jax.clear_caches()
 
 

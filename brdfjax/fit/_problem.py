@@ -493,7 +493,8 @@ def report_evaluations(listener: Callable[[float], None] | None) -> Iterator[Non
 @jax.custom_jvp
 def residuals(v: Array, problem: Problem) -> Array:
     """The residual function handed to solvers (one object, so compiled programs are reused)."""
-    r = problem.robust(_weighted_residuals_program(v, dataclasses.replace(problem, report=False)))
+    with _solver_context():
+        r = problem.robust(_weighted_residuals_program(v, dataclasses.replace(problem, report=False)))
     r = r.astype(jnp.result_type(v))
     r = jnp.where(jnp.isfinite(r), r, _BIG)
     _announce(r, problem)
@@ -504,7 +505,8 @@ def residuals(v: Array, problem: Problem) -> Array:
 def _residuals_jvp(primals, tangents):
     v, problem = primals
     t_v, _ = tangents  # the data are not differentiated
-    r, J = _residuals_and_jacobian_program(v, dataclasses.replace(problem, report=False))
+    with _solver_context():
+        r, J = _residuals_and_jacobian_program(v, dataclasses.replace(problem, report=False))
     r, J = r.astype(jnp.result_type(v)), J.astype(jnp.result_type(v))
     # Far from the data (a trial step of the solver) a derivative can be 0 * inf; the solver must
     # see finite numbers to reject the step rather than fail.
@@ -544,10 +546,14 @@ def _weighted_residuals_program(v: Array, problem: Problem) -> Array:
 
 
 def _solver_context():
-    """The tracing context that JAX sets inside a solver's program (an empty abstract mesh): a call from the
-    top level enters it too, else JAX traces the same function again (``jax_explain_cache_misses``:
-    "abstract_mesh_context_manager differs: now AbstractMesh((), axis_types=()) and before None"), and a
-    cold fit traced the structured Jacobian twice (about 1.5 s of the synthetic solar-cell fit)."""
+    """One tracing context for every call of the shared programs above (an empty abstract mesh).
+
+    JAX keys its trace cache on the context, and the callers run in different ones: inside
+    ``optx.least_squares`` the residuals' linearisation runs under an empty abstract mesh, its closure
+    conversion and a top-level call (the step scales, the covariance, the stepped solver's ``init``) under
+    none (``jax_explain_cache_misses``: "abstract_mesh_context_manager differs: now AbstractMesh((),
+    axis_types=()) and before None").  Without one context a cold fit traced the structured Jacobian twice
+    or three times, about 1.5 s a trace on the synthetic solar-cell fit."""
     return jax.sharding.use_abstract_mesh(jax.sharding.AbstractMesh((), ()))
 
 
@@ -567,9 +573,8 @@ def jacobian_jacfwd(v: Array, problem: Problem) -> Array:
 @eqx.filter_jit
 def evaluate(v: Array, problem: Problem) -> tuple[Array, Array]:
     """Raw and robust residuals at ``v``."""
-    # no _solver_context here: the solvers trace their residual function (optimistix's closure conversion)
-    # outside that context, and this call shares that trace
-    r = _weighted_residuals_program(v, dataclasses.replace(problem, report=False))
+    with _solver_context():
+        r = _weighted_residuals_program(v, dataclasses.replace(problem, report=False))
     return r, robust_residuals_by_id(problem.loss_index, r, problem.loss_scale)
 
 
