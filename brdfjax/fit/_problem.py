@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from typing import Any
 
 import equinox as eqx
@@ -553,8 +553,12 @@ def _solver_context():
     conversion and a top-level call (the step scales, the covariance, the stepped solver's ``init``) under
     none (``jax_explain_cache_misses``: "abstract_mesh_context_manager differs: now AbstractMesh((),
     axis_types=()) and before None").  Without one context a cold fit traced the structured Jacobian twice
-    or three times, about 1.5 s a trace on the synthetic solar-cell fit."""
-    return jax.sharding.use_abstract_mesh(jax.sharding.AbstractMesh((), ()))
+    or three times, about 1.5 s a trace on the synthetic solar-cell fit.  Where a JAX version lacks the API
+    (it is new in the 0.10 series), nothing is entered: a trace more, the same numbers."""
+    try:
+        return jax.sharding.use_abstract_mesh(jax.sharding.AbstractMesh((), ()))
+    except (AttributeError, TypeError):
+        return nullcontext()
 
 
 @eqx.filter_jit
