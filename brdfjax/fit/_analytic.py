@@ -45,9 +45,12 @@ def _one_by_one(fn, values: list, dtype) -> tuple[Any, list]:
     width's inside the Q factor) JAX knows it and skips that part, which a batch of tangents cannot.
     """
     out, cols = None, []
+    # one jitted function for all the passes: its Python is traced once and its forward-mode program
+    # derived once (JAX caches both), instead of a Python trace of the term per pass
+    program = jax.jit(lambda *a: fn(list(a)))
     for i in range(len(values)):
         tangents = [jnp.asarray(float(q == i), dtype) for q in range(len(values))]
-        out, d = jax.jvp(lambda *a: fn(list(a)), tuple(values), tuple(tangents))
+        out, d = jax.jvp(program, tuple(values), tuple(tangents))
         cols.append(d)
     return out, cols
 
