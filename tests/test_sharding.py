@@ -20,7 +20,7 @@ SCRIPT = textwrap.dedent('''
     import numpy as np
     import brdfjax as bj
     from brdfjax.fit import Param, prepare, get_solver, render_noisy_frames, shard_problem
-    from brdfjax.fit._problem import residuals
+    from brdfjax.fit._problem import jacobian, residuals
     assert len(jax.devices()) == 2, jax.devices()
     model, frame = bj.solar_cell(), bj.Frame.from_degrees(20.0)
     for precision in ("float32", "float64"):
@@ -42,6 +42,10 @@ SCRIPT = textwrap.dedent('''
     r1 = np.asarray(jax.jit(residuals)(v, prep.problem))
     r2 = np.asarray(jax.jit(residuals)(v, sharded))
     assert r1.shape == r2.shape and np.max(np.abs(r1 - r2)) <= 1e-10 * max(1.0, np.max(np.abs(r1))), np.max(np.abs(r1 - r2))
+    # the Jacobian (its shared program entered in the solver's tracing context) on the sharded problem too
+    J1 = np.asarray(jacobian(v, prep.problem))
+    J2 = np.asarray(jacobian(v, sharded))
+    assert J1.shape == J2.shape and np.max(np.abs(J1 - J2)) <= 1e-10 * np.max(np.abs(J1)), np.max(np.abs(J1 - J2))
     print("SHARDED_OK", r1.size)
 ''')
 
