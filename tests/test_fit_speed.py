@@ -55,14 +55,19 @@ def test_turn_shortcuts_equal_jacfwd(kernel, assert_jacobian_matches_jacfwd):
     assert_jacobian_matches_jacfwd(problem, v, residual_rtol=1e-10)
 
 
-def test_progress_is_reported_per_step_without_changing_the_fit():
-    """With progress= the Levenberg-Marquardt solve is stepped from Python: the same steps, chi^2 and values."""
-    ts = np.radians(np.linspace(25.0, 35.0, 41))
-    dirs = dict(theta_i=np.full(41, np.radians(30.0)), phi_i=np.zeros(41), theta_s=ts, phi_s=np.full(41, np.pi))
+def _peak_on_floor_table(lo_deg: float, hi_deg: float, n: int, seed: int):
+    """A Beckmann lobe on a Lambertian floor scanned in-plane at theta_i = 30 deg, 2 % log-normal noise."""
+    ts = np.radians(np.linspace(lo_deg, hi_deg, n))
+    dirs = dict(theta_i=np.full(n, np.radians(30.0)), phi_i=np.zeros(n), theta_s=ts, phi_s=np.full(n, np.pi))
     model = bj.Model(terms={"peak": bj.Specular(bj.Beckmann(0.05), rho_s=0.5, n=1.5), "floor": bj.Lambertian(rho_d=0.01)})
     brdf = np.asarray(model(bj.Directions.from_angles(dirs["theta_i"], dirs["phi_i"], ts, dirs["phi_s"]), 632.8e-9))
-    brdf = brdf * np.exp(0.02 * np.random.default_rng(1).standard_normal(41))
-    tab = TableData(**dirs, brdf=brdf, sigma_rel=0.02, wavelength=632.8e-9)
+    brdf = brdf * np.exp(0.02 * np.random.default_rng(seed).standard_normal(n))
+    return model, TableData(**dirs, brdf=brdf, sigma_rel=0.02, wavelength=632.8e-9)
+
+
+def test_progress_is_reported_per_step_without_changing_the_fit():
+    """With progress= the Levenberg-Marquardt solve is stepped from Python: the same steps, chi^2 and values."""
+    model, tab = _peak_on_floor_table(25.0, 35.0, 41, seed=1)
     spec = {"peak.m": 0.08, "peak.rho_s": 0.3, "floor.rho_d": 0.02}
     quiet = fit(model, tab, spec, first_stage=None)
     heard = []
@@ -97,12 +102,7 @@ def test_a_fit_traces_its_jacobian_and_residuals_once(monkeypatch):
 
     monkeypatch.setattr(jac_mod, "_columns", counted_columns)
     monkeypatch.setattr(problem_mod.Problem, "weighted_residuals", counted_weighted)
-    ts = np.radians(np.linspace(5.0, 70.0, 53))  # the floor seen beside the peak
-    dirs = dict(theta_i=np.full(53, np.radians(30.0)), phi_i=np.zeros(53), theta_s=ts, phi_s=np.full(53, np.pi))
-    model = bj.Model(terms={"peak": bj.Specular(bj.Beckmann(0.05), rho_s=0.5, n=1.5), "floor": bj.Lambertian(rho_d=0.01)})
-    brdf = np.asarray(model(bj.Directions.from_angles(dirs["theta_i"], dirs["phi_i"], ts, dirs["phi_s"]), 632.8e-9))
-    brdf = brdf * np.exp(0.02 * np.random.default_rng(2).standard_normal(53))
-    tab = TableData(**dirs, brdf=brdf, sigma_rel=0.02, wavelength=632.8e-9)
+    model, tab = _peak_on_floor_table(5.0, 70.0, 53, seed=2)  # the floor seen beside the peak
     spec = {"peak.m": 0.08, "peak.rho_s": 0.3, "floor.rho_d": 0.02}
     for progress in (None, lambda k, chi2: None):  # one optx.least_squares loop; stepped from Python (the CLI's)
         jax.clear_caches()

@@ -493,9 +493,7 @@ def report_evaluations(listener: Callable[[float], None] | None) -> Iterator[Non
 @jax.custom_jvp
 def residuals(v: Array, problem: Problem) -> Array:
     """The residual function handed to solvers (one object, so compiled programs are reused)."""
-    with _solver_context():
-        r = problem.robust(_weighted_residuals_program(v, dataclasses.replace(problem, report=False)))
-    r = r.astype(jnp.result_type(v))
+    r = problem.robust(_shared(_weighted_residuals_program, v, problem)).astype(jnp.result_type(v))
     r = jnp.where(jnp.isfinite(r), r, _BIG)
     _announce(r, problem)
     return r
@@ -505,8 +503,7 @@ def residuals(v: Array, problem: Problem) -> Array:
 def _residuals_jvp(primals, tangents):
     v, problem = primals
     t_v, _ = tangents  # the data are not differentiated
-    with _solver_context():
-        r, J = _residuals_and_jacobian_program(v, dataclasses.replace(problem, report=False))
+    r, J = _shared(_residuals_and_jacobian_program, v, problem)
     r, J = r.astype(jnp.result_type(v)), J.astype(jnp.result_type(v))
     # Far from the data (a trial step of the solver) a derivative can be 0 * inf; the solver must
     # see finite numbers to reject the step rather than fail.
@@ -535,7 +532,7 @@ STRUCTURED_JACOBIAN = True
 @eqx.filter_jit
 def _residuals_and_jacobian_program(v: Array, problem: Problem) -> tuple[Array, Array]:
     """One traced program of the residuals and Jacobian, shared by the step scales, the covariance and the
-    solver's linearisations (each of its callers enters :func:`_solver_context`, so they hit one trace)."""
+    solver's linearisations (each caller goes through :func:`_shared`, so they hit one trace)."""
     return _residuals_and_jacobian(v, problem)
 
 
@@ -561,11 +558,18 @@ def _solver_context():
         return nullcontext()
 
 
+def _shared(program, v: Array, problem: Problem):
+    """``program(v, problem)`` as every caller must call a shared program to hit its one trace: in
+    :func:`_solver_context`, and with ``report`` (static, so part of the trace's key) off; the callers
+    announce the evaluation themselves."""
+    with _solver_context():
+        return program(v, dataclasses.replace(problem, report=False))
+
+
 @eqx.filter_jit
 def jacobian(v: Array, problem: Problem) -> Array:
     """d r~ / d v, (n_points, n_free): from the problem's structure where it allows, else ``jax.jacfwd``."""
-    with _solver_context():
-        return _residuals_and_jacobian_program(v, dataclasses.replace(problem, report=False))[1]
+    return _shared(_residuals_and_jacobian_program, v, problem)[1]
 
 
 @eqx.filter_jit
@@ -577,8 +581,7 @@ def jacobian_jacfwd(v: Array, problem: Problem) -> Array:
 @eqx.filter_jit
 def evaluate(v: Array, problem: Problem) -> tuple[Array, Array]:
     """Raw and robust residuals at ``v``."""
-    with _solver_context():
-        r = _weighted_residuals_program(v, dataclasses.replace(problem, report=False))
+    r = _shared(_weighted_residuals_program, v, problem)
     return r, robust_residuals_by_id(problem.loss_index, r, problem.loss_scale)
 
 
