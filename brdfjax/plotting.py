@@ -15,10 +15,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator
 
+# matplotlib (about 0.4 s to import) is imported by the functions that draw: a command that writes no
+# figure (``brdfjax fit --no-figures``, a batch worker, a reduction without plots) never loads it.
 from .detector import Detector, PixelGrid
 from .io import atomic_output
 from .render import Frame
@@ -87,6 +86,8 @@ def _max_pool(img: np.ndarray, limit: int = _MAX_DISPLAY) -> tuple[np.ndarray, i
 def _levels(lo: float, hi: float, n: int = 7) -> np.ndarray:
     if not (np.isfinite(lo) and np.isfinite(hi)) or hi - lo <= 0:
         return np.array([])
+    from matplotlib.ticker import MaxNLocator
+
     ticks = MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(lo, hi)
     return ticks[(ticks > lo) & (ticks < hi)]
 
@@ -129,6 +130,8 @@ def agg_pyplot() -> Any:
 def save_figure_atomic(fig: Any, path: Path, dpi: int, **savefig_kw: Any) -> Path:
     """Save ``fig`` to ``path`` through :func:`~brdfjax.io.atomic_output` (Agg canvas; the format from the suffix,
     since the temporary name has none); ``savefig_kw`` go to ``Figure.savefig`` (e.g. ``bbox_inches``)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     if not isinstance(fig.canvas, FigureCanvasAgg):  # a bare Figure (no pyplot): draw it with Agg
         FigureCanvasAgg(fig)
     with atomic_output(path) as tmp:
@@ -166,6 +169,8 @@ def plot_frame(
     theta_c = np.asarray(detector.arm_angle(frame.theta_i), dtype=np.float64)
 
     shown, vmin, vmax = _log10_pooled(brdf, decades)
+
+    from matplotlib.figure import Figure
 
     fig = Figure(figsize=(13.0, 5.6), layout="constrained")
     ax, ax_col = fig.subplots(1, 2, width_ratios=[1.45, 1.0])

@@ -322,3 +322,15 @@ def test_synthesize_instrument_config(tmp_path, capsys):
         load_instrument_config(inst)
     assert main(["synthesize", str(cfg), "--instrument", str(inst), "--out", str(tmp_path / "t")]) == 2
     assert "n_frames: Input should be greater than or equal to 1" in capsys.readouterr().err
+
+
+def test_commands_without_figures_do_not_import_matplotlib():
+    # matplotlib costs ~0.4 s of every process that loads it; the fit, batch and diagnose stacks import it
+    # only where a figure is drawn (brdfjax.plotting, brdfjax.fit._figures)
+    code = (
+        "import sys, brdfjax.cli, brdfjax.fit, brdfjax.fit.config, brdfjax.fit.cli_fit, brdfjax.batch, "
+        "brdfjax.diagnose, brdfjax.plotting, brdfjax.instrument.reduce; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'matplotlib'))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

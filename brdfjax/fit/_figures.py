@@ -21,9 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import matplotlib
 import numpy as np
-from matplotlib.figure import Figure
 
 from ..geometry import Directions, direction
 from ..instrument.synthetic import convolve_footprint
@@ -73,6 +71,8 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
         lines = visible_contours(det, None, box)
     except Exception:  # contours are decoration; never fail a figure on them
         lines = []
+
+    from matplotlib.figure import Figure  # here, not at import: a fit without figures never loads matplotlib
 
     fig = Figure(figsize=(16.0, 9.0), layout="constrained")
     axes = fig.subplots(2, 3, height_ratios=[1.25, 1.0])
@@ -152,6 +152,8 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
 
 
 def _with_bad(name: str):
+    import matplotlib
+
     return matplotlib.colormaps[name].with_extremes(bad="#bbbbbb")
 
 
@@ -186,6 +188,8 @@ def plot_table_fit(block: TableData, model_vals: np.ndarray, path: Path, *, titl
     n = angles.size
     ncol = min(4, n)
     nrow = int(math.ceil(n / ncol))
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(4.0 * ncol + 1, 3.3 * nrow + 0.8), layout="constrained")
     axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
     for ax, a in zip(axes, angles):
