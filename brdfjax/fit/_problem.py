@@ -45,6 +45,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..detector import Detector
+from ..export_cache import exported_call
 from ..geometry import Directions, Rz
 from ..render import Frame, evaluate_pixels
 from ..terms import AbstractTerm, Model
@@ -583,6 +584,21 @@ def evaluate(v: Array, problem: Problem) -> tuple[Array, Array]:
     """Raw and robust residuals at ``v``."""
     r = _shared(_weighted_residuals_program, v, problem)
     return r, robust_residuals_by_id(problem.loss_index, r, problem.loss_scale)
+
+
+def switches() -> tuple:
+    """The module switches that a fit's programs read while they are traced (part of an exported program's key)."""
+    return (("STRUCTURED_JACOBIAN", bool(STRUCTURED_JACOBIAN)),)
+
+
+def jacobian_call(v: Array, problem: Problem) -> Array:
+    """:func:`jacobian`, through its exported program when :mod:`brdfjax.export_cache` is on."""
+    return exported_call("jacobian", jacobian.__wrapped__, jacobian, (v, problem), switches())
+
+
+def evaluate_call(v: Array, problem: Problem) -> tuple[Array, Array]:
+    """:func:`evaluate`, through its exported program when :mod:`brdfjax.export_cache` is on."""
+    return exported_call("evaluate", evaluate.__wrapped__, evaluate, (v, problem), switches())
 
 
 def with_loss(problem: Problem, index: int, scale: float, soften: float = 0.0) -> Problem:

@@ -30,8 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ..export_cache import exported_call
 from ._common import FitInputError
-from ._problem import Problem, _emit, half_sum_squares, listening, residuals
+from ._problem import Problem, _emit, half_sum_squares, listening, residuals, switches
 
 __all__ = ["SolveOutcome", "AbstractSolver", "LevenbergMarquardt", "LBFGSB", "SOLVERS", "get_solver"]
 
@@ -118,9 +119,16 @@ def _lm(rtol, atol, ftol):
 
 @eqx.filter_jit
 def _lm_solve(v0, problem, rtol, atol, max_steps, ftol=0.0):
+    """The whole solve as one program: the solution, optimistix's result code (an integer array, so the
+    program can be exported: :mod:`brdfjax.export_cache`) and the number of steps."""
     solver = _lm(rtol, atol, ftol)
     sol = optx.least_squares(residuals, solver, v0, args=problem, max_steps=max_steps, throw=False)
-    return sol.value, sol.result, sol.stats["num_steps"]
+    return sol.value, sol.result._value, sol.stats["num_steps"]
+
+
+def _result(code) -> Any:
+    """optimistix's result item of a result code."""
+    return eqx.tree_at(lambda r: r._value, optx.RESULTS.successful, jnp.asarray(code, optx.RESULTS.successful._value.dtype))
 
 
 _TAGS: frozenset = frozenset()
@@ -196,9 +204,11 @@ class LevenbergMarquardt(AbstractSolver):
                 jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, _emit, float(self.ftol)
             )
         else:
-            value, result, steps = _lm_solve(
-                jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, float(self.ftol)
+            value, code, steps = exported_call(
+                "lm_solve", _lm_solve.__wrapped__, _lm_solve,
+                (jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, float(self.ftol)), switches(),
             )
+            result = _result(code)
         v = np.asarray(value)
         n = int(steps)
         if result == optx.RESULTS.successful:
