@@ -954,7 +954,10 @@ def run_fit(
         say(n)
     say(f"data: {len(job.blocks)} block(s) loaded in {t_data:.1f} s; fitting ...")
     with ProgressLine(console, "fit", None, unit="solver evaluation(s)") as bar:
-        result = job.run(progress=lambda k, chi2: bar.update(k, f"chi2 = {chi2:.6g}"))
+        # nobody to tell (--quiet): no progress callback, so the solve runs as one program, which a later
+        # process reads back traced (brdfjax.export_cache); the stepped solve's state cannot be exported
+        heard = (lambda k, chi2: bar.update(k, f"chi2 = {chi2:.6g}")) if bar.enabled else None
+        result = job.run(progress=heard)
     doc = result.to_dict()
     doc["config"] = str(cfg.source)
     doc["data"] = [_describe_block(b) for b in job.blocks]
