@@ -184,3 +184,18 @@ def test_extra_channels_round_trip_and_checksum(tmp_path):
         write_frame_exr(tmp_path / "g.exr", a, a, a, a, attrs, extra_channels={"brdf": a})
     with pytest.raises(ExrError, match="channel 'mask' has shape"):
         write_frame_exr(tmp_path / "h.exr", a, a, a, a, attrs, extra_channels={"mask": a[:2]})
+
+
+def test_threaded_writes_are_the_same_bytes(tmp_path):
+    """brdfjax turns on OpenEXR's thread pool (none by default); the file is byte for byte the one-thread file."""
+    assert OpenEXR.global_thread_count() >= 1
+    chans = [np.tile(c, (40, 60)) for c in channels(3)]  # 280 x 300: several line blocks per channel
+    kept = OpenEXR.global_thread_count()
+    try:
+        paths = []
+        for n in (0, kept):
+            OpenEXR.set_global_thread_count(n)
+            paths.append(write_frame_exr(tmp_path / f"t{n}.exr", *chans, attrs()))
+    finally:
+        OpenEXR.set_global_thread_count(kept)
+    assert paths[0].read_bytes() == paths[1].read_bytes()
