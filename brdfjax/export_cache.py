@@ -137,6 +137,8 @@ def _canon(x: Any, out: list[str]) -> None:
             raise _Uncacheable("an object array")
         data = hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest()
         out.append(f"ndarray:{x.dtype.str}:{x.shape}:{data}")
+    elif isinstance(x, np.dtype):
+        out.append(f"dtype:{x.str}")
     elif isinstance(x, np.generic):
         out.append(f"{x.dtype.str}:{x.item()!r}")
     elif isinstance(x, enum.Enum):
@@ -199,6 +201,8 @@ def _environment() -> str:
 
 
 def _single_device(x: Any) -> bool:
+    if isinstance(x, jax.core.Tracer):
+        return False  # called while another program is traced: that program is the one to keep
     if not isinstance(x, jax.Array):
         return True
     try:

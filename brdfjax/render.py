@@ -21,6 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from .detector import Detector, PixelGrid
+from .export_cache import exported_call
 from .fields import check_param, param
 from .geometry import Directions
 from .terms import AbstractTerm, Model
@@ -130,6 +131,12 @@ def _program(fn, args, n_h, n_v, rows_per_chunk: int, dtype):
     return map_rows(fn, args, jnp.asarray(n_h, dtype), jnp.asarray(n_v, dtype), rows_per_chunk)
 
 
+def _run(fn, args, n_h, n_v, rows_per_chunk: int, dtype):
+    """:func:`_program`, through its exported program when :mod:`brdfjax.export_cache` is on (a later process
+    skips tracing the frame's program)."""
+    return exported_call("render", _program.__wrapped__, _program, (fn, args, n_h, n_v, rows_per_chunk, dtype))
+
+
 def _pixel_values(args, n_h_row, n_v):
     model, frame, detector, per_term = args
     # vmap over the columns of one row: one pixel at a time from the model's point of view.
@@ -173,7 +180,7 @@ def render(
         raise TypeError("render(per_term=True) needs a brdfjax Model (a named sum of terms)")
     rows = _default_rows(grid.n_v.size, grid.n_h.size, chunk_pixels)
     args = (*_host_leaves((model, frame, detector)), per_term)
-    return _program(_pixel_values, args, grid.n_h, grid.n_v, rows, dtype)
+    return _run(_pixel_values, args, grid.n_h, grid.n_v, rows, dtype)
 
 
 def render_sharded(
@@ -242,7 +249,7 @@ def render_geometry(
     """Per-pixel ``theta_s``, ``phi_s`` (rad) and solid angle ``omega`` (sr) of a frame's grid."""
     detector, grid, dtype = _prepare(detector, grid, step, roi, precision)
     rows = _default_rows(grid.n_v.size, grid.n_h.size, chunk_pixels)
-    return _program(_geometry_values, _host_leaves((frame, detector)), grid.n_h, grid.n_v, rows, dtype)
+    return _run(_geometry_values, _host_leaves((frame, detector)), grid.n_h, grid.n_v, rows, dtype)
 
 
 def _frame_values(args, n_h_row, n_v):
@@ -287,4 +294,4 @@ def render_frame(
     if not hasattr(model, "term_values"):
         model = Model(terms={"model": model})
     rows = _default_rows(grid.n_v.size, grid.n_h.size, chunk_pixels)
-    return _program(_frame_values, _host_leaves((model, frame, detector)), grid.n_h, grid.n_v, rows, dtype)
+    return _run(_frame_values, _host_leaves((model, frame, detector)), grid.n_h, grid.n_v, rows, dtype)

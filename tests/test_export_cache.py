@@ -20,7 +20,8 @@ from brdfjax import export_cache
 from brdfjax.export_cache import _canon, _key, _Uncacheable, exported_call
 
 # a Beckmann lobe on a Lambertian floor (tests/test_fit_speed.py's table), fitted in a fresh process: the
-# step scales (Jacobian), the Levenberg-Marquardt solve and the final residuals and covariance
+# step scales (Jacobian), the Levenberg-Marquardt solve and the final residuals and covariance; then a
+# decimated solar-cell frame rendered (brdfjax.render's program)
 FIT = textwrap.dedent(
     """
     import json, sys
@@ -44,7 +45,9 @@ FIT = textwrap.dedent(
         r = fit(model, tab, {"peak.m": 0.08, "peak.rho_s": 0.3, "floor.rho_d": 0.02}, first_stage=None)
         out.append({"chi2": r.chi2, "steps": r.n_iterations, "converged": r.converged,
                     "values": {k: [r.value(k), r.sigma(k)] for k in ("peak.m", "peak.rho_s", "floor.rho_d")}})
-    print(json.dumps({"fits": out, "stats": export_cache.stats()}))
+    det = bj.Detector.seed()
+    img = np.asarray(bj.render(bj.solar_cell(), bj.Frame.from_degrees(20.0), det, grid=det.grid(128)))
+    print(json.dumps({"fits": out, "render": img.tobytes().hex(), "stats": export_cache.stats()}))
     """
 )
 
@@ -64,10 +67,11 @@ def test_fit_through_exported_programs_equals_the_plain_fit_bit_for_bit(tmp_path
     plain = _run(tmp_path, 0, 1, export=False)
     assert plain["stats"] == {"loaded": 0, "exported": 0, "reused": 0, "plain": 0}
     first = _run(tmp_path, 0)  # traces and writes the three programs
-    assert first["stats"]["exported"] == 3 and first["stats"]["loaded"] == 0
-    assert len(list((tmp_path / "cache" / "export").glob("*.jaxexport"))) == 3
+    assert first["stats"]["exported"] == 4 and first["stats"]["loaded"] == 0
+    assert len(list((tmp_path / "cache" / "export").glob("*.jaxexport"))) == 4
     later = _run(tmp_path, 0, 1)  # a later process: reads them; then other data of the same shapes
-    assert later["stats"]["loaded"] == 3 and later["stats"]["exported"] == 0 and later["stats"]["reused"] >= 3
+    assert later["stats"]["loaded"] == 4 and later["stats"]["exported"] == 0 and later["stats"]["reused"] >= 3
+    assert first["render"] == later["render"] == plain["render"]  # the frame: the same bytes
     for got in (first["fits"][0], later["fits"][0]):
         assert got == plain["fits"][0]  # chi^2, steps, values and sigmas: the same floats
     assert later["fits"][1] == plain["fits"][1]
