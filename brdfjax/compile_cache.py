@@ -24,6 +24,8 @@ from pathlib import Path
 
 import jax
 
+from .export_cache import activate as activate_export
+
 __all__ = ["cache_dir", "cache_disabled", "enable_compilation_cache"]
 
 
@@ -64,7 +66,5 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     # and the traced programs of a fit, so that a later process skips tracing them too (off alone with
     # BRDFJAX_NO_EXPORT=1): brdfjax.export_cache
-    from .export_cache import activate
-
-    activate(folder / "export")
+    activate_export(folder / "export")
     return folder

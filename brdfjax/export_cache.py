@@ -51,6 +51,14 @@ from typing import Any
 import equinox as eqx
 import jax
 import numpy as np
+from jax import export
+
+try:  # jax.export's serialisation needs flatbuffers (a dependency of brdfjax; without it: no files)
+    from jax._src.export import serialization as _serialization  # noqa: F401
+except ImportError:
+    _SERIALISABLE = False
+else:
+    _SERIALISABLE = True
 
 __all__ = ["activate", "deactivate", "exported_call", "stats", "clear"]
 
@@ -77,11 +85,7 @@ def activate(folder: str | os.PathLike) -> Path | None:
     """Keep exported programs in ``folder`` (made if missing); None when ``BRDFJAX_NO_EXPORT`` says no or the
     folder cannot be made or serialisation is not available (``flatbuffers`` missing)."""
     global _FOLDER
-    if os.environ.get("BRDFJAX_NO_EXPORT", "").strip() not in ("", "0"):
-        return None
-    try:
-        from jax._src.export import serialization  # noqa: F401  (needs flatbuffers)
-    except ImportError:
+    if os.environ.get("BRDFJAX_NO_EXPORT", "").strip() not in ("", "0") or not _SERIALISABLE:
         return None
     path = Path(folder)
     try:
@@ -228,8 +232,6 @@ def _key(name: str, leaves: Sequence[Any], treedef: Any, switches: tuple) -> tup
 
 
 def _export(raw: Callable[..., Any], leaves: list[Any], treedef: Any, dyn: list[int]) -> Any:
-    from jax import export
-
     def flat(*arrays):
         full = list(leaves)
         for i, a in zip(dyn, arrays):
@@ -283,8 +285,6 @@ def exported_call(name: str, raw: Callable[..., Any], plain: Callable[..., Any],
         return plain(*args)
     call = _MEM.get(key)
     if call is None:
-        from jax import export
-
         path = _FOLDER / f"{name}-{key}.jaxexport"
         exp = None
         if path.is_file():

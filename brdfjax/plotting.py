@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-# matplotlib (about 0.4 s to import) is imported by the functions that draw: a command that writes no
-# figure (``brdfjax fit --no-figures``, a batch worker, a reduction without plots) never loads it.
+# matplotlib (about 0.4 s to import) is imported by the functions that draw (_mpl): a command that writes
+# no figure (``brdfjax fit --no-figures``, a batch worker, a reduction without plots) never loads it.
 from .detector import Detector, PixelGrid
 from .io import atomic_output
 from .render import Frame
@@ -86,9 +86,7 @@ def _max_pool(img: np.ndarray, limit: int = _MAX_DISPLAY) -> tuple[np.ndarray, i
 def _levels(lo: float, hi: float, n: int = 7) -> np.ndarray:
     if not (np.isfinite(lo) and np.isfinite(hi)) or hi - lo <= 0:
         return np.array([])
-    from matplotlib.ticker import MaxNLocator
-
-    ticks = MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(lo, hi)
+    ticks = _mpl().ticker.MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(lo, hi)
     return ticks[(ticks > lo) & (ticks < hi)]
 
 
@@ -118,22 +116,39 @@ def _label_point(nh: np.ndarray, nv: np.ndarray, box, at: float) -> tuple[float,
     return float(nh[k]), float(nv[k])
 
 
+def _mpl() -> Any:
+    """matplotlib with its Figure, ticker and Agg canvas modules, imported on first use: about 0.4 s that a
+    process drawing no figure (``brdfjax fit --no-figures``, a batch worker, a diagnosis) never pays."""
+    import matplotlib  # noqa: PLC0415 -- 0.4 s of every process otherwise; only a figure needs it
+
+    for sub in ("figure", "ticker", "backends.backend_agg"):
+        importlib.import_module(f"matplotlib.{sub}")
+    return matplotlib
+
+
+def new_figure(**kwargs: Any) -> Any:
+    """A bare matplotlib ``Figure(**kwargs)`` (no pyplot state), drawn with Agg by :func:`save_figure_atomic`."""
+    return _mpl().figure.Figure(**kwargs)
+
+
+def colormap(name: str) -> Any:
+    """matplotlib's colormap ``name``."""
+    return _mpl().colormaps[name]
+
+
 def agg_pyplot() -> Any:
     """``matplotlib.pyplot`` on the non-interactive Agg backend, for figures drawn with pyplot (corner plots,
     traces, the merge-seam figure).  The backend is chosen before pyplot is first imported."""
-    import matplotlib  # pyplot needs its backend chosen first, so it cannot be a module-level import
-
-    matplotlib.use("Agg", force=False)
+    _mpl().use("Agg", force=False)
     return importlib.import_module("matplotlib.pyplot")
 
 
 def save_figure_atomic(fig: Any, path: Path, dpi: int, **savefig_kw: Any) -> Path:
     """Save ``fig`` to ``path`` through :func:`~brdfjax.io.atomic_output` (Agg canvas; the format from the suffix,
     since the temporary name has none); ``savefig_kw`` go to ``Figure.savefig`` (e.g. ``bbox_inches``)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    if not isinstance(fig.canvas, FigureCanvasAgg):  # a bare Figure (no pyplot): draw it with Agg
-        FigureCanvasAgg(fig)
+    agg = _mpl().backends.backend_agg.FigureCanvasAgg
+    if not isinstance(fig.canvas, agg):  # a bare Figure (no pyplot): draw it with Agg
+        agg(fig)
     with atomic_output(path) as tmp:
         fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", dpi=dpi, **savefig_kw)
     return path
@@ -170,9 +185,7 @@ def plot_frame(
 
     shown, vmin, vmax = _log10_pooled(brdf, decades)
 
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(13.0, 5.6), layout="constrained")
+    fig = new_figure(figsize=(13.0, 5.6), layout="constrained")
     ax, ax_col = fig.subplots(1, 2, width_ratios=[1.45, 1.0])
 
     im = ax.imshow(

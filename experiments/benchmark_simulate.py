@@ -19,6 +19,9 @@ The warm brdfjax runs and the oracle runs alternate (``--repeats`` of each);
 medians are compared.  On a shared machine the wall-clock ratio moves with
 the load; the CPU-second ratio is printed beside it.
 
+Also printed: the floor of a warm process (its start, the imports, two warm renders and the last frame's
+EXR and PNG, each timed alone) and the oracle's time over it, the most any overlap of the pieces could give.
+
 Usage::
 
     python experiments/benchmark_simulate.py [--repeats 3] [--json experiments/results/benchmark_simulate.json]
@@ -45,6 +48,35 @@ import sys, numpy as np
 from brdfjax import reference
 for name, deg in (("ti20", 20.0), ("ti60", 60.0)):
     np.save(f"{sys.argv[1]}/{name}.npy", reference.solar_cell_frame(np.deg2rad(deg)))
+"""
+
+# The floor of a warm process, piece by piece in one fresh process with the cache filled: its start and the
+# simulate stack's imports, then (the program warm) one frame's render, its EXR and its PNG.  Even with every
+# other piece overlapped, a process that renders two frames and writes the last one's files takes at least
+# start + 2 renders + that EXR + that PNG.
+FLOOR = """
+import json, sys, time
+t0 = time.perf_counter()
+from brdfjax.compile_cache import enable_compilation_cache
+enable_compilation_cache()
+import numpy as np
+import brdfjax as bj
+from brdfjax import cli_run, simulate as S
+from brdfjax.io import frame_attrs, write_frame_exr
+t_imp = time.perf_counter() - t0
+det = bj.Detector.seed()
+grid = det.grid(1)
+frame = bj.Frame.from_degrees(60.0, 0.0, 632.8)
+model = bj.solar_cell()
+S.simulate_frame(model, frame, det, grid, "float32", "ti60")
+t = time.perf_counter(); res = S.simulate_frame(model, frame, det, grid, "float32", "ti60"); t_render = time.perf_counter() - t
+attrs = {**frame_attrs(det, frame, step=1, roi=det.index_range), "model": "preset solar_cell", "brdfjax_version": "x"}
+t = time.perf_counter()
+write_frame_exr(sys.argv[1] + "/f.exr", res.brdf, res.geometry["theta_s"], res.geometry["phi_s"], res.geometry["omega"], attrs)
+t_exr = time.perf_counter() - t
+S.plot_frame(res.brdf, grid, det, frame, sys.argv[1] + "/f0.png")
+t = time.perf_counter(); S.plot_frame(res.brdf, grid, det, frame, sys.argv[1] + "/f1.png"); t_png = time.perf_counter() - t
+print(json.dumps(dict(imports_s=t_imp, render_s=t_render, exr_s=t_exr, png_s=t_png)))
 """
 
 
@@ -84,6 +116,16 @@ def main(argv: list[str] | None = None) -> int:
             print(f"round {k + 1}/{args.repeats}: NumPy oracle, brdfjax simulate (warm) ...", file=sys.stderr, flush=True)
             ref.append(_timed(oracle, env))
             warm.append(_timed(sim, env))
+        # the floor: a bare interpreter's start, then the pieces (above)
+        t = time.perf_counter()
+        subprocess.run([sys.executable, "-c", "pass"], env=env, check=True)
+        t_python = time.perf_counter() - t
+        proc = subprocess.run([sys.executable, "-c", FLOOR, str(tmp)], env=env, capture_output=True, text=True)
+        if proc.returncode != 0:
+            sys.stderr.write(proc.stderr)
+            raise SystemExit("benchmark_simulate: the floor's pieces failed")
+        floor = {"python_s": t_python, **json.loads(proc.stdout.strip().splitlines()[-1])}
+        floor["floor_s"] = floor["python_s"] + floor["imports_s"] + 2 * floor["render_s"] + floor["exr_s"] + floor["png_s"]
         summary = json.loads((tmp / "out" / "summary.json").read_text())
         check = {}
         for fr in summary["frames"]:
@@ -104,6 +146,8 @@ def main(argv: list[str] | None = None) -> int:
         "load_average": os.getloadavg(),
         "cpu_count": os.cpu_count(),
         "frames": check,
+        "floor": floor,
+        "oracle_over_floor": med_ref["wall_s"] / floor["floor_s"],
     }
     la = ", ".join(f"{x:.1f}" for x in res["load_average"])
     print(f"brdfjax simulate {res['config']} (2 full frames, EXR + PNG) vs the NumPy oracle (same 2 BRDF frames), "
@@ -117,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
           f"**{res['speedup_wall']:.1f}x** | {res['speedup_cpu']:.1f}x |")
     print("warm wall times: " + ", ".join(f"{r['wall_s']:.2f}" for r in warm)
           + "; oracle: " + ", ".join(f"{r['wall_s']:.1f}" for r in ref))
+    print(f"floor of a warm process: start {floor['python_s']:.2f} s + imports {floor['imports_s']:.2f} s + 2 renders x "
+          f"{floor['render_s']:.2f} s + the last frame's EXR {floor['exr_s']:.2f} s + its PNG {floor['png_s']:.2f} s = "
+          f"{floor['floor_s']:.2f} s: oracle / floor {res['oracle_over_floor']:.1f}x (the most any overlap could reach)")
     print("peak BRDF (simulate / oracle): " + "; ".join(
         f"{k} {v['max_brdf']:.5g} / {v['oracle_max_brdf']:.5g}" for k, v in check.items()))
     if args.json:

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..geometry import Directions, direction
 from ..instrument.synthetic import convolve_footprint
-from ..plotting import log10_floor, save_figure_atomic, visible_contours
+from ..plotting import colormap, log10_floor, new_figure, save_figure_atomic, visible_contours
 from ..render import render
 from ._data import FrameData, TableData
 
@@ -72,9 +72,7 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
     except Exception:  # contours are decoration; never fail a figure on them
         lines = []
 
-    from matplotlib.figure import Figure  # here, not at import: a fit without figures never loads matplotlib
-
-    fig = Figure(figsize=(16.0, 9.0), layout="constrained")
+    fig = new_figure(figsize=(16.0, 9.0), layout="constrained")
     axes = fig.subplots(2, 3, height_ratios=[1.25, 1.0])
     magma = _with_bad("magma")
     rdbu = _with_bad("RdBu_r")
@@ -152,9 +150,7 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
 
 
 def _with_bad(name: str):
-    import matplotlib
-
-    return matplotlib.colormaps[name].with_extremes(bad="#bbbbbb")
+    return colormap(name).with_extremes(bad="#bbbbbb")
 
 
 def table_model(model: Any, block: TableData) -> np.ndarray:
@@ -188,9 +184,7 @@ def plot_table_fit(block: TableData, model_vals: np.ndarray, path: Path, *, titl
     n = angles.size
     ncol = min(4, n)
     nrow = int(math.ceil(n / ncol))
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(4.0 * ncol + 1, 3.3 * nrow + 0.8), layout="constrained")
+    fig = new_figure(figsize=(4.0 * ncol + 1, 3.3 * nrow + 0.8), layout="constrained")
     axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
     for ax, a in zip(axes, angles):
         sel = u & (np.abs(ti - a) < 1e-6)
