@@ -13,8 +13,8 @@ later processes, whose compile then comes from the persistent cache.
 The key is everything that decides what is traced, written out without
 tracing:
 
-- the program's name, the versions of JAX, jaxlib, equinox, optimistix and
-  lineax, a hash of brdfjax's own source files, the backend and the JAX
+- the program's name, the versions of JAX, jaxlib, equinox, optimistix,
+  lineax, NumPy, SciPy, opt_einsum and ml_dtypes, a hash of brdfjax's own source files, the backend and the JAX
   options that change tracing (64-bit mode, matmul precision, promotion
   rules, debug checks), and any module switches the caller names;
 - the arguments' tree structure with every static value (equinox static
@@ -29,7 +29,8 @@ Only single-device calls are exported (sharded arrays go the plain way).
 
 On when the persistent compilation cache is on (the CLI's default; files in
 ``<cache>/export``); off with the cache, or alone with ``BRDFJAX_NO_EXPORT=1``.
-A file that cannot be read is replaced.  Exported calls give the numbers of
+A file that cannot be read is replaced.  A dependency edited in place without a new version number is not
+seen: delete ``<cache>/export`` (or set ``BRDFJAX_NO_EXPORT=1``) after such an edit.  Exported calls give the numbers of
 the plain call (``tests/test_export_cache.py`` checks a fit to every bit).
 """
 
@@ -191,7 +192,9 @@ def _canon_tree(treedef: Any, out: list[str]) -> None:
 @functools.lru_cache(maxsize=1)
 def _environment() -> str:
     versions = []
-    for dist in ("jax", "jaxlib", "equinox", "optimistix", "lineax"):
+    # the libraries whose code runs while a fit or a render is traced (numpy and scipy on static values,
+    # opt_einsum's contraction order)
+    for dist in ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy", "scipy", "opt_einsum", "ml_dtypes"):
         try:
             versions.append(f"{dist}={importlib.metadata.version(dist)}")
         except importlib.metadata.PackageNotFoundError:
