@@ -293,9 +293,13 @@ def exported_call(name: str, raw: Callable[..., Any], plain: Callable[..., Any],
         if path.is_file():
             try:
                 exp = export.deserialize(bytearray(path.read_bytes()))
+                # (JAX's canonical dtypes: float64 data are float32 arrays without 64-bit mode)
+                want = [(tuple(leaves[i].shape), jax.dtypes.canonicalize_dtype(leaves[i].dtype)) for i in dyn]
+                if [(tuple(a.shape), np.dtype(a.dtype)) for a in exp.in_avals] != want:
+                    raise ValueError("the file's program takes other arrays")
                 _STATS["loaded"] += 1
             except Exception:
-                exp = None  # damaged or from another writer: made again below
+                exp = None  # damaged, or not this program's: made again below
         if exp is None:
             exp = _export(raw, leaves, treedef, dyn)
             try:

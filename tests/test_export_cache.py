@@ -148,6 +148,15 @@ def test_a_damaged_file_is_made_again(export_dir):
     (c,) = exported_call("toy", _toy, _toy_plain, (_Toy(x, 2), 0.5))  # the rewritten file reads back
     np.testing.assert_array_equal(a, c)
     assert export_cache.stats()["loaded"] - before["loaded"] == 1
+    # a readable file that holds another program (other array shapes) under this name is made again too
+    exported_call("toy", _toy, _toy_plain, (_Toy(jnp.ones(5), 2), 0.5))
+    other = next(p for p in export_dir.glob("toy-*.jaxexport") if p != path)
+    path.write_bytes(other.read_bytes())
+    export_cache.clear()
+    mid = export_cache.stats()
+    (d,) = exported_call("toy", _toy, _toy_plain, (_Toy(x, 2), 0.5))
+    np.testing.assert_array_equal(a, d)
+    assert export_cache.stats()["exported"] - mid["exported"] == 1 and export_cache.stats()["loaded"] == mid["loaded"]
 
 
 def test_values_that_cannot_be_written_out_go_the_plain_way(export_dir):
