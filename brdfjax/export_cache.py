@@ -43,7 +43,6 @@ import hashlib
 import importlib.metadata
 import os
 import re
-import tempfile
 import types
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -61,7 +60,7 @@ except ImportError:
 else:
     _SERIALISABLE = True
 
-__all__ = ["activate", "deactivate", "exported_call", "stats", "clear"]
+__all__ = ["activate", "deactivate", "exportable", "exported_call", "stats", "clear"]
 
 _FOLDER: Path | None = None
 _MEM: dict[str, Callable[..., Any]] = {}
@@ -208,14 +207,10 @@ def _environment() -> str:
 
 
 def _single_device(x: Any) -> bool:
+    # a tracer: called while another program is traced, which is the one to keep
     if isinstance(x, jax.core.Tracer):
-        return False  # called while another program is traced: that program is the one to keep
-    if not isinstance(x, jax.Array):
-        return True
-    try:
-        return len(x.sharding.device_set) == 1 and isinstance(x.sharding, jax.sharding.SingleDeviceSharding)
-    except Exception:
         return False
+    return not isinstance(x, jax.Array) or isinstance(x.sharding, jax.sharding.SingleDeviceSharding)
 
 
 def _key(name: str, leaves: Sequence[Any], treedef: Any, switches: tuple) -> tuple[str, list[int]]:
@@ -257,17 +252,6 @@ def _export(raw: Callable[..., Any], leaves: list[Any], treedef: Any, dyn: list[
             allowed |= names
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def exported_call(name: str, raw: Callable[..., Any], plain: Callable[..., Any], args: tuple, switches: tuple = ()) -> Any:
     """``raw(*args)`` through its exported program when the cache is on, else ``plain(*args)``.
 
@@ -302,8 +286,12 @@ def exported_call(name: str, raw: Callable[..., Any], plain: Callable[..., Any],
                 exp = None  # damaged, or not this program's: made again below
         if exp is None:
             exp = _export(raw, leaves, treedef, dyn)
+            # imported here: brdfjax.io's package imports brdfjax.render, which imports this module
+            from .io.atomic import atomic_output  # noqa: PLC0415 -- a module-level import would be a cycle
+
             try:
-                _write_atomic(path, bytes(exp.serialize()))
+                with atomic_output(path) as tmp:
+                    tmp.write_bytes(exp.serialize())
             except OSError:
                 pass  # a read-only cache: this process still uses the program
             _STATS["exported"] += 1
@@ -312,3 +300,15 @@ def exported_call(name: str, raw: Callable[..., Any], plain: Callable[..., Any],
     else:
         _STATS["reused"] += 1
     return call(*(leaves[i] for i in dyn))
+
+
+def exportable(name: str, plain: Callable[..., Any], switches: Callable[[], tuple] = tuple) -> Callable[..., Any]:
+    """``plain`` (an ``eqx.filter_jit`` function) called through :func:`exported_call` under ``name``;
+    ``switches()`` gives the module switches its trace reads, at each call."""
+    raw = plain.__wrapped__
+
+    @functools.wraps(raw)
+    def call(*args: Any) -> Any:
+        return exported_call(name, raw, plain, args, switches())
+
+    return call

@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from .detector import Detector, PixelGrid
-from .export_cache import exported_call
+from .export_cache import exportable
 from .fields import check_param, param
 from .geometry import Directions
 from .terms import AbstractTerm, Model
@@ -131,10 +131,9 @@ def _program(fn, args, n_h, n_v, rows_per_chunk: int, dtype):
     return map_rows(fn, args, jnp.asarray(n_h, dtype), jnp.asarray(n_v, dtype), rows_per_chunk)
 
 
-def _run(fn, args, n_h, n_v, rows_per_chunk: int, dtype):
-    """:func:`_program`, through its exported program when :mod:`brdfjax.export_cache` is on (a later process
-    skips tracing the frame's program)."""
-    return exported_call("render", _program.__wrapped__, _program, (fn, args, n_h, n_v, rows_per_chunk, dtype))
+#: :func:`_program` through its exported program when :mod:`brdfjax.export_cache` is on (a later process
+#: skips tracing the frame's program)
+_run = exportable("render", _program)
 
 
 def _pixel_values(args, n_h_row, n_v):

@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 from typing import Any
 
 import equinox as eqx
@@ -173,3 +174,39 @@ def test_values_that_cannot_be_written_out_go_the_plain_way(export_dir):
     np.testing.assert_array_equal(y, [3.0, 3.0])
     assert export_cache.stats()["plain"] - before["plain"] == 1
     assert not list(export_dir.glob("*.jaxexport"))
+
+
+def _strip_timings(doc):
+    if isinstance(doc, dict):
+        return {k: _strip_timings(v) for k, v in doc.items() if not k.endswith("_s") and k not in ("versions", "config")}
+    if isinstance(doc, list):
+        return [_strip_timings(v) for v in doc]
+    return doc
+
+
+def test_a_real_table_fit_through_exported_programs_equals_the_plain_fit(tmp_path):
+    """On data brdfjax did not make (Cornell's Krylon blue, the shipped config; noise estimated from the
+    residuals, so the solve and the residuals run again for the profile likelihood): the CLI's result.json
+    is the same, number for number, plain, exporting, and read back in a later process."""
+    root = Path(__file__).resolve().parents[1]
+    docs = {}
+    for run, export in (("plain", False), ("exporting", True), ("later", True)):
+        env = dict(os.environ, BRDFJAX_CACHE_DIR=str(tmp_path / ("cache" if export else "plain-cache")))
+        env.pop("BRDFJAX_NO_CACHE", None)
+        env.pop("BRDFJAX_NO_EXPORT", None)
+        if not export:
+            env["BRDFJAX_NO_EXPORT"] = "1"
+        out = tmp_path / run
+        cmd = [sys.executable, "-m", "brdfjax", "fit", str(root / "configs" / "fit_cornell_krylon_blue.toml"),
+               "--out", str(out), "--no-figures", "--quiet"]
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=root)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        docs[run] = json.loads((out / "result.json").read_text())
+        if run == "exporting":
+            files = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "cache" / "export").glob("*.jaxexport")}
+    assert docs["plain"]["noise"]["estimated"] is True
+    # the later process read the programs: none was written again
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "cache" / "export").glob("*.jaxexport")} == files
+    assert len(files) >= 3
+    assert _strip_timings(docs["exporting"]) == _strip_timings(docs["plain"])
+    assert _strip_timings(docs["later"]) == _strip_timings(docs["plain"])

@@ -45,7 +45,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..detector import Detector
-from ..export_cache import exported_call
+from ..export_cache import exportable
 from ..geometry import Directions, Rz
 from ..render import Frame, evaluate_pixels
 from ..terms import AbstractTerm, Model
@@ -591,14 +591,9 @@ def switches() -> tuple:
     return (("STRUCTURED_JACOBIAN", bool(STRUCTURED_JACOBIAN)),)
 
 
-def jacobian_call(v: Array, problem: Problem) -> Array:
-    """:func:`jacobian`, through its exported program when :mod:`brdfjax.export_cache` is on."""
-    return exported_call("jacobian", jacobian.__wrapped__, jacobian, (v, problem), switches())
-
-
-def evaluate_call(v: Array, problem: Problem) -> tuple[Array, Array]:
-    """:func:`evaluate`, through its exported program when :mod:`brdfjax.export_cache` is on."""
-    return exported_call("evaluate", evaluate.__wrapped__, evaluate, (v, problem), switches())
+#: :func:`jacobian` and :func:`evaluate` through their exported programs when :mod:`brdfjax.export_cache` is on
+jacobian_call = exportable("jacobian", jacobian, switches)
+evaluate_call = exportable("evaluate", evaluate, switches)
 
 
 def with_loss(problem: Problem, index: int, scale: float, soften: float = 0.0) -> Problem:

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..export_cache import exported_call
+from ..export_cache import exportable
 from ._common import FitInputError
 from ._problem import Problem, _emit, half_sum_squares, listening, residuals, switches
 
@@ -126,6 +126,9 @@ def _lm_solve(v0, problem, rtol, atol, max_steps, ftol=0.0):
     return sol.value, sol.result._value, sol.stats["num_steps"]
 
 
+_lm_solve_exported = exportable("lm_solve", _lm_solve, switches)
+
+
 def _result(code) -> Any:
     """optimistix's result item of a result code."""
     return eqx.tree_at(lambda r: r._value, optx.RESULTS.successful, jnp.asarray(code, optx.RESULTS.successful._value.dtype))
@@ -204,9 +207,8 @@ class LevenbergMarquardt(AbstractSolver):
                 jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, _emit, float(self.ftol)
             )
         else:
-            value, code, steps = exported_call(
-                "lm_solve", _lm_solve.__wrapped__, _lm_solve,
-                (jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, float(self.ftol)), switches(),
+            value, code, steps = _lm_solve_exported(
+                jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, float(self.ftol)
             )
             result = _result(code)
         v = np.asarray(value)
