@@ -20,9 +20,9 @@ import pytest
 from brdfjax import export_cache
 from brdfjax.export_cache import _canon, _key, _Uncacheable, exported_call
 
-# a Beckmann lobe on a Lambertian floor (tests/test_fit_speed.py's table), fitted in a fresh process: the
-# step scales (Jacobian), the Levenberg-Marquardt solve and the final residuals and covariance; then a
-# decimated solar-cell frame rendered (brdfjax.render's program)
+# tests/test_fit_speed.py's table (a Beckmann lobe on a Lambertian floor), fitted in a fresh process: the step
+# scales (Jacobian), the Levenberg-Marquardt solve and the final residuals and covariance; then a decimated
+# solar-cell frame rendered (brdfjax.render's program)
 FIT = textwrap.dedent(
     """
     import json, sys
@@ -31,18 +31,13 @@ FIT = textwrap.dedent(
     enable_compilation_cache()
     import brdfjax as bj
     from brdfjax import export_cache
-    from brdfjax.fit import TableData, fit
+    from brdfjax.fit import fit
+    sys.path.insert(0, TESTS)
+    from test_fit_speed import _peak_on_floor_table
 
     out = []
     for seed in map(int, sys.argv[1:]):
-        n = 41
-        ts = np.radians(np.linspace(25.0, 35.0, n))
-        dirs = dict(theta_i=np.full(n, np.radians(30.0)), phi_i=np.zeros(n), theta_s=ts, phi_s=np.full(n, np.pi))
-        model = bj.Model(terms={"peak": bj.Specular(bj.Beckmann(0.05), rho_s=0.5, n=1.5),
-                                "floor": bj.Lambertian(rho_d=0.01)})
-        d = bj.Directions.from_angles(dirs["theta_i"], dirs["phi_i"], ts, dirs["phi_s"])
-        brdf = np.asarray(model(d, 632.8e-9)) * np.exp(0.02 * np.random.default_rng(seed).standard_normal(n))
-        tab = TableData(**dirs, brdf=brdf, sigma_rel=0.02, wavelength=632.8e-9)
+        model, tab = _peak_on_floor_table(25.0, 35.0, 41, seed)
         r = fit(model, tab, {"peak.m": 0.08, "peak.rho_s": 0.3, "floor.rho_d": 0.02}, first_stage=None)
         out.append({"chi2": r.chi2, "steps": r.n_iterations, "converged": r.converged,
                     "values": {k: [r.value(k), r.sigma(k)] for k in ("peak.m", "peak.rho_s", "floor.rho_d")}})
@@ -50,7 +45,7 @@ FIT = textwrap.dedent(
     img = np.asarray(bj.render(bj.solar_cell(), bj.Frame.from_degrees(20.0), det, grid=det.grid(128)))
     print(json.dumps({"fits": out, "render": img.tobytes().hex(), "stats": export_cache.stats()}))
     """
-)
+).replace("TESTS", repr(str(Path(__file__).resolve().parent)))
 
 
 def _run(tmp_path, *seeds: int, export: bool = True) -> dict:
