@@ -140,7 +140,7 @@ def test_shipped_physical_model_is_at_least_as_good_as_the_binomial(config, data
 
 
 def test_merl_binomial_is_below_the_floor_of_any_single_lobe_shape():
-    """MERL aluminium, where the physically based fits stay above the binomial (issue 14, not met): no
+    """MERL aluminium, where the physically based fits stay above the binomial (issue 14: below ABg only): no
     distribution D(theta_h) whatever, times Eq 70's factor with the aluminium index, reaches the binomial's
     log-RMS (the least-squares floor over a 40-knot spline in ln tan theta_h); the gap is in the angular
     factor, not in the lobe's shape (experiments/merl_gap.py has the floors of other factors)."""
