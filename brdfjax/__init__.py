@@ -3,9 +3,10 @@
 Public names are re-exported here from their modules; see the README for a tour.
 """
 
-from . import distributions as distributions, shadowing as shadowing
-from .detector import Detector as Detector, PixelGrid as PixelGrid, incident_direction as incident_direction
-from .distributions import (
+from ._compat import install as _install_moved_module_paths
+from .core import distributions as distributions, shadowing as shadowing
+from .core.detector import Detector as Detector, PixelGrid as PixelGrid, incident_direction as incident_direction
+from .core.distributions import (
     GGX as GGX,
     GTR as GTR,
     AbstractDistribution as AbstractDistribution,
@@ -20,9 +21,9 @@ from .distributions import (
     StudentT as StudentT,
     StudentTAniso as StudentTAniso,
 )
-from .fresnel import fresnel as fresnel, q_factor as q_factor
-from .geometry import Directions as Directions, direction as direction, zenith_azimuth as zenith_azimuth
-from .render import (
+from .core.fresnel import fresnel as fresnel, q_factor as q_factor
+from .core.geometry import Directions as Directions, direction as direction, zenith_azimuth as zenith_azimuth
+from .core.render import (
     Frame as Frame,
     evaluate_pixels as evaluate_pixels,
     render as render,
@@ -31,7 +32,7 @@ from .render import (
     render_sharded as render_sharded,
     sample_directions as sample_directions,
 )
-from .terms import (
+from .core.terms import (
     SOLAR_CELL_SEED as SOLAR_CELL_SEED,
     ABg as ABg,
     AbstractTerm as AbstractTerm,
@@ -49,3 +50,5 @@ from .terms import (
 )
 
 __version__ = "0.1.0"
+
+_install_moved_module_paths()

@@ -48,9 +48,9 @@ from pydantic import Field, field_validator
 from tqdm import tqdm
 
 from .config import ConfigError, StrictModel, check_choice, read_toml, validate
-from .errors import InputError
 from .io import write_json_atomic
 from .io.fingerprint import check_resume, file_digest, value_digest
+from .runtime.errors import InputError
 
 __all__ = ["StudyError", "Job", "Study", "load_study", "run_study", "add_arguments", "run", "BACKENDS"]
 

@@ -18,9 +18,9 @@ import numpy as np
 
 # matplotlib (about 0.4 s to import) is imported by the functions that draw (_mpl): a command that writes
 # no figure (``brdfjax fit --no-figures``, a batch worker, a reduction without plots) never loads it.
-from .detector import Detector, PixelGrid
+from .core.detector import Detector, PixelGrid
+from .core.render import Frame
 from .io import atomic_output
-from .render import Frame
 
 __all__ = ["plot_frame", "log10_floor"]
 

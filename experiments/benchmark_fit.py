@@ -205,7 +205,7 @@ def _run(side: str, args, start: Path, cache: str | None) -> dict:
     with tempfile.NamedTemporaryFile("r", suffix=".json") as tmp:
         code = "import runpy, sys; sys.argv = sys.argv[1:]; "
         if side == "brdfjax" and cache:
-            code += "from brdfjax.compile_cache import enable_compilation_cache; enable_compilation_cache(); "
+            code += "from brdfjax.runtime.compile_cache import enable_compilation_cache; enable_compilation_cache(); "
         code += "runpy.run_path(sys.argv[0], run_name='__main__')"
         cmd = [sys.executable, "-c", code, __file__, "--child", side, "--child-out", tmp.name, "--child-io", str(start),
                "--data", str(args.data), "--first-stage", args.first_stage] + (["--jacfwd"] if args.jacfwd else [])
@@ -270,7 +270,7 @@ def main(argv=None) -> int:
         jf = med(r["jacfwd_s"] for r in bj)
         print(f"{'jax.jacfwd Jacobian (CPU s), / residual':44s} {jf:10.4f} {'':>10s} {jf / res_s:6.2f}x")
     if args.json:
-        from brdfjax.io.atomic import write_json_atomic  # noqa: PLC0415 -- the timed children import brdfjax, not this parent
+        from brdfjax.runtime.atomic import write_json_atomic  # noqa: PLC0415 -- the timed children import brdfjax, not this parent
 
         write_json_atomic(args.json, dict(rows=rows, load=os.getloadavg()))
     return 0

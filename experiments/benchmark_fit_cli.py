@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     env.pop("BRDFJAX_NO_CACHE", None)
     runs = []
     # with the progress line the solve is stepped from Python (its state cannot be exported); --quiet runs it as
-    # one program, which a later process reads back traced (brdfjax.export_cache): its first quiet run exports it
+    # one program, which a later process reads back traced (brdfjax.runtime.export_cache): its first quiet run exports it
     for label, flags in (("empty cache", []), ("second process", []), ("--quiet, 1st", ["--quiet"]),
                          ("--quiet, later", ["--quiet"])):
         cmd = [sys.executable, "-m", "brdfjax", "fit", str(CONFIG), "--out", str(work / "out"), "--no-figures", *flags]
@@ -57,7 +57,7 @@ def main(argv=None) -> int:
     print(f"second process / first: {runs[1]['wall_s'] / runs[0]['wall_s']:.2f}; "
           f"--quiet later / first: {runs[3]['wall_s'] / runs[0]['wall_s']:.2f}")
     if args.json:
-        from brdfjax.io.atomic import write_json_atomic  # noqa: PLC0415 -- the timed children import brdfjax, not this parent
+        from brdfjax.runtime.atomic import write_json_atomic  # noqa: PLC0415 -- the timed children import brdfjax, not this parent
 
         write_json_atomic(args.json, dict(runs=runs, load=os.getloadavg()))
     shutil.rmtree(work, ignore_errors=True)

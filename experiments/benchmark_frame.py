@@ -40,7 +40,7 @@ How
     * Fused numba kernel (when ``numba`` is installed, ``pip install
       "brdfjax[bench]"``): ``experiments/fused_numba.py``, the same formulas
       in float32 as one ``numba.njit(parallel=True)`` loop over the pixels.
-      One worker process alternates ``brdfjax.render`` (float32, default
+      One worker process alternates ``brdfjax.core.render`` (float32, default
       chunk) and the numba kernel, both warm, ``--duel-repeats`` times;
       medians (and minima) are compared.
     * Bare Beckmann lobe against Mitsuba 3 (when ``mitsuba`` 3.x imports with
@@ -89,12 +89,12 @@ RELATIVE_FLOOR = 1e-3  # compare where BRDF > RELATIVE_FLOOR * max
 
 
 def render_default_chunk() -> int:
-    """``brdfjax.render``'s default ``chunk_pixels``, read from its signature so the table cannot drift."""
+    """``brdfjax.core.render``'s default ``chunk_pixels``, read from its signature so the table cannot drift."""
     import inspect
 
     import brdfjax
 
-    return int(inspect.signature(brdfjax.render).parameters["chunk_pixels"].default)
+    return int(inspect.signature(brdfjax.core.render).parameters["chunk_pixels"].default)
 
 
 # --- memory helpers (worker side) -----------------------------------------------------------
@@ -252,7 +252,7 @@ def _timed_alternating(fns: dict, repeats: int) -> dict[str, list[float]]:
 
 
 def _worker_duel(args) -> dict:
-    """brdfjax.render (float32) and the fused numba kernel, alternating in one process."""
+    """brdfjax.core.render (float32) and the fused numba kernel, alternating in one process."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import fused_numba  # noqa: PLC0415 -- the sibling module, only in this worker
 
@@ -588,12 +588,12 @@ def _duel_report(duel: dict | None, n: int) -> list[str]:
            f"JAX {duel['jax_max_rel_diff']:.1e}" if "numba_max_rel_diff" in duel else "")
     return [
         "",
-        f"float32 frame, brdfjax.render vs the fused numba kernel (experiments/fused_numba.py, numba "
+        f"float32 frame, brdfjax.core.render vs the fused numba kernel (experiments/fused_numba.py, numba "
         f"{duel['numba_version']}, {duel['numba_threads']} threads), alternating in one process, "
         f"{len(duel['times_s']['jax'])} calls each{acc}",
         "| kernel | median [s] | min [s] | Mpix/s (median) |",
         "| --- | --- | --- | --- |",
-        f"| brdfjax.render float32 | {med['jax']:.3f} | {mn['jax']:.3f} | {n / med['jax'] / 1e6:.1f} |",
+        f"| brdfjax.core.render float32 | {med['jax']:.3f} | {mn['jax']:.3f} | {n / med['jax'] / 1e6:.1f} |",
         f"| fused numba | {med['numba']:.3f} | {mn['numba']:.3f} | {n / med['numba'] / 1e6:.1f} |",
         f"brdfjax / numba time: {med['jax'] / med['numba']:.2f}x (medians), {mn['jax'] / mn['numba']:.2f}x (minima), "
         f"{_paired(duel['times_s'], 'jax', 'numba'):.2f}x (median of the back-to-back pairs); target <= 1.2x",

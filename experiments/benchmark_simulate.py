@@ -57,11 +57,12 @@ for name, deg in (("ti20", 20.0), ("ti60", 60.0)):
 FLOOR = """
 import json, sys, time
 t0 = time.perf_counter()
-from brdfjax.compile_cache import enable_compilation_cache
+from brdfjax.runtime.compile_cache import enable_compilation_cache
 enable_compilation_cache()
 import numpy as np
 import brdfjax as bj
-from brdfjax import cli_run, simulate as S
+from brdfjax import simulate as S
+from brdfjax.cli import instrument as cli_run
 from brdfjax.io import frame_attrs, write_frame_exr
 t_imp = time.perf_counter() - t0
 det = bj.Detector.seed()

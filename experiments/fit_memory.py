@@ -63,7 +63,7 @@ def main(argv=None) -> int:
           f"{os.getloadavg()[0]:.1f}: peak RSS {peak:.0f} MiB; RSS after fit 2..{args.repeats}: "
           f"{min(later):.1f}..{max(later):.1f} MiB, trend {slope:+.2f} MiB/fit")
     if args.json:
-        from brdfjax.io.atomic import write_json_atomic
+        from brdfjax.runtime.atomic import write_json_atomic
 
         out = {"step": args.step, "shape": list(frames[0].shape), "fitted_pixels": int(n), "precision": "float32",
                "free": sorted(spec), "wall_s": walls, "chi2_reduced": chi2, "rss_mib": rss, "peak_rss_mib": peak,

@@ -73,7 +73,7 @@ import numpy as np  # noqa: E402
 
 import brdfjax as bj  # noqa: E402
 from brdfjax.fit import Param, fit, frame_data_from_reduced  # noqa: E402
-from brdfjax.io.atomic import write_json_atomic  # noqa: E402
+from brdfjax.runtime.atomic import write_json_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTRUMENT_TOML = ROOT / "configs" / "instrument_seed.toml"

@@ -23,7 +23,7 @@ jax.config.update("jax_enable_x64", True)
 
 from brdfjax.fit import fit  # noqa: E402
 from brdfjax.fit.config import build_fit_job, load_fit_config  # noqa: E402
-from brdfjax.io.atomic import write_json_atomic  # noqa: E402
+from brdfjax.runtime.atomic import write_json_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ("fit_cornell_krylon_blue", "fit_cornell_cayman", "fit_merl_aluminium")

@@ -60,7 +60,7 @@ def _rot_z(a):
 def frame_constants(theta_i: float, phi_ref: float = 0.0, wavelength: float = 632.8e-9, *, pitch: float = 5.5e-6,
                     distance: float = 0.325, **params: float) -> np.ndarray:
     """The float32 constants of one aligned seed-detector frame of ``solar_cell(**params)``."""
-    from brdfjax.terms import SOLAR_CELL_SEED  # noqa: PLC0415 - only the parameter defaults
+    from brdfjax.core.terms import SOLAR_CELL_SEED  # noqa: PLC0415 - only the parameter defaults
 
     p = {**SOLAR_CELL_SEED, **params}
     alpha = theta_i  # arm centred on the peak, no misalignment

@@ -59,9 +59,9 @@ from scipy.interpolate import BSpline  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 import brdfjax as bj  # noqa: E402
-from brdfjax.fresnel import fresnel, q_factor  # noqa: E402
+from brdfjax.core.fresnel import fresnel, q_factor  # noqa: E402
+from brdfjax.core.shadowing import lambda_ggx  # noqa: E402
 from brdfjax.io import write_json_atomic  # noqa: E402
-from brdfjax.shadowing import lambda_ggx  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))

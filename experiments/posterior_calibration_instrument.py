@@ -53,13 +53,13 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import brdfjax as bj  # noqa: E402
-from brdfjax.detector import Detector  # noqa: E402
+from brdfjax.core.detector import Detector  # noqa: E402
+from brdfjax.core.render import Frame  # noqa: E402
 from brdfjax.fit import fit, read_frame_data  # noqa: E402
 from brdfjax.fit._nuisance import NuisanceOptions  # noqa: E402
 from brdfjax.instrument.nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES  # noqa: E402
 from brdfjax.instrument.reduce import ReductionError, reduce_measurement_set  # noqa: E402
 from brdfjax.instrument.synthetic import InstrumentConfig, SyntheticInstrument  # noqa: E402
-from brdfjax.render import Frame  # noqa: E402
 from brdfjax.sample import Prior, sample  # noqa: E402
 
 FREE = ("m1", "rho_s1", "rho_s3", "c")

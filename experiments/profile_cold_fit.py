@@ -23,7 +23,7 @@ import cProfile  # noqa: E402
 import pstats  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from brdfjax.compile_cache import enable_compilation_cache  # noqa: E402
+from brdfjax.runtime.compile_cache import enable_compilation_cache  # noqa: E402
 
 enable_compilation_cache()
 import jax  # noqa: E402

@@ -79,10 +79,10 @@ import numpy as np  # noqa: E402
 
 import brdfjax as bj  # noqa: E402
 from brdfjax.config.model import ModelConfig, build_model  # noqa: E402
+from brdfjax.core.terms import ABg, Binomial, Lobe, MultiLobeSpecular, Phong  # noqa: E402
 from brdfjax.diagnose.engine import model_terms_config  # noqa: E402
 from brdfjax.fit import fit, read_cornell_brdf, read_merl_inplane  # noqa: E402
 from brdfjax.io import write_json_atomic  # noqa: E402
-from brdfjax.terms import ABg, Binomial, Lobe, MultiLobeSpecular, Phong  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT / "tests" / "data" / "real"

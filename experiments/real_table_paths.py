@@ -26,7 +26,7 @@ jax.config.update("jax_enable_x64", True)
 import brdfjax as bj  # noqa: E402
 from brdfjax.diagnose import diagnose  # noqa: E402
 from brdfjax.fit import read_cornell_brdf, read_merl_inplane  # noqa: E402
-from brdfjax.io.atomic import write_json_atomic  # noqa: E402
+from brdfjax.runtime.atomic import write_json_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT / "tests" / "data" / "real"

@@ -91,7 +91,7 @@ def line(label: str, ours, seed, width: int = 44) -> str:
 
 
 def edge_grid(det, step: int):
-    from brdfjax.detector import PixelGrid
+    from brdfjax.core.detector import PixelGrid
 
     h0, h1, v0, v1 = det.index_range
     return PixelGrid(np.unique(np.r_[np.arange(h0, h1 + 1, step), 0, h1]), np.unique(np.r_[np.arange(v0, v1 + 1, step), 0, v1]))
@@ -111,7 +111,7 @@ def section_44(det, grid, precision):
         for k, name, seed in zip(("R", "d", "c"), ("dR", "dd", "dtheta_c"), SEED_PHI_MAX[tc]):
             print(line(f"theta_c={tc}  phi_s term, {name}", pct((res[f"dphi_s_{k}"] / phi_s).max()), seed))
     print("§4.4  misalignment (roll 0.11, yaw 0.062, pitch 0.025 deg; peak offsets m_h, m_v), max %")
-    from brdfjax.detector import Detector
+    from brdfjax.core.detector import Detector
 
     for (tc, mh, mv), (s_th, s_ph) in SEED_MISALIGNMENT.items():
         res = geometry_uncertainty(
@@ -123,7 +123,7 @@ def section_44(det, grid, precision):
 
 
 def section_45(det, grid, precision):
-    from brdfjax.detector import Detector
+    from brdfjax.core.detector import Detector
     from brdfjax.instrument.uncertainty import geometry_uncertainty
 
     print("§4.5  solid angle, %")
@@ -160,7 +160,7 @@ def _stats(a):
 
 
 def section_table5(det, step, precision):
-    from brdfjax.detector import Detector
+    from brdfjax.core.detector import Detector
     from brdfjax.instrument.uncertainty import brdf_uncertainty, incident_flux_uncertainty
 
     grid = det.grid(step)
@@ -203,7 +203,7 @@ def section_table5(det, step, precision):
 
 
 def section_table6(det, precision):
-    from brdfjax.detector import Detector, PixelGrid
+    from brdfjax.core.detector import Detector, PixelGrid
     from brdfjax.instrument.uncertainty import brdf_uncertainty
 
     print("Table 6  totals at centre-row pixels, %  (20 deg: mirror, m=(3,5); 40 deg: polished Al, m=(-1,-1))")
@@ -256,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.precision == "float64":
         jax.config.update("jax_enable_x64", True)  # this script's own process; brdfjax never flips it
-    from brdfjax.detector import Detector
+    from brdfjax.core.detector import Detector
 
     det = Detector.seed()
     grid = edge_grid(det, args.step) if args.step > 1 else det.grid()

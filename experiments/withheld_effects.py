@@ -65,7 +65,7 @@ from brdfjax.diagnose import (
 )
 from brdfjax.diagnose.effects import reference_frames  # noqa: E402
 from brdfjax.fit import Param, read_frame_data  # noqa: E402
-from brdfjax.io.atomic import write_json_atomic  # noqa: E402
+from brdfjax.runtime.atomic import write_json_atomic  # noqa: E402
 
 
 def _clean(obj: Any) -> Any:

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax import registry
 from brdfjax.config import ConfigError
 from brdfjax.config.model import ModelConfig, build_model, describe_model
+from brdfjax.core import registry
 from brdfjax.diagnose.engine import model_terms_config
 from brdfjax.fit import Param, TableData, fit
 

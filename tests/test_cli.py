@@ -219,7 +219,7 @@ def test_reduce_refuses_to_overwrite_inputs(tmp_path, capsys):
 
     work = tmp_path / "set"
     shutil.copytree(EXAMPLE_SET, work)
-    assert main(["reduce", str(work), "--out", str(work), "--no-plot"]) == 2  # a refusal (brdfjax.errors)
+    assert main(["reduce", str(work), "--out", str(work), "--no-plot"]) == 2  # a refusal (brdfjax.runtime.errors)
     assert "would overwrite an input" in capsys.readouterr().err
 
 
@@ -328,7 +328,7 @@ def test_commands_without_figures_do_not_import_matplotlib():
     # matplotlib costs ~0.4 s of every process that loads it; the fit, batch and diagnose stacks import it
     # only where a figure is drawn (brdfjax.plotting, brdfjax.fit._figures)
     code = (
-        "import sys, brdfjax.cli, brdfjax.fit, brdfjax.fit.config, brdfjax.fit.cli_fit, brdfjax.batch, "
+        "import sys, brdfjax.cli, brdfjax.fit, brdfjax.fit.config, brdfjax.cli.fit, brdfjax.batch, "
         "brdfjax.diagnose, brdfjax.plotting, brdfjax.instrument.reduce; "
         "print(sorted(m for m in sys.modules if m.split('.')[0] == 'matplotlib'))"
     )

@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from brdfjax.compile_cache import cache_dir, enable_compilation_cache
+from brdfjax.runtime.compile_cache import cache_dir, enable_compilation_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -10,8 +10,8 @@ import pydantic
 import pytest
 
 import brdfjax as bj
-from brdfjax import registry
 from brdfjax.config import ConfigError, default_config_path, load_simulate_config
+from brdfjax.core import registry
 
 ROOT = Path(__file__).resolve().parents[1]
 

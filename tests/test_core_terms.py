@@ -7,7 +7,7 @@ import pytest
 
 import brdfjax as bj
 from brdfjax import distributions as D
-from brdfjax.geometry import Directions, direction
+from brdfjax.core.geometry import Directions, direction
 
 
 def _normalisation(dist: D.AbstractDistribution) -> float:
@@ -47,7 +47,7 @@ def test_every_distribution_is_normalised_eq_54(dist):
 
 
 def test_distribution_registry_covers_every_class():
-    from brdfjax.registry import DISTRIBUTIONS
+    from brdfjax.core.registry import DISTRIBUTIONS
 
     classes = {type(d) for d in NARROW_AND_WIDE}
     assert classes == set(DISTRIBUTIONS.values())
@@ -215,7 +215,7 @@ def test_model_parameter_names_and_replacement():
 
 def test_models_are_sums_of_any_terms():
     """'Beckmann peak + offset GGX peak + diffraction + Lambertian' without new code."""
-    from brdfjax.registry import build_model, build_term
+    from brdfjax.core.registry import build_model, build_term
 
     model = build_model(
         {
@@ -246,7 +246,7 @@ def test_bad_parameters_raise_clear_errors():
         bj.Diffraction(rho=1.0, a=1e-3, b=-1e-5, c=1e-5)
     with pytest.raises(ValueError, match="rho_s >= 0"):
         bj.Specular(D.Beckmann(0.1), rho_s=-1.0, n=1.5)
-    from brdfjax.registry import build_term, lookup
+    from brdfjax.core.registry import build_term, lookup
 
     with pytest.raises(KeyError, match="unknown distribution 'ggxx'; known: .*ggx"):
         lookup("distribution", "ggxx")

@@ -202,7 +202,7 @@ def test_interlock_refuses_an_unsafe_beam_od(tmp_path):
                           "to the focused beam below the smallest safe OD 5.2 ('4.0+1.0+0.2'; brightest pixel")
     assert "override_interlock = true or --override-interlock" in msg
     assert not (tmp_path / "set" / "beam.exr").exists()
-    # the CLI: a refusal, exit 2 (brdfjax.errors), and the same message
+    # the CLI: a refusal, exit 2 (brdfjax.runtime.errors), and the same message
     from brdfjax.cli import main
 
     assert main(["capture", str(_config(tmp_path, "c2.toml", beam_nd="3.0")), "--out", str(tmp_path / "s2"),

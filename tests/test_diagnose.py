@@ -102,8 +102,8 @@ def test_candidate_already_in_base(tiny):
 
 def test_table_diffuse_floor_withheld():
     """In-plane scans of a GGX lobe on a diffuse floor, diagnosed with the lobe alone."""
+    from brdfjax.core.geometry import Directions
     from brdfjax.fit import TableData
-    from brdfjax.geometry import Directions
 
     truth = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5), "floor": bj.Lambertian(0.3)})
     base = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5)})
@@ -250,8 +250,8 @@ def test_refit_top_keeps_the_runners_up():
     never entered the path.)  Four copies of the diffuse-floor effect with scores set per step: at step 1
     A and B are the two best (refitted; A added, B the runner-up), at step 2 C and D outrank B.
     """
+    from brdfjax.core.terms import Lambertian
     from brdfjax.diagnose.effects import EFFECT_LIBRARY, Signature
-    from brdfjax.terms import Lambertian
 
     floor = EFFECT_LIBRARY["lambertian"]
 

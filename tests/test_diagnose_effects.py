@@ -220,9 +220,9 @@ def test_camera_turn_reproduces_a_misaligned_camera_in_every_frame():
     phi_ref: the misalignment effect and the held-out prediction rest on it."""
     import equinox as eqx
 
-    from brdfjax.detector import Detector
+    from brdfjax.core.detector import Detector
+    from brdfjax.core.render import Frame, sample_directions
     from brdfjax.diagnose.effects.terms import camera_axes, turn_scatter
-    from brdfjax.render import Frame, sample_directions
 
     det = Detector.seed()
     bad = eqx.tree_at(lambda d: (d.m_h, d.m_v, d.roll), det, (np.float64(-3.9), np.float64(1.9), np.float64(1.85e-3)))

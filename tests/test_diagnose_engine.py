@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
+from brdfjax.core.geometry import Directions
+from brdfjax.core.terms import Lambertian, Specular
 from brdfjax.diagnose import diagnose
 from brdfjax.diagnose.effects import EFFECT_LIBRARY, Extension
 from brdfjax.fit import Param, TableData
-from brdfjax.geometry import Directions
-from brdfjax.terms import Lambertian, Specular
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 

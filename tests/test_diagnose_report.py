@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 
 import brdfjax as bj
-from brdfjax.detector import PixelGrid
+from brdfjax.core.detector import PixelGrid
 from brdfjax.diagnose.report import _not_ranked_row, column_profiles, plot_column_profile, report_warnings
 from brdfjax.diagnose.results import Candidate, Step
 from brdfjax.fit import FrameData
@@ -112,7 +112,7 @@ def test_candidate_progress_estimates_the_time_left_and_progress_lines_are_plain
     from rich.console import Console
 
     from brdfjax.diagnose.cli import _CandidateProgress
-    from brdfjax.progress import ProgressLine, make_console
+    from brdfjax.runtime.progress import ProgressLine, make_console
 
     buf = io.StringIO()
     con = Console(file=buf, force_terminal=False, width=200)

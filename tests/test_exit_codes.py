@@ -1,4 +1,4 @@
-"""One exit-code contract for every command (issue 16, :mod:`brdfjax.errors`).
+"""One exit-code contract for every command (issue 16, :mod:`brdfjax.runtime.errors`).
 
 0 ran, 2 bad input or refused (the message on stderr, no traceback), 130
 interrupted, 1 only for an internal error (the traceback and where to report
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from brdfjax.cli import COMMANDS, main
-from brdfjax.errors import REPORT_TO, InputError, run_command
+from brdfjax.runtime.errors import REPORT_TO, InputError, run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).parent / "data"

@@ -1,4 +1,4 @@
-"""Issue 19: a fit's traced programs kept across processes (brdfjax.export_cache) give the plain fit's numbers
+"""Issue 19: a fit's traced programs kept across processes (brdfjax.runtime.export_cache) give the plain fit's numbers
 to every bit, on other data of the same shapes too, and a key that misses any static value cannot be built."""
 
 from __future__ import annotations
@@ -17,20 +17,20 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from brdfjax import export_cache
-from brdfjax.export_cache import _canon, _key, _Uncacheable, exported_call
+from brdfjax.runtime import export_cache
+from brdfjax.runtime.export_cache import _canon, _key, _Uncacheable, exported_call
 
 # tests/test_fit_speed.py's table (a Beckmann lobe on a Lambertian floor), fitted in a fresh process: the step
 # scales (Jacobian), the Levenberg-Marquardt solve and the final residuals and covariance; then a decimated
-# solar-cell frame rendered (brdfjax.render's program)
+# solar-cell frame rendered (brdfjax.core.render's program)
 FIT = textwrap.dedent(
     """
     import json, sys
     import numpy as np
-    from brdfjax.compile_cache import enable_compilation_cache
+    from brdfjax.runtime.compile_cache import enable_compilation_cache
     enable_compilation_cache()
     import brdfjax as bj
-    from brdfjax import export_cache
+    from brdfjax.runtime import export_cache
     from brdfjax.fit import fit
     sys.path.insert(0, TESTS)
     from test_fit_speed import _peak_on_floor_table

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
+from brdfjax.core.render import render_geometry
 from brdfjax.fit import FitInputError, frame_data_from_reduced, read_frame_data
 from brdfjax.instrument.reduce import read_reduced_frame, reduce_measurement_set
-from brdfjax.render import render_geometry
 
 DATA = Path(__file__).parent / "data"
 

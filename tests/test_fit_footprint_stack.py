@@ -3,9 +3,9 @@
 import numpy as np
 
 import brdfjax as bj
+from brdfjax.core.presets import mirror
 from brdfjax.fit import FrameData, LevenbergMarquardt, _fit as fitmod, prepare
 from brdfjax.instrument.synthetic import footprint_kernel
-from brdfjax.presets import mirror
 
 MODEL = mirror(m=1e-4)
 

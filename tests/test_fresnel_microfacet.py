@@ -9,8 +9,8 @@ import brdfjax as bj
 from brdfjax import distributions as dist, reference as ref
 from brdfjax.config import ConfigError
 from brdfjax.config.model import ModelConfig, build_model
-from brdfjax.fresnel import fresnel_microfacet, q_factor
-from brdfjax.terms import Lobe, MultiLobeSpecular, Specular
+from brdfjax.core.fresnel import fresnel_microfacet, q_factor
+from brdfjax.core.terms import Lobe, MultiLobeSpecular, Specular
 
 jax.config.update("jax_enable_x64", True)
 

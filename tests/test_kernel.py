@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax.fresnel import q_factor, q_factor_parts
-from brdfjax.geometry import fast_cos, fast_sin, fast_sinc
+from brdfjax.core.fresnel import q_factor, q_factor_parts
+from brdfjax.core.geometry import fast_cos, fast_sin, fast_sinc
 from brdfjax.plotting import _log10_pooled, _max_pool, log10_floor
 
 
@@ -61,7 +61,7 @@ def test_render_casts_inside_the_program_and_does_not_recompile_for_new_values()
     a = bj.render(bj.solar_cell(m1=2e-4), frame, step=256)
     b = bj.render(bj.solar_cell(m1=3e-4), frame, step=256)  # same structure, new value: the same executable
     assert a.dtype == jnp.float32 and not np.array_equal(np.asarray(a), np.asarray(b))
-    from brdfjax.render import _program
+    from brdfjax.core.render import _program
 
     before = _program._cached._cache_size()
     bj.render(bj.solar_cell(m1=4e-4), frame, step=256)

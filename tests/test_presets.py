@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax import registry
+from brdfjax.core import registry
+from brdfjax.core.presets import KAPTON, MIRROR, POLISHED_ALUMINIUM, Oriented, kapton, mirror, polished_aluminium
 from brdfjax.fit import FrameData, Param, fit, render_noisy_frames
 from brdfjax.fit._auto_init import init_specular_peak
 from brdfjax.instrument.synthetic import footprint_kernel
-from brdfjax.presets import KAPTON, MIRROR, POLISHED_ALUMINIUM, Oriented, kapton, mirror, polished_aluminium
 
 ROI = (-96, 96, -96, 96)
 STEP = 6

@@ -1,4 +1,4 @@
-"""Shadowing-masking (brdfjax.shadowing) and the specular term's normalisations.
+"""Shadowing-masking (brdfjax.core.shadowing) and the specular term's normalisations.
 
 Layers (style.md): closed forms against the NumPy oracle, the tabulated Lambda
 against the closed forms and against the oracle's projected-area integral,
@@ -16,8 +16,8 @@ import pytest
 
 import brdfjax as bj
 from brdfjax import distributions as dist, reference as ref, shadowing as sh
-from brdfjax.fresnel import q_factor
-from brdfjax.terms import Specular
+from brdfjax.core.fresnel import q_factor
+from brdfjax.core.terms import Specular
 
 jax.config.update("jax_enable_x64", True)
 

@@ -8,8 +8,8 @@ import pytest
 import brdfjax as bj
 from brdfjax import distributions as dist
 from brdfjax.config.model import ModelConfig, build_model
-from brdfjax.shadowing import lambda_ggx, smith_mixture_g2_parts
-from brdfjax.terms import Lobe, MultiLobeSpecular
+from brdfjax.core.shadowing import lambda_ggx, smith_mixture_g2_parts
+from brdfjax.core.terms import Lobe, MultiLobeSpecular
 
 jax.config.update("jax_enable_x64", True)
 

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax import distributions as dist, reference as ref, registry
+from brdfjax import distributions as dist, reference as ref
 from brdfjax.config import ConfigError
 from brdfjax.config.model import ModelConfig, build_model, describe_model
-from brdfjax.terms import ABg, Lobe, MultiLobeSpecular, Phong, Specular
+from brdfjax.core import registry
+from brdfjax.core.terms import ABg, Lobe, MultiLobeSpecular, Phong, Specular
 
 jax.config.update("jax_enable_x64", True)
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from brdfjax.detector import Detector, PixelGrid
+from brdfjax.core.detector import Detector, PixelGrid
 from brdfjax.instrument.uncertainty import (
     SEED_ARM_ANGLE_UNCERTAINTY,
     SEED_DISTANCE_UNCERTAINTY,

@@ -6,7 +6,7 @@ says so.  Every file is read by :func:`read_toml` and validated by
 :func:`validate`, so every message names the file and the dotted key
 (``frames[1].theta_i_deg``; an unknown key lists the allowed ones,
 :func:`describe_validation_error`), raised as :class:`ConfigError` (an
-:class:`~brdfjax.errors.InputError`: the commands exit 2 with its message).
+:class:`~brdfjax.runtime.errors.InputError`: the commands exit 2 with its message).
 Choices (losses, solvers, merge schemes, ...) are checked against the registry
 that owns them (:func:`check_choice`).
 

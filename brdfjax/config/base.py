@@ -25,7 +25,7 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
 
-from ..errors import InputError
+from ..runtime.errors import InputError
 
 __all__ = [
     "ConfigError",

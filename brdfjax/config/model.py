@@ -3,7 +3,7 @@
 :class:`ModelConfig` is a preset with overrides (``preset = "solar_cell"``,
 ``[model.params]``) or named terms (``[model.terms.<name>]``, a
 :class:`TermConfig` each); :func:`build_model` turns it into a
-:class:`~brdfjax.terms.Model`.  Parameter keys carry the unit of the stored
+:class:`~brdfjax.core.terms.Model`.  Parameter keys carry the unit of the stored
 value (:func:`parameter_keys`: ``<name>_deg`` for angles, ``<name>_m`` for
 lengths), and every problem names the dotted key (``model.terms.spec.params.m``).
 """
@@ -19,9 +19,19 @@ import equinox as eqx
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from .. import registry
-from ..shadowing import SHADOWING
-from ..terms import FRESNELS, NORMALISATIONS, AbstractTerm, Diffraction, Lobe, Model, MultiLobeSpecular, OffsetNormal, Specular
+from ..core import registry
+from ..core.shadowing import SHADOWING
+from ..core.terms import (
+    FRESNELS,
+    NORMALISATIONS,
+    AbstractTerm,
+    Diffraction,
+    Lobe,
+    Model,
+    MultiLobeSpecular,
+    OffsetNormal,
+    Specular,
+)
 from .base import ConfigError, StrictModel, raise_unknown, unknown_key_message
 
 # the microfacet terms' string options and their allowed values (one validator checks all three)
@@ -364,7 +374,7 @@ def build_term(source: str, loc: str, t: TermConfig) -> AbstractTerm:
 
 
 def build_model(source: str, m: ModelConfig) -> Model:
-    """The BRDF :class:`~brdfjax.terms.Model` of a ``[model]`` table (parameters in SI units and radians).
+    """The BRDF :class:`~brdfjax.core.terms.Model` of a ``[model]`` table (parameters in SI units and radians).
 
     Raises :class:`ConfigError` naming ``source`` and the dotted key.
     """

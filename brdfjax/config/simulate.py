@@ -61,9 +61,9 @@ from typing import Any
 import numpy as np
 from pydantic import Field, PrivateAttr, field_validator
 
-from ..detector import Detector, PixelGrid
-from ..render import Frame, Precision
-from ..terms import Model
+from ..core.detector import Detector, PixelGrid
+from ..core.render import Frame, Precision
+from ..core.terms import Model
 from .base import ConfigError, StrictModel, read_toml, validate
 from .model import ModelConfig, build_model, describe_model
 
@@ -213,7 +213,7 @@ class SimulateConfig(StrictModel):
 
     # -- builders -------------------------------------------------------------------------
     def build_detector(self) -> Detector:
-        """The :class:`~brdfjax.detector.Detector` (SI units, radians)."""
+        """The :class:`~brdfjax.core.detector.Detector` (SI units, radians)."""
         d = self.detector
         r = d.resolved()
         try:
@@ -233,7 +233,7 @@ class SimulateConfig(StrictModel):
             raise ConfigError(self.source, [("detector", str(e))]) from None
 
     def build_grid(self, detector: Detector | None = None) -> PixelGrid:
-        """The :class:`~brdfjax.detector.PixelGrid` of ``[grid]`` on the detector."""
+        """The :class:`~brdfjax.core.detector.PixelGrid` of ``[grid]`` on the detector."""
         detector = self.build_detector() if detector is None else detector
         roi = None if self.grid.roi is None else tuple(self.grid.roi)
         try:
@@ -257,7 +257,7 @@ class SimulateConfig(StrictModel):
         return out
 
     def build_model(self) -> Model:
-        """The BRDF :class:`~brdfjax.terms.Model` of ``[model]`` (parameters in SI units and radians)."""
+        """The BRDF :class:`~brdfjax.core.terms.Model` of ``[model]`` (parameters in SI units and radians)."""
         return build_model(self.source, self.model)
 
     def describe_model(self) -> str:

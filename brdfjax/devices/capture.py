@@ -84,15 +84,15 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from ..config import ConfigError, ModelConfig, StrictModel, build_model, read_toml, validate
-from ..detector import Detector
-from ..errors import InputError
+from ..core.detector import Detector
+from ..core.render import Frame
 from ..instrument.nd import stack_od
 from ..instrument.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
 from ..instrument.synthetic import EFFECTS, load_instrument_config
 from ..io import atomic_output, check_output_dir, geometry_attrs
 from ..io.fingerprint import check_resume, value_digest
-from ..progress import make_console
-from ..render import Frame
+from ..runtime.errors import InputError
+from ..runtime.progress import make_console
 from .alignment import AlignmentResult, run_alignment
 from .interfaces import Bench, DeviceError, bench_detector, check_bench
 from .lab import open_lab_bench
@@ -852,7 +852,7 @@ def capture_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_capture_command(args: argparse.Namespace) -> int:
-    # Errors and their exit codes: brdfjax.errors.run_command (cli.main), 2 for every refusal.
+    # Errors and their exit codes: brdfjax.runtime.errors.run_command (cli.main), 2 for every refusal.
     cfg = load_capture_config(args.config)
     check_output_dir(args.out)
     updates: dict[str, Any] = {}

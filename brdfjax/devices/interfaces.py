@@ -35,8 +35,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from ..detector import Detector
-from ..errors import InputError
+from ..core.detector import Detector
+from ..runtime.errors import InputError
 
 __all__ = [
     "CameraFrame",
@@ -57,7 +57,7 @@ __all__ = [
 class DeviceError(InputError, RuntimeError):
     """A device failed.  ``retryable`` says whether repeating the same call is safe (e.g. a read timeout).
 
-    A refusal of the bench, not a bug: the command exits 2 with the message (``brdfjax.errors``).
+    A refusal of the bench, not a bug: the command exits 2 with the message (``brdfjax.runtime.errors``).
     """
 
     def __init__(self, message: str, *, retryable: bool = False):

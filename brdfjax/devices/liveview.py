@@ -30,10 +30,10 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
+from ..core.render import Frame, render_geometry
 from ..instrument.nd import stack_od
 from ..io import atomic_output
 from ..plotting import plot_frame
-from ..render import Frame, render_geometry
 from .interfaces import bench_detector
 
 __all__ = ["LiveView", "display_available"]

@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError
 from ..instrument.nd import select_stack, stack_od
+from ..runtime.errors import InputError
 
 __all__ = [
     "DEFAULT_EXPOSURES_S",

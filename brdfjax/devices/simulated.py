@@ -37,14 +37,14 @@ from collections.abc import Mapping, Sequence
 import equinox as eqx
 import numpy as np
 
-from ..detector import Detector
+from ..core.detector import Detector
+from ..core.render import Frame
 from ..instrument.nd import ND_STACKS, parse_nd_filters
 from ..instrument.synthetic import (
     InstrumentConfig,
     SyntheticInstrument,
     beam_flux_image,
 )
-from ..render import Frame
 from .alignment import spot_pixel
 from .interfaces import Bench, CameraFrame, DeviceError
 

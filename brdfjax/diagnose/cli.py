@@ -24,7 +24,7 @@ config that ``brdfjax fit`` reruns to the same chi^2 (where a config can
 express it; otherwise a note says why).  Exit status 2 for bad input (a bad config, frames with no
 usable pixels, an unknown effect name, a candidate the base model already
 contains, an output folder that cannot be written), 130 interrupted, 1 an
-internal error (:mod:`brdfjax.errors`), 0 otherwise.  Each refit of a
+internal error (:mod:`brdfjax.runtime.errors`), 0 otherwise.  Each refit of a
 candidate prints ``i/n`` of its step and an estimate of the time left.
 """
 
@@ -41,7 +41,7 @@ from pydantic import Field
 from ..config import ConfigError, ModelConfig, StrictModel, read_toml
 from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
 from ..io import check_output_dir
-from ..progress import make_console
+from ..runtime.progress import make_console
 from .effects import EFFECT_LIBRARY
 from .engine import DiagnoseInputError, diagnose, final_model_config, truth_gap
 
@@ -197,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     enable_config_precision(args.config)  # the command line, not the library, turns 64-bit JAX on
     check_output_dir(args.out)
-    # errors: brdfjax.errors.run_command (cli.main) gives them their exit code and message
+    # errors: brdfjax.runtime.errors.run_command (cli.main) gives them their exit code and message
     d = run_diagnose(
         args.config, args.out, effects=effects, figures=False if args.no_figures else None,
         progress=_CandidateProgress(console),

@@ -21,11 +21,11 @@ from typing import Any
 import jax
 import numpy as np
 
+from ..core.geometry import Directions
+from ..core.render import Frame, render, render_geometry
+from ..core.terms import Model
 from ..fit import FitResult, FrameData, Param, TableData
 from ..fit.internal import as_param
-from ..geometry import Directions
-from ..render import Frame, render, render_geometry
-from ..terms import Model
 from .zones import specular_coordinates
 
 __all__ = ["Context", "build_context", "warm_params", "residual_maps", "gap_measures", "precision_name", "LN10"]

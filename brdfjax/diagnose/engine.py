@@ -58,12 +58,12 @@ from typing import Any
 
 import numpy as np
 
-from .. import registry
 from ..config import parameter_keys
-from ..errors import InputError
+from ..core import registry
+from ..core.terms import Model
 from ..fit import FitInputError, FitResult, FrameData, TableData, fit
 from ..fit.internal import as_param, natural_unit, to_natural
-from ..terms import Model
+from ..runtime.errors import InputError
 from .context import build_context, gap_measures, residual_maps
 from .effects import EFFECT_LIBRARY, camera_params, response_features
 from .effects.base import drop_missing, weight_names, with_terms

@@ -71,7 +71,7 @@ ZONE_KINDS = ("peak core", "peak wings", "band", "secondary lobe", "far field", 
 
 
 def _unit(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """Unit vectors of zenith ``theta`` and azimuth ``phi`` measured from -x (brdfjax.geometry convention)."""
+    """Unit vectors of zenith ``theta`` and azimuth ``phi`` measured from -x (brdfjax.core.geometry convention)."""
     st = np.sin(theta)
     return np.stack([-st * np.cos(phi), -st * np.sin(phi), np.cos(theta)], axis=-1)
 

@@ -26,8 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import Directions, fast_cos, fast_sinc
-from ..terms import Diffraction, OffsetNormal, Specular
+from ..core.geometry import Directions, fast_cos, fast_sinc
+from ..core.terms import Diffraction, OffsetNormal, Specular
 
 __all__ = ["term_columns"]
 

@@ -36,7 +36,7 @@ by name (:data:`INITIALIZERS`) and called as ``init(model, blocks,
    pixel of every frame.
 
 ``specular_peak`` (one Specular term, possibly turned by
-:class:`~brdfjax.terms.Oriented`, with an optional Lambertian term; detector
+:class:`~brdfjax.core.terms.Oriented`, with an optional Lambertian term; detector
 frames): the mirror, polished-aluminium and Kapton presets; see
 :func:`init_specular_peak`.
 
@@ -58,11 +58,11 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..distributions import GGX, Beckmann, BeckmannAniso, GGXAniso
-from ..geometry import Directions
+from ..core.distributions import GGX, Beckmann, BeckmannAniso, GGXAniso
+from ..core.geometry import Directions
+from ..core.render import Frame, sample_directions
+from ..core.terms import Diffraction, Lambertian, Model, OffsetNormal, Oriented, Specular
 from ..instrument.synthetic import convolve_footprint
-from ..render import Frame, sample_directions
-from ..terms import Diffraction, Lambertian, Model, OffsetNormal, Oriented, Specular
 from ._common import FitInputError
 from ._data import FrameData, TableData
 
@@ -547,7 +547,7 @@ def init_specular_peak(
     model: Model, blocks: Sequence[FrameData | TableData], *, n: float | None = None, k: float | None = None,
     diffuse_quantile: float = 0.05,
 ) -> dict[str, Any]:
-    """Start values of a one-peak model (a Specular term, possibly :class:`~brdfjax.terms.Oriented`, and an
+    """Start values of a one-peak model (a Specular term, possibly :class:`~brdfjax.core.terms.Oriented`, and an
     optional Lambertian) from detector frames: the mirror, polished-aluminium and Kapton presets.
 
     Per frame, a general log-quadratic in the sample-frame half-vector slopes over the top e^-3 of the

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
+from ..runtime.errors import InputError
 
 __all__ = ["FitInputError", "natural_unit", "to_natural", "FRAME_PARAMETERS"]
 

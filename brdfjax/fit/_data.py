@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..detector import Detector, PixelGrid
+from ..core.detector import Detector, PixelGrid
 from ._common import FitInputError
 
 __all__ = ["FrameData", "TableData"]
@@ -141,7 +141,7 @@ class FrameData:
 class TableData:
     """Goniometer samples: one row per (incident, scattered) direction pair.
 
-    Angles in radians, azimuths from -x as in :mod:`brdfjax.geometry`
+    Angles in radians, azimuths from -x as in :mod:`brdfjax.core.geometry`
     (``phi_i = 0`` puts the source at -x; the mirror direction is then
     ``phi_s = pi``); ``brdf`` in sr^-1; ``sigma_rel`` the relative 1-sigma
     uncertainty (``None``: unknown, every point weighted 1 and the covariance

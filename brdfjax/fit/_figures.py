@@ -23,10 +23,10 @@ from typing import Any
 import jax
 import numpy as np
 
-from ..geometry import Directions, direction
+from ..core.geometry import Directions, direction
+from ..core.render import render
 from ..instrument.synthetic import convolve_footprint
 from ..plotting import colormap, log10_floor, new_figure, save_figure_atomic, visible_contours
-from ..render import render
 from ._data import FrameData, TableData
 
 __all__ = ["write_figures", "frame_model_image", "plot_frame_fit", "plot_table_fit"]

@@ -22,9 +22,9 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from ..geometry import Directions
-from ..render import Frame, cast, resolve_dtype
-from ..terms import Model
+from ..core.geometry import Directions
+from ..core.render import Frame, cast, resolve_dtype
+from ..core.terms import Model
 from ._auto_init import get_initializer
 from ._common import FRAME_PARAMETERS, FitInputError, natural_unit, to_natural
 from ._covariance import covariance

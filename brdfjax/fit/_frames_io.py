@@ -55,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from ..detector import Detector, PixelGrid
+from ..core.detector import Detector, PixelGrid
 from ..instrument.reduce import read_reduced_frame
 from ..instrument.synthetic import footprint_kernel
 from ..io import ExrError, header

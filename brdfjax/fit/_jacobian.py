@@ -47,8 +47,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..geometry import Rz
-from ..terms import ABg, Diffraction, Lambertian, Model, OffsetNormal, Oriented, Phong, Specular
+from ..core.geometry import Rz
+from ..core.terms import ABg, Diffraction, Lambertian, Model, OffsetNormal, Oriented, Phong, Specular
 from ._analytic import PHI, term_columns
 from ._residuals import block_log_residuals
 

@@ -44,11 +44,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..detector import Detector
-from ..export_cache import exportable
-from ..geometry import Directions, Rz
-from ..render import Frame, evaluate_pixels
-from ..terms import AbstractTerm, Model
+from ..core.detector import Detector
+from ..core.geometry import Directions, Rz
+from ..core.render import Frame, evaluate_pixels
+from ..core.terms import AbstractTerm, Model
+from ..runtime.export_cache import exportable
 from ._jacobian import residuals_and_jacobian as structured_residuals_and_jacobian, supports as structured_supports
 from ._nuisance import NuisanceTerms
 from ._params import Layout, forward_by_id
@@ -591,7 +591,7 @@ def switches() -> tuple:
     return (("STRUCTURED_JACOBIAN", bool(STRUCTURED_JACOBIAN)),)
 
 
-#: :func:`jacobian` and :func:`evaluate` through their exported programs when :mod:`brdfjax.export_cache` is on
+#: :func:`jacobian` and :func:`evaluate` through their exported programs when :mod:`brdfjax.runtime.export_cache` is on
 jacobian_call = exportable("jacobian", jacobian, switches)
 evaluate_call = exportable("evaluate", evaluate, switches)
 

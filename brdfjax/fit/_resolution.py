@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import Directions
+from ..core.geometry import Directions
 from ._data import TableData
 from ._params import Param, as_param
 

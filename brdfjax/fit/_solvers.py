@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..export_cache import exportable
+from ..runtime.export_cache import exportable
 from ._common import FitInputError
 from ._problem import Problem, _emit, half_sum_squares, listening, residuals, switches
 
@@ -120,7 +120,7 @@ def _lm(rtol, atol, ftol):
 @eqx.filter_jit
 def _lm_solve(v0, problem, rtol, atol, max_steps, ftol=0.0):
     """The whole solve as one program: the solution, optimistix's result code (an integer array, so the
-    program can be exported: :mod:`brdfjax.export_cache`) and the number of steps."""
+    program can be exported: :mod:`brdfjax.runtime.export_cache`) and the number of steps."""
     solver = _lm(rtol, atol, ftol)
     sol = optx.least_squares(residuals, solver, v0, args=problem, max_steps=max_steps, throw=False)
     return sol.value, sol.result._value, sol.stats["num_steps"]

@@ -1,7 +1,7 @@
 """Noisy rendered frames with known truth, for tests, examples and benchmarks of the fits.
 
 This is not the synthetic instrument (``brdfjax.instrument``): it renders a
-model with :func:`brdfjax.render` and multiplies each pixel by an independent
+model with :func:`brdfjax.core.render` and multiplies each pixel by an independent
 log-normal factor ``exp(N(0, noise_rel))``, so that ``log`` of the data is
 the truth's log plus Gaussian noise of standard deviation ``noise_rel`` --
 exactly the noise model of the log residuals -- and marks pixels below a
@@ -14,9 +14,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..detector import Detector
-from ..render import Frame, render
-from ..terms import AbstractTerm
+from ..core.detector import Detector
+from ..core.render import Frame, render
+from ..core.terms import AbstractTerm
 from ._data import FrameData
 
 __all__ = ["render_noisy_frames"]

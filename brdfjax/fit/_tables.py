@@ -35,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import Directions
+from ..core.geometry import Directions
+from ..core.terms import AbstractTerm
 from ..io import atomic_output
-from ..terms import AbstractTerm
 from ._common import FitInputError
 from ._data import TableData
 

@@ -124,14 +124,14 @@ from ..config import (
     read_toml,
     unknown_key_message,
 )
-from ..detector import Detector
+from ..core.detector import Detector
+from ..core.render import Frame, Precision
+from ..core.terms import Model
 from ..instrument.raw import RawFormatError, read_manifest
 from ..instrument.reduce import MERGES, ReductionError, reduce_measurement_set
 from ..instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
 from ..io import atomic_output, write_json_atomic
-from ..progress import ProgressLine
-from ..render import Frame, Precision
-from ..terms import Model
+from ..runtime.progress import ProgressLine
 from ._auto_init import INITIALIZERS
 from ._common import FRAME_PARAMETERS, FitInputError, natural_unit, to_natural
 from ._data import FrameData, TableData
@@ -955,7 +955,7 @@ def run_fit(
     say(f"data: {len(job.blocks)} block(s) loaded in {t_data:.1f} s; fitting ...")
     with ProgressLine(console, "fit", None, unit="solver evaluation(s)") as bar:
         # nobody to tell (--quiet): no progress callback, so the solve runs as one program, which a later
-        # process reads back traced (brdfjax.export_cache); the stepped solve's state cannot be exported
+        # process reads back traced (brdfjax.runtime.export_cache); the stepped solve's state cannot be exported
         heard = (lambda k, chi2: bar.update(k, f"chi2 = {chi2:.6g}")) if bar.enabled else None
         result = job.run(progress=heard)
     doc = result.to_dict()

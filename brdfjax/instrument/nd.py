@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..runtime.errors import InputError
 
 __all__ = [
     "ND_STACKS",

@@ -140,11 +140,11 @@ from typing import Any
 import numpy as np
 import OpenEXR  # the official bindings (3.x API)
 
-from ..detector import Detector
-from ..errors import InputError
+from ..core.detector import Detector
+from ..core.render import Frame
 from ..io import atomic_output
 from ..io.header import GEOMETRY_ATTRS, detector_from_attrs, frame_from_attrs
-from ..render import Frame
+from ..runtime.errors import InputError
 from .nd import parse_nd_filters
 
 __all__ = [

@@ -92,11 +92,11 @@ from typing import Any, Literal
 import numpy as np
 
 from .. import __version__
-from ..detector import Detector, PixelGrid
-from ..errors import InputError
+from ..core.detector import Detector, PixelGrid
+from ..core.render import render_geometry
 from ..io import ExrFrame, atomic_output, frame_attrs, read_frame_exr, write_frame_exr
 from ..plotting import agg_pyplot
-from ..render import render_geometry
+from ..runtime.errors import InputError
 from .nd import SEED_ND_TOLERANCES
 from .raw import (
     Manifest,

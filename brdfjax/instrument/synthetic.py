@@ -11,7 +11,7 @@ Signal chain, per measurement (units: counts are the camera's digital counts,
 
 1. **Light.**  For a sample, the scattered flux of every pixel is Eq 45
    inverted, ``Phi_s = (f_r * K) cos(theta_s) Omega_d Phi_i 10^-OD``: the
-   BRDF frame rendered on the pixel grid (:func:`brdfjax.render`), convolved
+   BRDF frame rendered on the pixel grid (:func:`brdfjax.core.render`), convolved
    (FFT, zero padding) with the focused beam's footprint ``K`` -- the
    instrument function, effect ``footprint`` -- times the cosine and the
    pixel solid angle from the core mapping (misalignment included) and the
@@ -106,10 +106,10 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from ..config.base import StrictModel, read_toml, validate
-from ..detector import Detector
+from ..core.detector import Detector
+from ..core.render import Frame, render, render_geometry
+from ..core.terms import AbstractTerm
 from ..io.header import geometry_attrs
-from ..render import Frame, render, render_geometry
-from ..terms import AbstractTerm
 from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
 from .raw import (
     Calibration,

@@ -71,8 +71,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ..detector import Detector, PixelGrid
-from ..render import cast, map_rows, resolve_dtype
+from ..core.detector import Detector, PixelGrid
+from ..core.render import cast, map_rows, resolve_dtype
 from .nd import SEED_ND_TOLERANCES, NDSpec, parse_nd_filters
 
 __all__ = [

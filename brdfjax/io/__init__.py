@@ -10,7 +10,7 @@ file (:class:`ExrFrame`).
 
 from __future__ import annotations
 
-from .atomic import atomic_output, check_output_dir, write_json_atomic
+from ..runtime.atomic import atomic_output, check_output_dir, write_json_atomic
 from .exr import CHANNELS, ExrError, ExrFrame, read_frame_exr, write_frame_exr
 from .header import detector_from_attrs, frame_attrs, frame_from_attrs, geometry_attrs
 

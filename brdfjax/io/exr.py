@@ -41,8 +41,8 @@ from typing import Any
 import numpy as np
 import OpenEXR  # the official bindings (3.x API)
 
-from ..errors import InputError
-from .atomic import atomic_output
+from ..runtime.atomic import atomic_output
+from ..runtime.errors import InputError
 from .header import GEOMETRY_ATTRS
 
 # OpenEXR compresses and decompresses a file's line blocks in a thread pool only when one is set (its

@@ -8,7 +8,7 @@ readable (a number, a string such as a prior's description) or, for arrays
 and files, ``sha256:<16 hex>`` of their content.  :func:`compare` lists the
 components that differ, by name, with the old and new value where readable;
 :func:`check_resume` raises :class:`FingerprintMismatch` (an
-:class:`~brdfjax.errors.InputError`: exit 2) naming them.  The chains of
+:class:`~brdfjax.runtime.errors.InputError`: exit 2) naming them.  The chains of
 ``brdfjax sample`` and the measurement sets of ``brdfjax capture`` carry one;
 a study runner gets the same rules by building its own mapping with
 :func:`array_digest`, :func:`file_digest` and :func:`value_digest`.
@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..runtime.errors import InputError
 
 __all__ = [
     "FingerprintMismatch",

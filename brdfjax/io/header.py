@@ -38,8 +38,8 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from ..detector import Detector
-from ..render import Frame
+from ..core.detector import Detector
+from ..core.render import Frame
 
 __all__ = [
     "GEOMETRY_ATTRS",

@@ -69,7 +69,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from ..config import ConfigError, ModelConfig, StrictModel, build_model, read_toml, validate
-from ..terms import Lambertian, Model
+from ..core.terms import Lambertian, Model
 from .ephemeris import TLEError, parse_tle
 from .models import Phong, directional_albedo, params_from_fit_result, posterior_samples
 

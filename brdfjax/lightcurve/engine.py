@@ -14,7 +14,7 @@ is a direction to part of the Sun; a node whose ray from the satellite hits
 the Earth is in shadow (umbra and penumbra follow).  The facet-frame
 incident directions ``w_i`` (one per node) and the scattered direction
 ``w_s`` (to the observer) go to the model as
-:class:`~brdfjax.geometry.Directions` (the public way to evaluate any model
+:class:`~brdfjax.core.geometry.Directions` (the public way to evaluate any model
 on arbitrary direction pairs).  The irradiance at the observer from facet j
 is::
 
@@ -41,8 +41,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..geometry import Directions, Rx, Ry, Rz, safe_sqrt
-from ..terms import AbstractTerm
+from ..core.geometry import Directions, Rx, Ry, Rz, safe_sqrt
+from ..core.terms import AbstractTerm
 from .ephemeris import AU_M, EARTH_RADIUS_M
 from .sharp import DEFAULT_TOL, flag_features, term_features
 
@@ -438,7 +438,7 @@ class AdaptiveDisk(eqx.Module):
     disk's centre with weight :meth:`SunDisk.mean_cos` (exact for a term that
     is constant over the disk, e.g. Lambertian, to rounding).  A unit is one
     top-level term of a facet's model (the model itself if it is not a
-    :class:`~brdfjax.terms.Model`).  A pair is flagged (:mod:`.sharp`) when
+    :class:`~brdfjax.core.terms.Model`).  A pair is flagged (:mod:`.sharp`) when
     the centre half vector is within reach of one of the unit's sharp
     features (narrow lobes, the diffraction streak), when the facet is within
     the Sun's radius of its terminator, or when the step is in the penumbra;

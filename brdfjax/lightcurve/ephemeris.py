@@ -33,7 +33,7 @@ import numpy as np
 from sgp4.api import WGS72, Satrec
 from sgp4.io import verify_checksum
 
-from ..errors import InputError
+from ..runtime.errors import InputError
 
 __all__ = [
     "AU_M",

@@ -28,8 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import Directions
-from ..terms import AbstractTerm
+from ..core.geometry import Directions
+from ..core.terms import AbstractTerm
 from .engine import SUN_RADIUS_RAD
 
 __all__ = ["GlintMap", "glint_map"]

@@ -23,10 +23,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..errors import InputError
-from ..fields import check_param, param
-from ..geometry import Directions
-from ..terms import AbstractTerm, Model
+from ..core.fields import check_param, param
+from ..core.geometry import Directions
+from ..core.terms import AbstractTerm, Model
+from ..runtime.errors import InputError
 
 __all__ = ["Phong", "directional_albedo", "params_from_fit_result", "posterior_samples", "ModelSourceError"]
 

@@ -19,8 +19,8 @@ lists, for one term, the features that can make the cheap rule wrong:
 - ``everywhere``: a term kind this module does not know (always flagged: the
   full rule, correct but not cheaper).
 
-Features of wrapped terms (:class:`~brdfjax.terms.OffsetNormal`,
-:class:`~brdfjax.terms.Oriented`) are turned back into the facet frame.
+Features of wrapped terms (:class:`~brdfjax.core.terms.OffsetNormal`,
+:class:`~brdfjax.core.terms.Oriented`) are turned back into the facet frame.
 Radii are computed from the term's parameters with JAX (they follow
 posterior draws and fits) but carry no gradient: flags only choose the rule.
 """
@@ -35,8 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..geometry import Rz
-from ..terms import (
+from ..core.geometry import Rz
+from ..core.terms import (
     ABg,
     AbstractTerm,
     Diffraction,

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ..detector import PixelGrid
+from ..core.detector import PixelGrid
 from ..fit import FitResult, FrameData, TableData, fit, prepare, versions
 from ..fit.internal import as_param, block_names, get_solver, to_natural
 from ..io import write_json_atomic

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..errors import InputError
+from ..runtime.errors import InputError
 
 __all__ = ["Prior", "PRIOR_KINDS", "PriorArrays", "build_prior_arrays", "log_prior", "prior_from_natural", "SampleError"]
 

@@ -39,7 +39,7 @@ values, grid, masks, sigma settings, sampler settings: see
 checksum of every data file and every ``[data]`` setting; ``--resume``
 refuses a chain drawn under any other problem and names what differs.
 
-Exit codes (:mod:`brdfjax.errors`): 0 done, 130 interrupted (resumable), 2
+Exit codes (:mod:`brdfjax.runtime.errors`): 0 done, 130 interrupted (resumable), 2
 bad config, priors, walkers, chain file, a resume of another problem or an
 output folder that cannot be written (the message names the file and key),
 1 an internal error.
@@ -67,7 +67,7 @@ from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
 from ..fit.internal import FRAME_PARAMETERS
 from ..io import check_output_dir
 from ..io.fingerprint import file_digest, value_digest
-from ..progress import make_console
+from ..runtime.progress import make_console
 from ._api import SAMPLERS, check_sampling, sample
 from ._posterior import check_walkers
 from ._priors import PRIOR_KINDS, Prior, SampleError

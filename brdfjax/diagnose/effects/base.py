@@ -31,12 +31,9 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ...fit import FrameData
-from ...fit.internal import as_param
-from ...geometry import Directions
-from ...instrument.synthetic import convolve_footprint
-from ...render import Frame, render, sample_directions
-from ...terms import (
+from ...core.geometry import Directions
+from ...core.render import Frame, render, sample_directions
+from ...core.terms import (
     AbstractTerm,
     Diffraction,
     Lambertian,
@@ -44,6 +41,9 @@ from ...terms import (
     OffsetNormal,
     Specular,
 )
+from ...fit import FrameData
+from ...fit.internal import as_param
+from ...instrument.synthetic import convolve_footprint
 from ..context import Context, precision_name
 from .terms import Oriented, SpectralDiffraction
 

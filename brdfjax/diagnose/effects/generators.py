@@ -42,10 +42,12 @@ import equinox as eqx
 import numpy as np
 
 from ... import reference as ref
-from ...detector import Detector
-from ...distributions import Beckmann, BeckmannAniso
+from ...core.detector import Detector
+from ...core.distributions import Beckmann, BeckmannAniso
+from ...core.geometry import Directions
+from ...core.render import Frame, render
+from ...core.terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
 from ...fit import FrameData, Param, TableData, read_frame_data
-from ...geometry import Directions
 from ...instrument import SyntheticInstrument, reduce_measurement_set
 from ...instrument.synthetic import (
     SEED_BEAM_FILTERS,
@@ -56,8 +58,6 @@ from ...instrument.synthetic import (
     shift_add,
 )
 from ...io import write_frame_exr
-from ...render import Frame, render
-from ...terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
 from .base import weight_names
 from .model import (
     inner_specular,

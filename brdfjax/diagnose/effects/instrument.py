@@ -15,11 +15,11 @@ import math
 
 import numpy as np
 
-from ...distributions import Beckmann
+from ...core.distributions import Beckmann
+from ...core.terms import Diffraction, Model, Specular
 from ...fit import FrameData, Param, TableData
 from ...fit.internal import lobe_fwhm, lobe_parameters, table_step
 from ...instrument.synthetic import footprint_kernel
-from ...terms import Diffraction, Model, Specular
 from .base import (
     Effect,
     Extension,

@@ -7,7 +7,7 @@
 (:func:`matched_distribution`, :func:`swap_distribution`, ...) are public:
 the generators use them to build a truth with another family.  What each
 distribution family is (its width field, shape exponent, anisotropic form)
-lives on its class in :mod:`brdfjax.distributions`.
+lives on its class in :mod:`brdfjax.core.distributions`.
 """
 
 from __future__ import annotations
@@ -19,9 +19,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ...distributions import GGX, AbstractDistribution, Beckmann, HyperCauchy, StudentT
-from ...fit import Param, fit
-from ...terms import (
+from ...core.distributions import GGX, AbstractDistribution, Beckmann, HyperCauchy, StudentT
+from ...core.terms import (
     AbstractTerm,
     Diffraction,
     Lambertian,
@@ -30,6 +29,7 @@ from ...terms import (
     Specular,
     param_fields,
 )
+from ...fit import Param, fit
 from ..context import warm_params
 from .base import (
     Effect,

@@ -4,7 +4,7 @@ shadowing-masking; and the rule that instrument responses are ranked on detector
 - ``second_lobe``: a second microfacet lobe of the main lobe's family (a wider halo or a narrower spike)
   sharing its index;
 - ``shadowing``: the Smith (height-correlated) masking-shadowing factor G2 switched on in every microfacet
-  term (:mod:`brdfjax.shadowing`; exact Lambda for Beckmann/GGX, tabulated otherwise) -- no new
+  term (:mod:`brdfjax.core.shadowing`; exact Lambda for Beckmann/GGX, tabulated otherwise) -- no new
   parameter, so its BIC gain is its chi^2 decrease;
 - the distribution's tail is ``distribution_shape`` (:mod:`.model`: the family swap among Beckmann, GGX,
   Student-t and Hyper-Cauchy, applicable to tables).
@@ -22,8 +22,8 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+from ...core.terms import Model, Specular
 from ...fit import FrameData, Param, TableData
-from ...terms import Model, Specular
 from .base import (
     Effect,
     Extension,
@@ -121,7 +121,7 @@ class ShadowingEffect(Effect):
     needs_2d = False
     doc = (
         "Switches every microfacet (Specular) term from G = 1 to the height-correlated Smith "
-        "masking-shadowing factor G2 of its own distribution (brdfjax.shadowing: the exact Lambda of "
+        "masking-shadowing factor G2 of its own distribution (brdfjax.core.shadowing: the exact Lambda of "
         "Beckmann and GGX, a tabulated Lambda otherwise).  No new parameter: the BIC gain is the chi^2 "
         "decrease.  G < 1 lowers the model towards grazing incidence and scatter, where a microfacet lobe "
         "without it rises above goniometer data.  Signature: the score test of the change in ln f that G2 "

@@ -4,7 +4,7 @@
   ``psi`` (the orientation of diffraction bars or of an anisotropic lobe
   relative to the sample frame; the frame's ``phi_ref`` turns everything).
 - :class:`SpectralDiffraction`: the Fraunhofer bars of
-  :class:`brdfjax.terms.Diffraction` integrated over a source spectrum, so the
+  :class:`brdfjax.core.terms.Diffraction` integrated over a source spectrum, so the
   diffraction orders smear into stripes.  The spectrum is a set of relative
   wavelength offsets ``x_k`` with weights ``w_k`` (sum 1) scaled by the
   relative rms width ``width``: ``lambda_k = lambda (1 + width x_k)``, with
@@ -12,7 +12,7 @@
   Gauss-Hermite nodes of a Gaussian line (``width`` = sigma_lambda / lambda);
   :meth:`SpectralDiffraction.from_spectrum` takes any
   ``colour.SpectralDistribution`` (a broadband LED, a laser line of finite width).
-- :class:`InstrumentResponse`: a :class:`~brdfjax.terms.Model` (same terms,
+- :class:`InstrumentResponse`: a :class:`~brdfjax.core.terms.Model` (same terms,
   same parameter names) with instrument-side responses switched on by
   ``features``; their parameters are named ``instrument.<name>``:
 
@@ -53,10 +53,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ...fields import check_param, param
+from ...core.fields import check_param, param
+from ...core.geometry import Directions, Rx, Ry, Rz, rotate
+from ...core.terms import AbstractTerm, Diffraction, Model, Oriented, param_fields
 from ...fit import Param
-from ...geometry import Directions, Rx, Ry, Rz, rotate
-from ...terms import AbstractTerm, Diffraction, Model, Oriented, param_fields
 
 __all__ = ["Oriented", "SpectralDiffraction", "InstrumentResponse", "FEATURES", "turn_scatter", "camera_axes", "block_camera", "camera_params", "response_features"]
 
@@ -68,7 +68,7 @@ def _gauss_hermite(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
 
 
 class SpectralDiffraction(AbstractTerm):
-    """:class:`~brdfjax.terms.Diffraction` averaged over a spectrum: ``sum_k w_k Diffraction(lambda (1 + width x_k))``.
+    """:class:`~brdfjax.core.terms.Diffraction` averaged over a spectrum: ``sum_k w_k Diffraction(lambda (1 + width x_k))``.
 
     It wraps the diffraction term (``diffraction``; its parameters keep their
     names: ``<bars>.rho``, ``.a``, ``.b``, ``.c``, then ``.width``) and
@@ -186,7 +186,7 @@ def _midpoints(n: int) -> tuple[float, ...]:
 
 
 class InstrumentResponse(Model):
-    """A :class:`~brdfjax.terms.Model` seen through instrument-side responses (module docstring).
+    """A :class:`~brdfjax.core.terms.Model` seen through instrument-side responses (module docstring).
 
     Build with :meth:`wrap` (keeps the terms, aliases and any response
     already switched on) and switch features on by name; parameters are

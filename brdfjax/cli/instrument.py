@@ -15,13 +15,13 @@ from typing import Any
 import jax
 import numpy as np
 
-from .config import load_simulate_config
-from .detector import PixelGrid
-from .errors import EXIT_OK, InputError
-from .io import check_output_dir, detector_from_attrs, frame_from_attrs, write_json_atomic
-from .plotting import plot_frame
-from .progress import ProgressLine, make_console
-from .simulate import run_simulate
+from ..config import load_simulate_config
+from ..core.detector import PixelGrid
+from ..io import check_output_dir, detector_from_attrs, frame_from_attrs, write_json_atomic
+from ..plotting import plot_frame
+from ..runtime.errors import EXIT_OK, InputError
+from ..runtime.progress import ProgressLine, make_console
+from ..simulate import run_simulate
 
 __all__ = ["run_reduce_command", "run_simulate_command", "run_synthesize_command"]
 
@@ -83,7 +83,7 @@ def _reduced_summary(path: Path, frame: Any) -> dict[str, Any]:
 
 def run_reduce_command(args: argparse.Namespace) -> int:
     # the instrument stack loads only for the commands that use it (not for simulate)
-    from .instrument.reduce import read_reduced_frame, reduce_measurement_set  # noqa: PLC0415
+    from ..instrument.reduce import read_reduced_frame, reduce_measurement_set  # noqa: PLC0415
 
     if args.step < 1:
         raise InputError(f"--step must be a positive integer, got {args.step}")
@@ -133,8 +133,8 @@ def run_reduce_command(args: argparse.Namespace) -> int:
 
 def run_synthesize_command(args: argparse.Namespace) -> int:
     # the instrument stack loads only for the commands that use it (not for simulate)
-    from .instrument.nd import parse_nd_filters  # noqa: PLC0415
-    from .instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config  # noqa: PLC0415
+    from ..instrument.nd import parse_nd_filters  # noqa: PLC0415
+    from ..instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config  # noqa: PLC0415
 
 
     # Everything that can be checked is checked before any frame is rendered or written.

@@ -2,9 +2,9 @@
 
 A term is a small ``equinox`` module whose fields are its parameters and whose
 call ``term(dirs, wavelength) -> sr^-1`` evaluates it on
-:class:`~brdfjax.geometry.Directions` expressed in the **sample frame** (the
+:class:`~brdfjax.core.geometry.Directions` expressed in the **sample frame** (the
 frame is rotated by ``-phi_ref`` about the normal before any term sees it, see
-:func:`brdfjax.render.sample_directions`).  A :class:`Model` is a named sum of
+:func:`brdfjax.core.render.sample_directions`).  A :class:`Model` is a named sum of
 terms; wrappers (:class:`OffsetNormal`) wrap any term.
 
 Parameters are addressed by flat names ``"<term>.<parameter>"`` (the
@@ -127,14 +127,14 @@ class Specular(AbstractTerm):
     direction (``Q = F_s + F_p`` there).  In the specular direction the two forms
     agree; elsewhere ``(cos ti + cos ts)^2 >= 4 cos ti cos ts`` so the seed's
     form is never larger.  ``G`` is the masking-shadowing factor
-    (:mod:`brdfjax.shadowing`): ``"none"`` (G = 1, the seed), ``"smith"``
+    (:mod:`brdfjax.core.shadowing`): ``"none"`` (G = 1, the seed), ``"smith"``
     (height-correlated Smith G2 with the distribution's Lambda) or
     ``"v_cavity"`` (Cook-Torrance); ``"smith_mixture"`` is ``"smith"`` for one
     distribution (it differs for :class:`MultiLobeSpecular`).  ``fresnel="q_factor"`` (the default) is the
     seed's polarization factor ``Q`` of Eq 69, evaluated at the macro angles
     ``theta_i, theta_s``; ``fresnel="microfacet"`` replaces it with ``F_s + F_p``
     at the microfacet angle ``theta_d`` (``cos theta_d = w_i . w_h``;
-    :func:`brdfjax.fresnel.fresnel_microfacet`), the Fresnel factor of
+    :func:`brdfjax.core.fresnel.fresnel_microfacet`), the Fresnel factor of
     Cook-Torrance and Walter et al. (2007): the two agree in the specular
     direction and differ off it, most for wide lobes of a conductor.  The
     defaults reproduce the seed exactly.
@@ -182,7 +182,7 @@ class MultiLobeSpecular(AbstractTerm):
     distribution's Lambda; ``shadowing="smith_mixture"`` is Smith's G2 of the
     surface as a whole, whose slope distribution is the mixture of the lobes
     (``Lambda = sum_l w_l Lambda_l``, ``w_l = rho_l / sum rho``;
-    :func:`brdfjax.shadowing.smith_mixture_g2_parts`), the same G for every lobe.  Each lobe is normalised (Eq 54), so the
+    :func:`brdfjax.core.shadowing.smith_mixture_g2_parts`), the same G for every lobe.  Each lobe is normalised (Eq 54), so the
     weights ``rho_l`` play the role of :class:`Specular`'s ``rho_s``.  Parameter
     names are ``<lobe>.<name>``: ``spike.m``, ``spike.rho_s``, ``halo.alpha``, ...
     and the shared ``n``, ``k``.

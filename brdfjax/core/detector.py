@@ -15,7 +15,7 @@ the illuminated spot to a pixel::
 which reduces to Eq 78 when aligned.  The scatter direction is computed as
 ``w_s = Ry(alpha)(z + e)`` with the small vector ``e`` formed without
 cancellation, so that ``w_i + w_s`` near the specular direction keeps its
-digits in float32 (see :class:`brdfjax.geometry.Directions`).
+digits in float32 (see :class:`brdfjax.core.geometry.Directions`).
 """
 
 from __future__ import annotations

@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__
-from .io import frame_attrs, write_frame_exr, write_json_atomic
-from .plotting import plot_frame
-from .render import render_frame
+from .. import __version__
+from ..core.render import render_frame
+from ..io import frame_attrs, write_frame_exr, write_json_atomic
+from ..plotting import plot_frame
 
 __all__ = ["FrameResult", "run_simulate", "simulate_frame"]
 
@@ -57,7 +57,7 @@ class FrameResult:
 def simulate_frame(model, frame, detector, grid, precision: str = "float32", stem: str = "frame") -> FrameResult:
     """Render ``model`` and the pixel geometry on ``grid``; returns NumPy arrays (blocks until done).
 
-    One compiled program (:func:`brdfjax.render.render_frame`) gives the BRDF
+    One compiled program (:func:`brdfjax.core.render.render_frame`) gives the BRDF
     (the sum of the per-term images, in the model's order), each term and the
     pixel geometry.
     """

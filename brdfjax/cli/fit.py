@@ -7,7 +7,7 @@ name -> ``{value, sigma, unit, free}`` in natural units, ``chi2``,
 it did not converge: the message says so and ``result.json`` holds what it
 found), 2 for a bad config, unreadable data or an output folder that cannot be
 written (the message names the file and the key), 130 interrupted, 1 an
-internal error (:mod:`brdfjax.errors`).  The solver's progress (chi^2 per
+internal error (:mod:`brdfjax.runtime.errors`).  The solver's progress (chi^2 per
 evaluation) goes to stderr unless ``--quiet``.
 """
 
@@ -16,9 +16,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..fit.config import enable_config_precision, run_fit
 from ..io import check_output_dir
-from ..progress import make_console
-from .config import enable_config_precision, run_fit
+from ..runtime.progress import make_console
 
 __all__ = ["add_arguments", "run"]
 
@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     prog = "brdfjax fit"
     enable_config_precision(args.config)
     check_output_dir(args.out)
-    # errors: brdfjax.errors.run_command (cli.main) gives them their exit code and message
+    # errors: brdfjax.runtime.errors.run_command (cli.main) gives them their exit code and message
     result = run_fit(args.config, args.out, console=console, figures=False if args.no_figures else None)
     state = "converged" if result.converged else "did NOT converge"
     console.print(

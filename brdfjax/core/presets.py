@@ -15,7 +15,7 @@ builder).
 
 Anisotropic distributions (``BeckmannAniso``, ``GGXAniso``) have their axes
 along the sample's x and y; the orientation of a groove pattern is the
-:class:`~brdfjax.terms.Oriented` wrapper's angle ``psi``, which turns any term about the
+:class:`~brdfjax.core.terms.Oriented` wrapper's angle ``psi``, which turns any term about the
 sample normal (the distribution's x axis lies at azimuth ``psi`` from +x
 toward +y).  Fresnel and Q do not depend on the azimuth, so turning the
 term is exactly turning its microfacet distribution.

@@ -4,7 +4,7 @@ Writes ``lightcurve.csv`` (one row per visible time step: time, elevation,
 phase angle, sunlit fraction, per-facet incidence and scatter angles and
 magnitudes, the total magnitude of every compared model, posterior bands),
 ``lightcurve.json`` (the summary: glints, comparisons, and the series) and
-``lightcurve.png``.  Exit codes: the contract of :func:`brdfjax.errors.run_command`
+``lightcurve.png``.  Exit codes: the contract of :func:`brdfjax.runtime.errors.run_command`
 (0 ran, 2 a bad config or an output that cannot be written, with the message
 naming the file and key; 130 interrupted; 1 an internal error).
 """
@@ -17,8 +17,8 @@ import sys
 import jax
 
 from ..io import check_output_dir
-from .config import load_lightcurve_config
-from .run import run_lightcurve
+from ..lightcurve.config import load_lightcurve_config
+from ..lightcurve.run import run_lightcurve
 
 __all__ = ["add_arguments", "run"]
 
@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     prog = "brdfjax lightcurve"
-    # InputError (exit 2), OSError (2), interrupts (130) and bugs (1): brdfjax.errors.run_command, from cli.main
+    # InputError (exit 2), OSError (2), interrupts (130) and bugs (1): brdfjax.runtime.errors.run_command, from cli.main
     cfg = load_lightcurve_config(args.config)
     check_output_dir(args.out)
     if cfg.precision == "float64":

@@ -11,7 +11,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputError
+from .errors import InputError
 
 __all__ = ["atomic_output", "check_output_dir", "write_json_atomic"]
 
@@ -49,7 +49,7 @@ def write_json_atomic(path: str | os.PathLike, data: Any, *, allow_nan: bool = T
 def check_output_dir(path: str | os.PathLike, what: str = "--out") -> Path:
     """Check that ``path`` can be an output folder, before any work; nothing is created.
 
-    Refuses (:class:`~brdfjax.errors.InputError`, exit 2) a path that is a
+    Refuses (:class:`~brdfjax.runtime.errors.InputError`, exit 2) a path that is a
     file, or whose nearest existing ancestor is not a writable folder (e.g.
     ``/proc/x``, a read-only mount).  Returns the path.
     """

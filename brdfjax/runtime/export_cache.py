@@ -1,6 +1,6 @@
 """Whole programs kept across processes with ``jax.export``: a later process skips tracing them.
 
-JAX's persistent compilation cache (:mod:`brdfjax.compile_cache`) keeps the
+JAX's persistent compilation cache (:mod:`brdfjax.runtime.compile_cache`) keeps the
 compiled executables, but its key is the lowered program, so every process
 still traces and lowers each program before it can look it up.  On the
 synthetic solar-cell fit that is most of a second process's first fit: the
@@ -52,6 +52,8 @@ import equinox as eqx
 import jax
 import numpy as np
 from jax import export
+
+from .atomic import atomic_output
 
 try:  # jax.export's serialisation needs flatbuffers (a dependency of brdfjax; without it: no files)
     from jax._src.export import serialization as _serialization  # noqa: F401
@@ -286,9 +288,6 @@ def exported_call(name: str, raw: Callable[..., Any], plain: Callable[..., Any],
                 exp = None  # damaged, or not this program's: made again below
         if exp is None:
             exp = _export(raw, leaves, treedef, dyn)
-            # imported here: brdfjax.io's package imports brdfjax.render, which imports this module
-            from .io.atomic import atomic_output  # noqa: PLC0415 -- a module-level import would be a cycle
-
             try:
                 with atomic_output(path) as tmp:
                     tmp.write_bytes(exp.serialize())

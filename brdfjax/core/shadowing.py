@@ -20,7 +20,7 @@ and the height-correlated masking-shadowing of the pair (w_i, w_s) as
 * Beckmann (Heitz 2014 Eq 80): ``Lambda = (erf(a) - 1) / 2 + exp(-a^2) / (2 a sqrt(pi))``
 * GGX (Heitz 2014 Eq 86): ``Lambda = (sqrt(1 + t^2) - 1) / 2``
 
-Every other distribution of :mod:`brdfjax.distributions` gets a **tabulated**
+Every other distribution of :mod:`brdfjax.core.distributions` gets a **tabulated**
 Lambda from Heitz 2014 Eq 72 written in slope space.  With the slope
 distribution ``P22(x, y) = D cos^4(theta_h)`` (unit integral over the slope
 plane: Eq 54), ``mu = cot(theta)`` and the slopes rotated so that x points along

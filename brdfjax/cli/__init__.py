@@ -4,7 +4,7 @@ A leaf: it parses arguments and dispatches to library code; nothing in
 brdfjax imports it.  Subcommands are entries of :data:`COMMANDS` (a name, a
 help line, a function adding its arguments and a function running it); the
 fit, diagnose, sample and capture commands live beside their packages
-(:mod:`brdfjax.fit.cli_fit`, :mod:`brdfjax.diagnose.cli`,
+(:mod:`brdfjax.cli.fit`, :mod:`brdfjax.diagnose.cli`,
 :mod:`brdfjax.sample.cli`, :mod:`brdfjax.devices.capture`).
 
 ``brdfjax simulate [CONFIG] --out DIR [--step K] [--precision P] [--no-plot]``
@@ -13,7 +13,7 @@ CONFIG the packaged default job) and writes, per frame, ``<name>.exr``
 (BRDF, theta_s, phi_s, solid angle; see :mod:`brdfjax.io.exr`) and
 ``<name>.png`` (see :mod:`brdfjax.plotting`), plus ``summary.json``.
 
-Exit codes (every subcommand, :func:`brdfjax.errors.run_command`): 0 ran,
+Exit codes (every subcommand, :func:`brdfjax.runtime.errors.run_command`): 0 ran,
 2 bad input or a refusal (the message names the file, key or value), 130
 interrupted, 1 an internal error (a bug: the traceback and where to report it).
 """
@@ -27,9 +27,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from . import __version__
-from .compile_cache import enable_compilation_cache
-from .errors import EXIT_REFUSED, run_command
+from .. import __version__
+from ..runtime.compile_cache import enable_compilation_cache
+from ..runtime.errors import EXIT_REFUSED, run_command
 
 # Each subcommand imports what it runs when it runs (a lazy entry below, or imports inside its
 # runner): `brdfjax simulate` does not pay for the fit, sampling, device and instrument stacks
@@ -127,55 +127,55 @@ COMMANDS: dict[str, Command] = {
         "simulate",
         "render the frames of a config to OpenEXR + PNG + summary.json",
         _simulate_arguments,
-        _lazy(".cli_run", "run_simulate_command"),
+        _lazy(".instrument", "run_simulate_command"),
     ),
     "synthesize": Command(
         "synthesize",
         "measure a config's model with the synthetic instrument: raw OpenEXR stacks + manifest.toml",
         _synthesize_arguments,
-        _lazy(".cli_run", "run_synthesize_command"),
+        _lazy(".instrument", "run_synthesize_command"),
     ),
     "reduce": Command(
         "reduce",
         "reduce a raw measurement set (manifest.toml) to calibrated BRDF frames with per-pixel uncertainty",
         _reduce_arguments,
-        _lazy(".cli_run", "run_reduce_command"),
+        _lazy(".instrument", "run_reduce_command"),
     ),
     "fit": Command(
         "fit",
         "fit a model to frames/tables from a TOML fit config: result.json (parameters, uncertainties, chi2) + figures",
-        _lazy(".fit.cli_fit", "add_arguments"),
-        _lazy(".fit.cli_fit", "run"),
+        _lazy(".fit", "add_arguments"),
+        _lazy(".fit", "run"),
     ),
     "diagnose": Command(
         "diagnose",
         "diagnose the gap between a base model and measured frames: where, which effect, how far it shrinks",
-        _lazy(".diagnose.cli", "add_arguments"),
-        _lazy(".diagnose.cli", "run"),
+        _lazy("..diagnose.cli", "add_arguments"),
+        _lazy("..diagnose.cli", "run"),
     ),
     "capture": Command(
         "capture",
         "run a capture plan (beam signature, alignment, samples) on the simulated bench or lab hardware: raw set",
-        _lazy(".devices.capture", "capture_arguments"),
-        _lazy(".devices.capture", "run_capture_command"),
+        _lazy("..devices.capture", "capture_arguments"),
+        _lazy("..devices.capture", "run_capture_command"),
     ),
     "batch": Command(
         "batch",
         "run a study: many fit/sample/diagnose/synthesize jobs on Ray or a process pool, one result file each, resumable",
-        _lazy(".batch", "add_arguments"),
-        _lazy(".batch", "run"),
+        _lazy("..batch", "add_arguments"),
+        _lazy("..batch", "run"),
     ),
     "sample": Command(
         "sample",
         "parameter posteriors with emcee from a fit config ([sample] table): chain.h5, posterior.json, corner/trace plots",
-        _lazy(".sample.cli", "add_arguments"),
-        _lazy(".sample.cli", "run"),
+        _lazy("..sample.cli", "add_arguments"),
+        _lazy("..sample.cli", "run"),
     ),
     "lightcurve": Command(
         "lightcurve",
         "a satellite's light curve from facets with brdfjax models along TLE passes: CSV, JSON, magnitude plot",
-        _lazy(".lightcurve.cli", "add_arguments"),
-        _lazy(".lightcurve.cli", "run"),
+        _lazy(".lightcurve", "add_arguments"),
+        _lazy(".lightcurve", "run"),
     ),
 }
 
@@ -208,7 +208,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``brdfjax`` console script; returns the exit code.
 
-    Every subcommand runs under :func:`brdfjax.errors.run_command` (0 ran, 2
+    Every subcommand runs under :func:`brdfjax.runtime.errors.run_command` (0 ran, 2
     bad input or refused, 130 interrupted, 1 internal error); a usage error
     of argparse exits 2 with its message (``SystemExit``).
     """

@@ -8,7 +8,7 @@ executables from disk.  Shapes are kept stable across frames (stacked frames
 are padded to a multiple of :data:`brdfjax.fit._problem.PAD_MULTIPLE`,
 renders use fixed-size row chunks), so one executable serves many data sets.
 
-The traced programs of a fit are kept beside the executables (``export/``, :mod:`brdfjax.export_cache`),
+The traced programs of a fit are kept beside the executables (``export/``, :mod:`brdfjax.runtime.export_cache`),
 so a later process skips their tracing as well.
 
 Where: ``$BRDFJAX_CACHE_DIR`` if set, else ``$XDG_CACHE_HOME/brdfjax/jax``
@@ -65,6 +65,6 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     # and the traced programs of a fit, so that a later process skips tracing them too (off alone with
-    # BRDFJAX_NO_EXPORT=1): brdfjax.export_cache
+    # BRDFJAX_NO_EXPORT=1): brdfjax.runtime.export_cache
     activate_export(folder / "export")
     return folder

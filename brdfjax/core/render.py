@@ -3,7 +3,7 @@
 A :class:`Frame` holds what belongs to one measurement rather than to the
 material: the incidence angle ``theta_i``, the sample's rotation about its
 normal ``phi_ref`` and the wavelength.  :func:`render` evaluates a model on
-every pixel of a :class:`~brdfjax.detector.PixelGrid` (the full array, every
+every pixel of a :class:`~brdfjax.core.detector.PixelGrid` (the full array, every
 k-th pixel, or a region of interest) and returns BRDF in sr^-1 shaped
 ``(n_v rows, n_h columns)``.  Rows are processed in chunks with
 ``jax.lax.map`` so that a full 8.1-million-pixel frame runs in bounded memory;
@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
+from ..runtime.export_cache import exportable
 from .detector import Detector, PixelGrid
-from .export_cache import exportable
 from .fields import check_param, param
 from .geometry import Directions
 from .terms import AbstractTerm, Model
@@ -131,7 +131,7 @@ def _program(fn, args, n_h, n_v, rows_per_chunk: int, dtype):
     return map_rows(fn, args, jnp.asarray(n_h, dtype), jnp.asarray(n_v, dtype), rows_per_chunk)
 
 
-#: :func:`_program` through its exported program when :mod:`brdfjax.export_cache` is on (a later process
+#: :func:`_program` through its exported program when :mod:`brdfjax.runtime.export_cache` is on (a later process
 #: skips tracing the frame's program)
 _run = exportable("render", _program)
 
@@ -172,7 +172,7 @@ def render(
     ``step``/``roi`` (or an explicit ``grid``) select the pixels; the default
     is the full seed array.  ``chunk_pixels`` bounds the pixels evaluated at
     once (memory grows linearly with it).  ``per_term=True`` returns a dict of
-    each term of a :class:`~brdfjax.terms.Model` instead of the sum.
+    each term of a :class:`~brdfjax.core.terms.Model` instead of the sum.
     """
     detector, grid, dtype = _prepare(detector, grid, step, roi, precision)
     if per_term and not hasattr(model, "term_values"):
@@ -285,7 +285,7 @@ def render_frame(
 
     Returns ``{"brdf", "terms": {name: image}, "theta_s", "phi_s", "omega"}``,
     each ``(rows, cols)``: the model's sum (the terms added in order, as the
-    model adds them), each term of a :class:`~brdfjax.terms.Model`, and the
+    model adds them), each term of a :class:`~brdfjax.core.terms.Model`, and the
     pixel geometry of :func:`render_geometry`.  A model that is not a
     ``Model`` gives a single term named ``"model"``.
     """

@@ -66,11 +66,11 @@ TERMS: dict[str, Any] = {
 }
 
 #: Term kinds built around microfacet distributions, which take the ``shadowing``, ``normalisation`` and
-#: ``fresnel`` options (:data:`brdfjax.shadowing.SHADOWING`, :data:`brdfjax.terms.NORMALISATIONS`,
-#: :data:`brdfjax.terms.FRESNELS`).
+#: ``fresnel`` options (:data:`brdfjax.core.shadowing.SHADOWING`, :data:`brdfjax.core.terms.NORMALISATIONS`,
+#: :data:`brdfjax.core.terms.FRESNELS`).
 MICROFACET_KINDS = ("specular", "offset_specular", "multi_lobe")
 
-#: Model presets: the seed's solar cell and its other materials (``brdfjax.presets``: mirror, polished
+#: Model presets: the seed's solar cell and its other materials (``brdfjax.core.presets``: mirror, polished
 #: aluminium, Kapton; plausible values, see that module).
 PRESETS: dict[str, Any] = {
     "solar_cell": solar_cell,
