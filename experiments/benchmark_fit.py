@@ -65,9 +65,10 @@ def _brdfjax(data: Path, start_out: Path, first_stage: str, with_jacfwd: bool = 
     import jax.numpy as jnp
     import numpy as np
 
-    from brdfjax.fit import fit, prepare
+    from brdfjax.fit import fit
     from brdfjax.fit._problem import jacobian, jacobian_jacfwd, residuals
     from brdfjax.fit._solvers import get_solver
+    from brdfjax.fit.internal import prepare_problem
 
     job = _job(data)
     t_loaded = time.perf_counter()
@@ -85,7 +86,7 @@ def _brdfjax(data: Path, start_out: Path, first_stage: str, with_jacfwd: bool = 
                          chi2=res.chi2, steps=res.n_iterations, converged=res.converged, message=res.message,
                          timings=dict(res.timings)))
     # the start (automatic initialisation) and the layout, for the scipy side
-    prep = prepare(job.model, job.blocks, job.params, solver=get_solver(kw["solver"]), loss=kw["loss"],
+    prep = prepare_problem(job.model, job.blocks, job.params, solver=get_solver(kw["solver"]), loss=kw["loss"],
                    initializer=kw["initializer"], precision=kw["precision"], use_footprint=kw["use_footprint"])
     lay = prep.layout
     free = [dict(name=e.name, base=e.base, kind=e.kind, blocks=list(e.blocks), x0=float(e.x0), lower=float(e.lower),

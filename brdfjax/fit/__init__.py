@@ -1,5 +1,8 @@
 """Inverse fitting: brdfjax models fitted to detector frames and goniometer tables.
 
+``lik = prepare(model, data, params, **options)`` is the likelihood that
+:func:`fit`, :func:`brdfjax.sample.sample` and :func:`brdfjax.diagnose.diagnose`
+share (:class:`Likelihood`); ``fit(lik, solver=...)`` or
 ``fit(model, data, params)`` fits any :class:`~brdfjax.Model` to one or many
 :class:`FrameData` (BRDF frames on a pixel grid with ``sigma_rel`` and a
 mask) and :class:`TableData` (goniometer samples), jointly, with parameters
@@ -25,12 +28,13 @@ from ._auto_init import (
 from ._common import FitInputError as FitInputError
 from ._covariance import Covariance as Covariance, covariance as covariance
 from ._data import FrameData as FrameData, TableData as TableData
-from ._fit import FIRST_STAGES as FIRST_STAGES, fit as fit, prepare as prepare, versions as versions
+from ._fit import FIRST_STAGES as FIRST_STAGES, fit as fit, versions as versions
 from ._frames_io import (
     detector_from_attrs as detector_from_attrs,
     frame_data_from_reduced as frame_data_from_reduced,
     read_frame_data as read_frame_data,
 )
+from ._likelihood import LIKELIHOOD_OPTIONS as LIKELIHOOD_OPTIONS, Likelihood as Likelihood, prepare as prepare
 from ._params import TRANSFORMS as TRANSFORMS, Param as Param
 from ._residuals import (
     LOSSES as LOSSES,
