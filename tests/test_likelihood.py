@@ -7,7 +7,7 @@ import pytest
 
 import brdfjax as bj
 from brdfjax.fit import FitInputError, Likelihood, TableData, fit, prepare
-from brdfjax.sample import NUTS, Emcee, Prior, SampleError, sample
+from brdfjax.sample import NUTS, Emcee, SampleError, sample
 
 # The README's example, verbatim: a table fitted, its posterior sampled and its gap diagnosed from one likelihood.
 README_EXAMPLE = """
