@@ -25,10 +25,10 @@ from numpy.lib.stride_tricks import sliding_window_view
 from ..core.geometry import Directions
 from ..core.render import Frame, cast, resolve_dtype
 from ..core.terms import Model
+from ..io.blocks import FrameData, TableData
 from ._auto_init import get_initializer
 from ._common import FRAME_PARAMETERS, FitInputError, natural_unit, to_natural
 from ._covariance import covariance
-from ._data import FrameData, TableData
 from ._likelihood import LIKELIHOOD_OPTIONS, Likelihood
 from ._nuisance import NuisanceOptions, NuisanceSpec, NuisanceTerms, build_nuisance, conditional_sigma
 from ._params import FreeEntry, Layout, as_param, build_layout

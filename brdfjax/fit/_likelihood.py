@@ -22,8 +22,8 @@ from typing import Any
 
 from ..config.base import check_choice
 from ..core.terms import Model
+from ..io.blocks import FrameData, TableData
 from ._common import FitInputError
-from ._data import FrameData, TableData
 from ._residuals import LOSSES
 
 __all__ = ["Likelihood", "prepare", "LIKELIHOOD_OPTIONS"]

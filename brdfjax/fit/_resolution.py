@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from ..core.geometry import Directions
-from ._data import TableData
+from ..io.blocks import TableData
 from ._params import Param, as_param
 
 __all__ = ["lobe_parameters", "table_step", "lobe_fwhm", "check_resolution"]

@@ -127,14 +127,15 @@ from ..config import (
 from ..core.detector import Detector
 from ..core.render import Frame, Precision
 from ..core.terms import Model
-from ..instrument.raw import RawFormatError, read_manifest
 from ..instrument.reduce import MERGES, ReductionError, reduce_measurement_set
 from ..instrument.synthetic import EFFECTS, SyntheticInstrument, load_instrument_config
 from ..io import atomic_output, write_json_atomic
+from ..io.blocks import FrameData, TableData
+from ..io.raw import RawFormatError, read_manifest
+from ..io.tables import Screen, read_astm_e1392, read_cornell_brdf, read_merl_inplane, read_table
 from ..runtime.progress import ProgressLine
 from ._auto_init import INITIALIZERS
 from ._common import FRAME_PARAMETERS, FitInputError, natural_unit, to_natural
-from ._data import FrameData, TableData
 from ._figures import write_figures
 from ._fit import FIRST_STAGES, _check_detectors, _resolve_precision, block_names, fit
 from ._frames_io import SIGMA_CHOICES, read_frame_data
@@ -143,7 +144,6 @@ from ._params import SPEC_KEYS, Param, param_problems
 from ._residuals import LOSSES
 from ._result import FitResult
 from ._solvers import SOLVERS, get_solver
-from ._tables import Screen, read_astm_e1392, read_cornell_brdf, read_merl_inplane, read_table
 
 __all__ = [
     "FitConfig",
