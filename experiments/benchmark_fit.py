@@ -55,7 +55,8 @@ def _job(data: Path):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from brdfjax.fit.config import build_fit_job, load_fit_config
+    from brdfjax.fit.config import load_fit_config
+    from brdfjax.fit.job import build_fit_job
 
     return build_fit_job(load_fit_config(CONFIG), work_dir=data)
 
