@@ -10,7 +10,6 @@ own compilation); the full library and the benchmark live in
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +20,6 @@ from brdfjax.diagnose import DiagnoseInputError, diagnose
 from brdfjax.diagnose.zones import find_regions, label, smoothed_z, specular_coordinates
 from brdfjax.fit import FrameData, render_noisy_frames
 
-SLOW = os.environ.get("BRDFJAX_SLOW") == "1"
 ROI = (-320, 320, -320, 320)
 
 
