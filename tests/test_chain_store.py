@@ -78,3 +78,13 @@ def test_one_store_in_the_package():
     has = lambda s: sorted(str(p.relative_to(root)) for p in root.rglob("*.py") if s in p.read_text())  # noqa: E731
     assert has("already holds a chain") == ["sample/_store.py"]
     assert has("maxshape=(None") == ["sample/_store.py"]
+
+
+def test_a_nuts_file_from_before_the_shared_store_still_resumes(tmp_path):
+    _nuts(tmp_path / "n.h5")
+    with h5py.File(tmp_path / "n.h5", "a") as f:  # the earlier layout: names and fingerprint on the nuts group
+        del f[META]
+        f["nuts"].attrs["names"] = '["a", "b"]'
+        f["nuts"].attrs["fingerprint"] = '{"model": "abc", "data": [1, 2]}'
+    back = _nuts(tmp_path / "n.h5", resume=True)
+    assert back.names == ("a", "b") and back.fingerprint == FP

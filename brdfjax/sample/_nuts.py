@@ -34,6 +34,7 @@ and the kept chain is longer than 50 tau for every parameter.
 from __future__ import annotations
 
 import functools
+import json
 import math
 import os
 import time
@@ -168,9 +169,12 @@ def _read(path: Path) -> NutsChain:
     try:
         with h5py.File(path, "r") as f:
             g = f[NUTS_GROUP]
+            # files written before the shared chain store kept the names and fingerprint on the nuts group
+            names = meta["names"] if "names" in meta else json.loads(g.attrs["names"])
+            fp = meta.get("fingerprint", json.loads(g.attrs["fingerprint"]) if "fingerprint" in g.attrs else None)
             chain = NutsChain(
-                path, tuple(meta["names"]), int(g.attrs["n_chains"]), np.asarray(g["center"]),
-                np.asarray(g["scale"]), int(g.attrs["seed"]), int(g.attrs["n_warmup"]), fingerprint=meta.get("fingerprint"),
+                path, tuple(names), int(g.attrs["n_chains"]), np.asarray(g["center"]),
+                np.asarray(g["scale"]), int(g.attrs["seed"]), int(g.attrs["n_warmup"]), fingerprint=fp,
             )
             it = int(g.attrs["iteration"])
             if "warmup" in g and int(g.attrs.get("warmup_done", 0)):
