@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_config
 
 import brdfjax as bj
 from brdfjax.diagnose import DiagnoseInputError, diagnose
@@ -189,9 +190,7 @@ preset = "solar_cell"
 
 
 def _write_config(tmp_path: Path, effects: str = '["diffraction"]') -> Path:
-    p = tmp_path / "diag.toml"
-    p.write_text(CONFIG.replace("EFFECTS", effects))
-    return p
+    return write_config(tmp_path, CONFIG.replace("EFFECTS", effects), "diag.toml")
 
 
 def test_cli_withheld_diffraction_from_disk(tmp_path, capsys):
