@@ -8,7 +8,7 @@ what is left of ``--budget-s`` is skipped with the reason):
 
 ``tests``
     The tests that touch JAX numerics (the core's geometry, terms, distributions, Fresnel and shadowing, the
-    radiometry, the sharded render, the fit's Jacobian, the footprint kernel), run by pytest in a child
+    radiometry, the fit's Jacobian, the footprint kernel, the shipped models in float32), run by pytest in a child
     process on the default backend: counts of passed / failed / errors / skipped and the failed tests' names.
 ``render``
     The seed's solar-cell model (``bj.solar_cell()``) on the seed detector (3296 x 2472 pixels; ``--small``:
@@ -55,8 +55,8 @@ SECTIONS = ("tests", "render", "sharded", "fit", "memory")
 NUMERIC_TESTS = (
     "tests/test_core_numerics.py", "tests/test_core_geometry.py", "tests/test_core_terms.py",
     "tests/test_fresnel_microfacet.py", "tests/test_shadowing.py", "tests/test_shadowing_mixture.py",
-    "tests/test_radiometry.py", "tests/test_sharding.py", "tests/test_kernel.py", "tests/test_fit_jacobian.py",
-)
+    "tests/test_radiometry.py", "tests/test_kernel.py", "tests/test_fit_jacobian.py", "tests/test_cases.py",
+)  # not tests/test_sharding.py: it runs on two forced host (CPU) devices; the sharded section covers the accelerator
 SMALL_TESTS = ("tests/test_radiometry.py", "tests/test_core_geometry.py")
 FIT_CONFIG = ROOT / "configs" / "fit_synthetic_solar_cell.toml"
 RELATIVE_FLOOR = 1e-3
