@@ -4,7 +4,7 @@ the final model is written as a config that ``brdfjax fit`` reruns to the same c
 another program (the README's writer) are read with the one ``sigma`` default.
 
 Budget: measured 300 s at load average 9-12 on the shared 2-core box (not measured idle; goniometer tables of
-100 rows: every refit is small, the time is compilation); the reference trial is behind BRDFJAX_SLOW=1.
+100 rows: every refit is small, the time is compilation); the reference trial is behind --slow.
 """
 
 from __future__ import annotations
@@ -317,7 +317,7 @@ def test_reference_frames_read_back_with_the_truths_noise(tmp_path):
     assert float(np.degrees(b.phi_ref)) == pytest.approx(30.0) and float(np.degrees(b.theta_i)) == pytest.approx(25.0)
 
 
-@pytest.mark.skipif(not __import__("os").environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1 (a few minutes)")
+@pytest.mark.slow  # a few minutes
 def test_reference_withheld_diffraction_quick(tmp_path):
     """One small reference trial: diffraction withheld from the two-peak base, no floor in the truth."""
     import types

@@ -8,7 +8,7 @@ that do not switch 64-bit JAX on run first, one after another in one process
 block that switches it on runs in a process of its own.  After each block a
 probe reads a few of its results (the checks that the in-process README
 tests made before).  A block that runs a diagnosis (measured 316 s at load
-average 14.7 on the 2-core box) runs only with ``BRDFJAX_SLOW=1``; without it,
+average 14.7 on the 2-core box) runs only with ``--slow``; without it,
 it is compiled only.
 """
 
@@ -67,9 +67,8 @@ def _slow(src: str) -> bool:
 
 
 @pytest.fixture(scope="module")
-def results(tmp_path_factory):
+def results(tmp_path_factory, run_slow):
     tmp = tmp_path_factory.mktemp("readme")
-    run_slow = bool(os.environ.get("BRDFJAX_SLOW"))
     chosen = [(i, b, _probe(b, i)) for i, b in enumerate(BLOCKS) if run_slow or not _slow(b)]
     groups = [[c for c in chosen if "jax_enable_x64" not in c[1]]] + [[c] for c in chosen if "jax_enable_x64" in c[1]]
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_ENABLE_X64")}

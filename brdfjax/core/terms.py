@@ -4,7 +4,7 @@ A term is a small ``equinox`` module whose fields are its parameters and whose
 call ``term(dirs, wavelength) -> sr^-1`` evaluates it on
 :class:`~brdfjax.core.geometry.Directions` expressed in the **sample frame** (the
 frame is rotated by ``-phi_ref`` about the normal before any term sees it, see
-:func:`brdfjax.core.render.sample_directions`).  A :class:`Model` is a named sum of
+:func:`brdfjax.core.render.pixel_directions`).  A :class:`Model` is a named sum of
 terms; wrappers (:class:`OffsetNormal`) wrap any term.
 
 Parameters are addressed by flat names ``"<term>.<parameter>"`` (the

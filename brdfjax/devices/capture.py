@@ -88,7 +88,7 @@ from ..core.detector import Detector
 from ..core.render import Frame
 from ..instrument.nd import stack_od
 from ..instrument.synthetic import EFFECTS, load_instrument_config
-from ..io import atomic_output, check_output_dir, geometry_attrs
+from ..io import check_output_dir, geometry_attrs, toml
 from ..io.fingerprint import check_resume, value_digest
 from ..io.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
 from ..runtime.errors import InputError
@@ -371,22 +371,6 @@ def build_plan(cfg: CaptureConfig) -> list[Measurement]:
 # --- manifest with capture state ------------------------------------------------------------------
 
 
-def _q(s: str) -> str:
-    return json.dumps(s)  # a valid TOML basic string
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int | float):
-        return repr(float(v)) if isinstance(v, float) else str(v)
-    if isinstance(v, str):
-        return _q(v)
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
 @dataclass
 class CaptureState:
     digest: str
@@ -403,44 +387,36 @@ class CaptureState:
 
 def write_capture_manifest(path: Path, state: CaptureState, plan: list[Measurement], cfg: CaptureConfig) -> Path:
     """The measurement set's manifest (raw format) plus the ``[capture]`` state table, atomically."""
-    lines = []
+    doc: dict[str, Any] = {}
     if "beam" in state.done:
         f, bg = state.files["beam"]
-        lines += ["[beam]", f"file = {_q(f)}", f"background = {_q(bg)}", ""]
-    for m in plan:
-        if m.kind == "sample" and m.name in state.done:
-            f, bg = state.files[m.name]
-            lines += ["[[sample]]", f"name = {_q(m.name)}", f"file = {_q(f)}", f"background = {_q(bg)}", ""]
+        doc["beam"] = {"file": f, "background": bg}
+    samples = [m.name for m in plan if m.kind == "sample" and m.name in state.done]
+    if samples:
+        doc["sample"] = [{"name": n, "file": state.files[n][0], "background": state.files[n][1]} for n in samples]
     tol = cfg.calibration.nd_tolerances
     if tol:
-        lines += ["[calibration.nd_tolerances]"] + [f"{_q(str(float(k)))} = {float(v)!r}" for k, v in tol.items()] + [""]
-    lines += [
-        "[capture]",
-        "# brdfjax capture progress (read by --resume; brdfjax reduce ignores it)",
-        f"status = {_q(state.status)}",
-        f"config = {_q(cfg.source)}",
-        f"config_digest = {_q(state.digest)}",
-        f"seed = {state.seed}",
-        f"plan = {_toml_value([m.name for m in plan])}",
-        f"done = {_toml_value(state.done)}",
-        f"interlock_safe_nd = {_q(state.safe_stack) if state.safe_stack is not None else _q('')}",
-        f"interlock_evidence = {_q(state.safe_evidence)}",
-        f"interlock_overridden = {_toml_value(state.overridden or [])}",
-        f"updated = {_q(time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()))}",
-        "",
-    ]
+        doc["calibration"] = {"nd_tolerances": {str(float(k)): float(v) for k, v in tol.items()}}
+    cap: dict[str, Any] = {
+        "status": state.status,
+        "config": cfg.source,
+        "config_digest": state.digest,
+        "seed": state.seed,
+        "plan": [m.name for m in plan],
+        "done": list(state.done),
+        "interlock_safe_nd": state.safe_stack if state.safe_stack is not None else "",
+        "interlock_evidence": state.safe_evidence,
+        "interlock_overridden": list(state.overridden or []),
+        "updated": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
     if state.fingerprint:
-        lines += ["[capture.fingerprint]", "# what defines this capture's problem; --resume refuses any difference"]
-        lines += [f"{_q(k)} = {_toml_value(v)}" for k, v in state.fingerprint.items()]
-        lines.append("")
+        cap["fingerprint"] = dict(state.fingerprint)
     if state.alignment:
-        lines += ["[capture.alignment]"]
-        for k, v in state.alignment.items():
-            if isinstance(v, int | float | str | bool):
-                lines.append(f"{k} = {_toml_value(v)}")
-        lines.append("")
-    with atomic_output(path) as tmp:
-        tmp.write_text("\n".join(lines), encoding="utf-8")
+        cap["alignment"] = {k: v for k, v in state.alignment.items() if isinstance(v, int | float | str | bool)}
+    doc["capture"] = cap
+    toml.write(path, doc, header=(
+        "[capture]: brdfjax capture progress (read by --resume; brdfjax reduce ignores it)\n"
+        "[capture.fingerprint]: what defines this capture's problem; --resume refuses any difference"))
     return path
 
 

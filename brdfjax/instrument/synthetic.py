@@ -107,6 +107,7 @@ from pydantic import Field, field_validator
 
 from ..config.base import StrictModel, read_toml, validate
 from ..core.detector import Detector
+from ..core.fft import fast_len
 from ..core.render import Frame, render, render_geometry
 from ..core.terms import AbstractTerm
 from ..io.header import geometry_attrs
@@ -119,6 +120,7 @@ from ..io.raw import (
     write_raw_exr,
 )
 from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
+from .radiometry import flux_from_brdf
 
 __all__ = [
     "EFFECTS",
@@ -453,22 +455,6 @@ def footprint_kernel(w_px: float, *, tail: float = 1e-12, step: int = 1) -> np.n
     return k / k.sum()
 
 
-def _fast_len(n: int) -> int:
-    """Smallest 2^a 3^b 5^c >= n (fast FFT sizes)."""
-    best = 1 << (n - 1).bit_length()
-    p5 = 1
-    while p5 < best:
-        p35 = p5
-        while p35 < best:
-            m = p35
-            while m < n:
-                m *= 2
-            best = min(best, m)
-            p35 *= 3
-        p5 *= 5
-    return best
-
-
 def convolve_footprint(image: np.ndarray, kernel: np.ndarray, *, strip_rows: int = 512) -> np.ndarray:
     """Linear 2-D convolution of ``image`` with a centred odd ``kernel`` (zero outside), float32 out.
 
@@ -486,8 +472,8 @@ def convolve_footprint(image: np.ndarray, kernel: np.ndarray, *, strip_rows: int
     ph, pw = kh // 2, kw // 2
     rows, cols = image.shape
     strip_rows = max(1, min(strip_rows, rows))
-    fr = _fast_len(strip_rows + kh - 1)
-    fc = _fast_len(cols + kw - 1)
+    fr = fast_len(strip_rows + kh - 1)
+    fc = fast_len(cols + kw - 1)
     kf = np.fft.rfft2(kernel, s=(fr, fc))
     out = np.empty((rows, cols), dtype=np.float32)
     for r0 in range(0, rows, strip_rows):
@@ -505,11 +491,9 @@ def convolve_footprint(image: np.ndarray, kernel: np.ndarray, *, strip_rows: int
 def scatter_flux_image(
     brdf: np.ndarray, theta_s: np.ndarray, solid_angle: np.ndarray, incident_flux: float
 ) -> np.ndarray:
-    """Eq 45 inverted, ``Phi_s = f_r cos(theta_s) Omega_d Phi_i`` per pixel (units of ``incident_flux``), float32."""
-    out = np.asarray(brdf, dtype=np.float64) * np.cos(np.asarray(theta_s, dtype=np.float64))
-    out *= np.asarray(solid_angle, dtype=np.float64)
-    out *= float(incident_flux)
-    return out.astype(np.float32)
+    """Eq 45 inverted (:func:`~brdfjax.instrument.radiometry.flux_from_brdf`) per pixel in float64, as float32."""
+    f64 = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
+    return flux_from_brdf(f64(brdf), float(incident_flux), f64(theta_s), f64(solid_angle)).astype(np.float32)
 
 
 def beam_flux_image(shape: tuple[int, int], centre: tuple[float, float], w_px: float, flux: float) -> np.ndarray:
