@@ -27,8 +27,9 @@ for p in (str(HERE), str(ROOT)):
 import cli_reference  # noqa: E402
 import config_reference  # noqa: E402
 import equations  # noqa: E402
-import notebooks  # noqa: E402
 import validation  # noqa: E402
+
+import notebooks  # noqa: E402
 
 
 def _listed(nav: object) -> set[str]:
