@@ -81,7 +81,7 @@ def on_files(files, config, **kwargs):
     for uri, text in pages.items():
         files.append(File.generated(config, uri, content=text))
     for fig in validation.figures():
-        files.append(File.generated(config, f"validation/figures/{fig.name}", abs_src_path=str(fig)))
+        files.append(File.generated(config, f"figures/{fig.name}", abs_src_path=str(fig)))
     return files
 
 

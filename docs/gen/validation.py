@@ -124,8 +124,8 @@ def records(slug: str) -> list[Path]:
 
 
 def figures() -> list[Path]:
-    """Every figure the pages show (the hook copies them into the site)."""
-    return sorted({f for slug in PAGES for r in records(slug) for f in _figures(r.stem)})
+    """Every figure of ``experiments/figures`` (the hook copies them into the site's ``figures/``)."""
+    return sorted(FIGURES.glob("*.png"))
 
 
 def page(slug: str, max_rows: int = 30) -> str:
@@ -148,7 +148,7 @@ def page(slug: str, max_rows: int = 30) -> str:
                       "are those in its `settings`/`note` where it keeps them):", "", "    ```bash"]
             lines += [f"    {c}" for c in inv[:4]] + ["    ```", ""]
         for fig in _figures(path.stem):
-            lines += ["", f"![{fig.stem}](figures/{fig.name})", ""]
+            lines += ["", f"![{fig.stem}](../figures/{fig.name})", ""]
         rows = []
         if isinstance(data, dict):
             rows = _scalars({k: v for k, v in data.items() if k not in ("command", "argv")})
