@@ -189,6 +189,15 @@ def test_no_history_in_readme_or_docs(page):
     assert not hits, f"{page.relative_to(ROOT)}: {hits}"
 
 
+def test_no_history_in_the_package():
+    """Comments and docstrings say what the code does and why, not when or in which round it changed."""
+    hits = []
+    for path in sorted((ROOT / "brdfjax").rglob("*.py")):
+        for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            hits += [f"{path.relative_to(ROOT)}:{n}: {m.group(0)}" for m in HISTORY.finditer(line)]
+    assert not hits, hits
+
+
 def test_history_pattern_catches_history():
     for s in ("as issue 18 asked", "at load average 12", "(871 s before this round's savings)", "target not met"):
         assert HISTORY.search(s), s

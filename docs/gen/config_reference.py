@@ -72,6 +72,11 @@ def _models_in(annotation: Any) -> list[tuple[str, type[BaseModel]]]:
 
 
 def _type_name(annotation: Any) -> str:
+    origin = typing.get_origin(annotation)
+    if origin is typing.Literal:
+        return " or ".join(repr(a) for a in typing.get_args(annotation))
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(annotation))
     text = getattr(annotation, "__name__", None) if typing.get_origin(annotation) is None else None
     text = text or str(annotation).replace("typing.", "")
     for mod in ("brdfjax.", "pathlib."):
@@ -143,7 +148,7 @@ def page() -> str:
                   "| --- | --- | --- | --- | --- |"]
         for prefix, m in roots:
             for key, typ, u, default, desc in rows(prefix, m):
-                typ = typ.replace("|", "or")
+                typ = typ.replace(" | ", " or ").replace("|", "or")
                 lines.append(f"| `{key}` | `{typ}` | {u} | {default} | {desc} |")
         lines.append("")
     return "\n".join(lines)
