@@ -105,6 +105,36 @@ def _scalars(d: object, prefix: str = "", depth: int = 0) -> list[tuple[str, str
     return out
 
 
+def _is_scalar(v: object) -> bool:
+    return isinstance(v, (int, float, str, bool)) or v is None
+
+
+def _tables(data: dict, max_rows: int = 30, max_cols: int = 8) -> list[str]:
+    """A table per top-level list of records or mapping of records (``rows``, ``fits``, ``trials``, ...)."""
+    out: list[str] = []
+    for key, value in data.items():
+        if isinstance(value, list) and value and all(isinstance(r, dict) for r in value):
+            rows = [(str(i), r) for i, r in enumerate(value)]
+        elif isinstance(value, dict) and value and all(isinstance(r, dict) for r in value.values()):
+            rows = [(str(k), r) for k, r in value.items()]
+        else:
+            continue
+        cols: list[str] = []
+        for _, r in rows:
+            cols += [c for c, v in r.items() if _is_scalar(v) and c not in cols]
+        cols = cols[:max_cols]
+        if not cols:
+            continue
+        out += ["", f"`{key}`:", "", "| | " + " | ".join(f"`{c}`" for c in cols) + " |",
+                "| --- " * (len(cols) + 1) + "|"]
+        for name, r in rows[:max_rows]:
+            cells = [_fmt(r.get(c, "")).replace("|", "/").replace("\n", " ") for c in cols]
+            out.append(f"| `{name}` | " + " | ".join(cells) + " |")
+        if len(rows) > max_rows:
+            out.append(f"| ... | {len(rows) - max_rows} more rows in the record |" + " |" * (len(cols) - 1))
+    return out
+
+
 def _figures(stem: str) -> list[Path]:
     names = {
         "real_data_fits_": lambda s: [f"real_data_{s.removeprefix('real_data_fits_')}.png",
@@ -157,6 +187,8 @@ def page(slug: str, max_rows: int = 30) -> str:
             lines += [f"| `{k}` | {v.replace('|', '/')} |" for k, v in rows[:max_rows]]
             if len(rows) > max_rows:
                 lines.append(f"| ... | {len(rows) - max_rows} more in the record |")
+        if isinstance(data, dict):
+            lines += _tables(data)
         lines.append("")
     return "\n".join(lines)
 
