@@ -272,7 +272,10 @@ def test_equation_table_lists_every_term_and_distribution():
     for name in (*TERMS, *DISTRIBUTIONS):
         assert f"`{name}`" in page, name
     for cls in set(DISTRIBUTIONS.values()):
-        assert equations.equation_tag(cls).startswith("Eq "), cls  # every distribution is the seed's
+        assert cls.equation.startswith("Eq "), cls  # every distribution is the seed's
+    for kind, cls in TERMS.items():
+        assert cls.equation, kind  # every term names the equation or source it implements
+    assert "| `lambertian` | `Lambertian` | Eq 50, 70 |" in page
     assert "| `beckmann` | `Beckmann` | Eq 64 |" in page
 
 
