@@ -208,7 +208,7 @@ def test_cli_withheld_diffraction_from_disk(tmp_path, capsys):
     assert {"effect", "delta_chi2", "delta_bic", "signature", "chi2_reduced_after"} <= set(doc["ranking"][0])
     assert {"effect", "chi2_reduced", "rms_log10", "heldout_rms_log10"} <= set(doc["path"][0])
     # through the full synthetic CCD the frames also hold ambient light, stray light and the footprint: a
-    # diffuse floor competes with the bars there (see the README), so this test names one candidate
+    # diffuse floor competes with the bars there (see docs/guides/gap-diagnosis.md), so this test names one candidate
     assert doc["ranking"][0]["effect"] == "diffraction" and doc["significant"] is True
     assert [s["effect"] for s in doc["path"]] == ["base", "diffraction"]
     assert doc["path"][1]["chi2_reduced"] < 0.8 * doc["path"][0]["chi2_reduced"]

@@ -3,7 +3,7 @@ effect is a physical one (second lobe, shadowing, distribution shape or angular 
 response, and the report says that sigma was estimated.
 
 Each dataset's diagnosis refits the base with every candidate (minutes on a loaded 2-core box): the tables are
-decimated (every ``STEP``-th row) and the runs gated by --slow; the README's numbers are from these runs.
+decimated (every ``STEP``-th row) and the runs gated by --slow; the fitting-tables guide's numbers are from these runs.
 """
 
 from __future__ import annotations

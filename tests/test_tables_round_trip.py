@@ -3,7 +3,7 @@
 the withheld one first and its final chi^2 is within 5 % of the truth's own chi^2 on the same data.
 
 Each diagnosis refits the base with every candidate (2-4 min on the loaded 2-core box, where the JIT compiles
-dominate: 119-125 points): gated by --slow; README "Diagnosis of tables" gives the measured numbers.
+dominate: 119-125 points): gated by --slow; docs/guides/fitting-tables.md ("Diagnosis of tables") gives the measured numbers.
 """
 
 from __future__ import annotations
