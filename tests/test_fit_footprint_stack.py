@@ -4,7 +4,7 @@ import numpy as np
 
 import brdfjax as bj
 from brdfjax.core.presets import mirror
-from brdfjax.fit import FrameData, LevenbergMarquardt, _fit as fitmod
+from brdfjax.fit import FrameData, LevenbergMarquardt, _prepare as fitmod
 from brdfjax.fit.internal import prepare_problem
 from brdfjax.instrument.synthetic import footprint_kernel
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax.fit import FrameData, LevenbergMarquardt, TableData, _fit as fitmod, _problem as problem_mod, fit
+from brdfjax.fit import FrameData, LevenbergMarquardt, TableData, _prepare as fitmod, _problem as problem_mod, fit
 from brdfjax.fit._jacobian import supports
 from brdfjax.fit._problem import evaluate
 from brdfjax.fit.internal import prepare_problem

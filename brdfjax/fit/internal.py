@@ -22,8 +22,8 @@ is documented and stable within brdfjax; the modules it comes from
 """
 
 from ._common import FRAME_PARAMETERS as FRAME_PARAMETERS, natural_unit as natural_unit, to_natural as to_natural
-from ._fit import block_names as block_names, prepare as prepare_problem
 from ._params import SPEC_KEYS as SPEC_KEYS, as_param as as_param, check_param as check_param, param_problems as param_problems
+from ._prepare import block_names as block_names, prepare as prepare_problem
 from ._problem import Problem as Problem
 from ._residuals import LOSSES as LOSSES
 from ._resolution import lobe_fwhm as lobe_fwhm, lobe_parameters as lobe_parameters, table_step as table_step

@@ -43,11 +43,12 @@ from ..io.tables import Screen, read_astm_e1392, read_cornell_brdf, read_merl_in
 from ..runtime.progress import ProgressLine
 from ._common import FitInputError, natural_unit, to_natural
 from ._figures import write_figures
-from ._fit import _check_detectors, _resolve_precision, block_names, fit
+from ._fit import fit
 from ._frames_io import read_frame_data
 from ._likelihood import LIKELIHOOD_OPTIONS, Likelihood, prepare
 from ._nuisance import NuisanceOptions, build_nuisance, check_sigma_choice
 from ._params import Param
+from ._prepare import _check_detectors, _resolve_precision, block_names
 from ._result import FitResult
 from .config import FitConfig, FitDataConfig, ReduceConfig, TableConfig, load_fit_config
 
