@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -9,22 +12,17 @@ import brdfjax as bj
 from brdfjax.fit import FitInputError, Likelihood, TableData, fit, prepare
 from brdfjax.sample import NUTS, Emcee, SampleError, sample
 
-# The README's example, verbatim: a table fitted, its posterior sampled and its gap diagnosed from one likelihood.
-README_EXAMPLE = """
-import numpy as np, brdfjax as bj
-from brdfjax.fit import TableData, prepare, fit
-from brdfjax.sample import sample, Emcee, Prior
-from brdfjax.diagnose import diagnose
-truth = bj.Model(terms={"s": bj.Specular(bj.GGX(0.15), rho_s=0.6, n=1.5), "d": bj.Lambertian(0.1)})
-ts = np.radians(np.arange(-80.0, 81.0, 4.0)); ti = np.radians(np.repeat([20.0, 45.0], ts.size)); ts = np.tile(ts, 2)
-phi_s = np.where(ts < 0, 0.0, np.pi)
-f = np.asarray(truth(bj.Directions.from_angles(ti, 0 * ti, np.abs(ts), phi_s), 632.8e-9))
-table = TableData(ti, 0 * ti, np.abs(ts), phi_s, f * np.exp(0.02 * np.random.default_rng(1).standard_normal(f.size)), sigma_rel=0.02)
-lik = prepare(truth, table, {"s.alpha": "auto", "s.rho_s": "auto", "d.rho_d": "auto"})
-result = fit(lik)
-post = sample(lik, {"s.alpha": Prior.log_uniform(1e-3, 1.0)}, sampler=Emcee(n_walkers=16, n_steps=300), start=result, figures=False)
-gap = diagnose(lik, effects=["second_lobe"], max_steps=1)
-"""
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _readme_example() -> str:
+    """The README's shared-likelihood example (the block that calls ``prepare``), verbatim."""
+    text = (ROOT / "README.md").read_text()
+    (block,) = [b for b in re.findall(r"```python\n(.*?)```", text, re.S) if "prepare(" in b]
+    return block
+
+
+README_EXAMPLE = _readme_example()
 
 
 def _table(seed: int = 3):
