@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import write_config
 
 from brdfjax.batch import StudyError, load_study, run_study
 from brdfjax.cli import main
@@ -46,7 +47,7 @@ def study(tmp_path_factory):
     (frame,) = reduce_measurement_set(DATA / "example_set" / "manifest.toml", d / "reduced", correct_nonlinearity=True)
     jobs = []
     for i, m1 in enumerate((1.8e-4, 2.3e-4, 2.6e-4)):
-        (d / f"fit{i}.toml").write_text(FIT.format(frame=Path(frame).as_posix(), m1=m1))
+        write_config(d, FIT, f"fit{i}.toml", frame=Path(frame).as_posix(), m1=m1)
         jobs.append(f'[[jobs]]\nname = "fit{i}"\ncommand = "fit"\nconfig = "fit{i}.toml"\nargs = ["--no-figures"]\n')
     path = d / "study.toml"
     path.write_text('[batch]\nbackend = "process"\nworkers = 2\n\n' + "\n".join(jobs))

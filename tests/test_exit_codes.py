@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_config
 
 from brdfjax.cli import COMMANDS, main
 from brdfjax.runtime.errors import REPORT_TO, InputError, run_command
@@ -103,15 +104,12 @@ def w(tmp_path_factory):
     (root / "start.json").write_text(START)
 
     def fit_cfg(name: str, data_extra="", params_extra="", sample=None, diagnose="", frame=frame) -> str:
-        p = root / name
-        p.write_text(FIT.format(frame=Path(frame).as_posix(), data_extra=data_extra, params_extra=params_extra,
-                                sample="" if sample is None else SAMPLE + sample, diagnose=diagnose))
-        return str(p)
+        return str(write_config(root, FIT, name, frame=Path(frame).as_posix(), data_extra=data_extra,
+                                params_extra=params_extra, sample="" if sample is None else SAMPLE + sample,
+                                diagnose=diagnose))
 
     def capture_cfg(name: str, beam_nd="auto", nd="auto") -> str:
-        p = root / name
-        p.write_text(CAPTURE.format(beam_nd=beam_nd, nd=nd))
-        return str(p)
+        return str(write_config(root, CAPTURE, name, beam_nd=beam_nd, nd=nd))
 
     fit_cfg("fit.toml")
     fit_cfg("fit_badkey.toml", data_extra="sigma_flor = 0.01")

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_config
 
 import brdfjax as bj
 from brdfjax.cli import main
@@ -54,9 +55,7 @@ figures = {figures}
 
 
 def _tiny(tmp_path, frame, fit="", figures="true") -> Path:
-    p = tmp_path / "tiny.toml"
-    p.write_text(TINY.format(frame=Path(frame).as_posix(), fit=fit, figures=figures))
-    return p
+    return write_config(tmp_path, TINY, "tiny.toml", frame=Path(frame).as_posix(), fit=fit, figures=figures)
 
 
 def test_fit_cli_writes_the_result_contract_and_figures(tmp_path, example_frame, capsys):

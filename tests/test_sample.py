@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_config
 
 import brdfjax as bj
 from brdfjax.fit import fit, get_solver, render_noisy_frames
@@ -289,9 +290,8 @@ def example_frame(tmp_path_factory):
 
 def _tiny(tmp_path, frame, priors="", figures="true") -> Path:
     (tmp_path / "start.json").write_text(json.dumps(START))
-    p = tmp_path / "tiny.toml"
-    p.write_text(TINY.format(frame=Path(frame).as_posix(), priors=textwrap.dedent(priors), figures=figures))
-    return p
+    return write_config(tmp_path, TINY, "tiny.toml", frame=Path(frame).as_posix(), priors=textwrap.dedent(priors),
+                        figures=figures)
 
 
 def test_cli_runs_resumes_and_writes_the_contract(tmp_path, example_frame, capsys):

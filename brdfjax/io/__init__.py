@@ -13,6 +13,7 @@ the measurement-set manifest, with the format's specification.
 and a Frame to file attributes and back (simulated, reduced and raw frames).
 :mod:`brdfjax.io.exr`: one rendered or reduced frame as a single-part OpenEXR
 file (:class:`ExrFrame`).
+:mod:`brdfjax.io.toml`: the one TOML writer (``dumps``, ``write``; reading is :mod:`tomllib`).
 :func:`atomic_output`: write a file under a temporary name, then rename it
 (every file brdfjax writes goes through it; :func:`write_json_atomic` for JSON).
 """

@@ -236,6 +236,20 @@ def _tau(chain: np.ndarray) -> np.ndarray:
         return np.asarray(emcee.autocorr.integrated_time(chain, tol=0, quiet=True), np.float64)
 
 
+def short_chain(names: Sequence[str], tau: np.ndarray, m: int, burn: int) -> tuple[tuple[str, ...], list[str]]:
+    """The parameters whose kept chain (``m`` steps after ``burn``) is not longer than 50 tau, and the warning
+    naming them (both samplers' diagnostics)."""
+    short = tuple(name for name, t in zip(names, tau) if not (np.isfinite(t) and m > N_TAU * t))
+    if not short:
+        return short, []
+    worst = float(np.nanmax(tau)) if np.any(np.isfinite(tau)) else math.nan
+    return short, [
+        f"the chain is shorter than {N_TAU} autocorrelation times for {', '.join(short)} "
+        f"({m} kept steps, largest tau {worst:.1f} steps): the estimates of tau and of the posterior are unreliable; "
+        f"run longer (--resume with more steps; about {int(N_TAU * worst) + burn if np.isfinite(worst) else '?'} steps)"
+    ]
+
+
 def diagnose(
     backend: Any, names: Sequence[str], *, burn: int | str = "auto", thin: int = 1, check_every: int = 100
 ) -> Diagnostics:
@@ -256,15 +270,7 @@ def diagnose(
     m = kept.shape[0]
     with np.errstate(divide="ignore", invalid="ignore"):
         ess = nw * m / tau
-    short = tuple(name for name, t in zip(names, tau) if not (np.isfinite(t) and m > N_TAU * t))
-    warnings = []
-    if short:
-        worst = float(np.nanmax(tau)) if np.any(np.isfinite(tau)) else math.nan
-        warnings.append(
-            f"the chain is shorter than {N_TAU} autocorrelation times for {', '.join(short)} "
-            f"({m} kept steps, largest tau {worst:.1f} steps): the estimates of tau and of the posterior are unreliable; "
-            f"run longer (--resume with more steps; about {int(N_TAU * worst) + burn_n if np.isfinite(worst) else '?'} steps)"
-        )
+    short, warnings = short_chain(names, tau, m, burn_n)
     converged = False
     if not short and m > check_every + 2:
         tau_prev = _tau(chain[burn_n : n - check_every])

@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._chain import N_TAU, Diagnostics, RunOutcome
+from ._chain import Diagnostics, RunOutcome, short_chain
 from ._posterior import LogPosterior, _log_posterior_sampler
 from ._priors import SampleError
 from ._store import ChainStore
@@ -398,14 +398,7 @@ def nuts_diagnostics(chain: NutsChain, names: Sequence[str], *, burn: int | str 
         tau = chain.n_chains * m / ess
     acc = np.mean(chain.rows["accept"][burn_n:], axis=0) if m else np.full(chain.n_chains, np.nan)
     div = int(np.sum(chain.rows["diverging"][burn_n:])) if m else 0
-    short = tuple(nm for nm, t in zip(names, tau) if not (np.isfinite(t) and m > N_TAU * t))
-    warns = []
-    if short:
-        worst = float(np.nanmax(tau)) if np.any(np.isfinite(tau)) else math.nan
-        warns.append(
-            f"the chain is shorter than {N_TAU} autocorrelation times for {', '.join(short)} ({m} kept steps, largest "
-            f"tau {worst:.1f} steps); run longer (--resume with more steps)"
-        )
+    short, warns = short_chain(names, tau, m, burn_n)
     bad_rhat = [nm for nm, r in zip(names, rhat) if np.isfinite(r) and r >= RHAT_MAX]
     if bad_rhat:
         warns.append(f"R-hat >= {RHAT_MAX} for {', '.join(bad_rhat)}: the chains disagree; run longer")
