@@ -17,7 +17,7 @@ what is left of ``--budget-s`` is skipped with the reason):
     NumPy float64 oracle (:func:`brdfjax.reference.solar_cell_frame`) on every ``--ref-step``-th pixel of the
     frame: ``max |f - f_ref| / f_ref`` where ``f_ref`` exceeds 1e-3 of its maximum.
 ``sharded``
-    :func:`brdfjax.render_sharded` (float32) with the frame's rows split over every device of
+    :func:`brdfjax.render` with ``devices`` (float32) with the frame's rows split over every device of
     ``jax.devices()``: the device count, first and steady times, and ``max |f_sharded - f_render|`` relative
     to the frame's maximum.
 ``fit``
@@ -149,7 +149,7 @@ def section_sharded(args) -> dict:
     box: dict = {}
 
     def sharded():
-        box["f"] = bj.render_sharded(model, frame, det, step=args.step, precision="float32", devices=devices)
+        box["f"] = bj.render(model, frame, det, step=args.step, precision="float32", devices=devices)
         return box["f"]
 
     first, steady = _timed(sharded, args.repeats)

@@ -125,7 +125,7 @@ def test_every_block_compiles_and_few_are_skipped():
 
 
 def test_readme_example(results):
-    r = results[_key("result = fit(", "README.md")]
+    r = results[_key("render_noisy_frames(", "README.md")]
     assert r["brdf_shape"] == [309, 412]  # every 8th pixel of 2472 x 3296
     fit = r["result"]
     assert fit["converged"] is True

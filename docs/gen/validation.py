@@ -38,7 +38,13 @@ PAGES: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "performance": ("Performance",
                     "Timings and memory of frames, fits, sampling, light curves and studies. Wall times depend on the "
                     "machine and its load; each record keeps the load and CPU count it was measured at.",
-                    ("benchmark_", "fit_memory", "batch_study", "lightcurve_glints")),
+                    ("benchmark_", "fit_memory", "batch_study", "lightcurve_glints", "device_check", "tour")),
+    "sky": ("Satellites and the sky",
+            "Predictions of real satellite observations from lab BRDFs, their bands, and the gap on the sky.",
+            ("sky_", "observe_")),
+    "other": ("Other measurements",
+              "Every other record of `experiments/results/`: studies of one question each.",
+              ()),
 }
 
 #: record-name prefix -> the script that writes it (longest prefix wins)
@@ -149,8 +155,12 @@ def _figures(stem: str) -> list[Path]:
 
 
 def records(slug: str) -> list[Path]:
-    prefixes = PAGES[slug][2]
-    return sorted(p for p in RESULTS.glob("*.json") if p.stem.startswith(prefixes))
+    """The records a page shows: those whose names start with its prefixes; ``other`` shows the rest."""
+    every = sorted(RESULTS.glob("*.json"))
+    if PAGES[slug][2]:
+        return [p for p in every if p.stem.startswith(PAGES[slug][2])]
+    claimed = tuple(x for v in PAGES.values() for x in v[2])
+    return [p for p in every if not p.stem.startswith(claimed)]
 
 
 def figures() -> list[Path]:
