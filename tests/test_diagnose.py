@@ -105,8 +105,8 @@ def test_table_diffuse_floor_withheld():
     from brdfjax.core.geometry import Directions
     from brdfjax.fit import TableData
 
-    truth = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5), "floor": bj.Lambertian(0.3)})
-    base = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5)})
+    truth = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5, **bj.SEED_FORM), "floor": bj.Lambertian(0.3)})
+    base = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5, **bj.SEED_FORM)})
     ti = np.repeat(np.radians([20.0, 40.0]), 60)
     ts = np.tile(np.radians(np.linspace(1.0, 80.0, 60)), 2)
     phi_s = np.full(ti.shape, np.pi)
@@ -267,7 +267,7 @@ def test_refit_top_keeps_the_runners_up():
             return Signature(0.0, self.scores[min(step, 1)], "set by the test")
 
     library = {"A": Copy("A", (100.0, 1.0)), "B": Copy("B", (90.0, 2.0)), "C": Copy("C", (1.0, 95.0)), "D": Copy("D", (0.5, 94.0))}
-    truth = bj.Model(terms={"center": bj.Specular(bj.Beckmann(2e-4), rho_s=0.02, n=3.6), "bg": bj.Lambertian(0.05)})
+    truth = bj.Model(terms={"center": bj.Specular(bj.Beckmann(2e-4), rho_s=0.02, n=3.6, **bj.SEED_FORM), "bg": bj.Lambertian(0.05)})
     frames = render_noisy_frames(truth, [20.0], roi=(-160, 160, -160, 160), step=16, seed=4)
     base = bj.Model(terms={"center": truth.terms["center"]})
     d = diagnose(base, frames, {"center.m": 2.4e-4, "center.rho_s": 0.02}, library=library, refit_top=2, max_steps=2,

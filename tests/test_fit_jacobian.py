@@ -13,7 +13,7 @@ from brdfjax.instrument.synthetic import convolve_footprint, footprint_kernel
 # three kinds of term: a nonlinear one with a scale (rho_s), a pure scale (rho_d), and one only phi_ref turns
 MODEL = bj.Model(
     terms={
-        "peak": bj.Specular(bj.Beckmann(1e-4), rho_s=0.7, n=1.5),
+        "peak": bj.Specular(bj.Beckmann(1e-4), rho_s=0.7, n=1.5, **bj.SEED_FORM),
         "floor": bj.Lambertian(rho_d=1e-3),
         "bars": bj.Diffraction(rho=30.0, a=8e-4, b=1e-5, c=4e-5),
     }

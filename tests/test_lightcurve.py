@@ -79,7 +79,7 @@ def test_lambertian_sphere_phase_function():
 def test_glint_height_disk_average_vs_analytic_and_point_sun():
     """A mirror-like facet (Beckmann m = 2e-4) in the exact specular geometry: disk-averaged vs analytic."""
     m, rho_s, n, theta = 2e-4, 1.0, 1.5, np.deg2rad(30.0)
-    model = bj.Model({"s": bj.Specular(bj.Beckmann(m), rho_s=rho_s, n=n)})
+    model = bj.Model({"s": bj.Specular(bj.Beckmann(m), rho_s=rho_s, n=n, **bj.SEED_FORM)})
     g = _one_step([np.sin(theta), 0, np.cos(theta)], [-np.sin(theta), 0, np.cos(theta)])
     disk = SunDisk.rings(16)
     flux = float(facet_flux(_plate(model, 1.0), g, disk)["flux"][0, 0])

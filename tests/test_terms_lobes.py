@@ -124,7 +124,7 @@ def test_config_round_trip_of_the_new_terms_and_options():
         "phong": Phong(0.8, 40.0),
     })
     np.testing.assert_allclose(np.asarray(model(SWAP, 5e-7)), np.asarray(expect(SWAP, 5e-7)), rtol=1e-12)
-    assert model.terms["spec"].shadowing == "smith" and model.terms["glint"].normalisation == "seed"
+    assert model.terms["spec"].shadowing == "smith" and model.terms["glint"].normalisation == "torrance_sparrow"  # the default
     text = describe_model(cfg)
     assert "spec: multi_lobe(" in text and "shadowing=smith" in text and "normalisation=torrance_sparrow" in text
 

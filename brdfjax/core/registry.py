@@ -123,7 +123,8 @@ def build_term(
     Specular kinds take a distribution name; ``multi_lobe`` takes ``lobes``
     (lobe name -> distribution name) and parameters ``<lobe>.<name>`` plus the
     shared ``n``, ``k``; the microfacet kinds take the ``shadowing``,
-    ``normalisation`` and ``fresnel`` options (``None``: the seed's defaults); ``binomial``
+    ``normalisation`` and ``fresnel`` options (``None``: the term's default,
+    :data:`brdfjax.core.terms.STANDARD_FORM`); ``binomial``
     takes its coefficients ``b<k>_<i>``, ``c<k>_<i>``, ``d`` and the integer ``l1``
     (default 0).
     """

@@ -1144,10 +1144,8 @@ def model_terms_config(model: Model) -> tuple[dict[str, Any], dict[str, tuple[st
         units = {flat.split(".", 1)[1]: unit for flat, (_, unit) in paths.items() if flat.split(".", 1)[0] == tname}
         keys = parameter_keys(units)
         entry["params"] = {key: values[f"{tname}.{field}"] / scale for key, (field, scale, _) in keys.items()}
-        for opt in ("shadowing", "normalisation", "fresnel"):  # the microfacet options (a shadowing step sets them)
+        for opt in ("shadowing", "normalisation", "fresnel"):  # the microfacet options, always written
             val = getattr(inner, opt, None)
-            if opt == "fresnel" and val == "q_factor":
-                continue  # the default, not written (configs written before the option existed read the same)
             if isinstance(val, str) and kind in registry.MICROFACET_KINDS:
                 entry[opt] = val
         if kind == "multi_lobe":
