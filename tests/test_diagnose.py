@@ -87,7 +87,7 @@ def test_no_usable_pixels(tiny):
 
 def test_unknown_effect(tiny):
     truth, frames = tiny
-    with pytest.raises(DiagnoseInputError, match=r"unknown effect\(s\) \['difraction'\]; known: .*diffraction"):
+    with pytest.raises(DiagnoseInputError, match=r"unknown effect\(s\) \['difraction'\] \(did you mean 'diffraction'\?\); known: .*diffraction"):
         diagnose(_without(truth, "bars"), frames, {"m1": "free"}, effects=["difraction"])
 
 
@@ -232,7 +232,7 @@ def test_cli_bad_input(tmp_path, capsys):
 
     out = tmp_path / "out"
     assert main(["diagnose", str(_write_config(tmp_path, '["difraction"]')), "--out", str(out)]) == 2
-    assert "unknown effect(s) ['difraction']; known: offset_normal_peak" in capsys.readouterr().err
+    assert "unknown effect(s) ['difraction'] (did you mean 'diffraction'?); known: offset_normal_peak" in capsys.readouterr().err
     bad = tmp_path / "bad.toml"
     bad.write_text(CONFIG.replace("EFFECTS", "[]").replace("max_steps = 1", "max_steps = -1"))
     assert main(["diagnose", str(bad), "--out", str(out)]) == 2

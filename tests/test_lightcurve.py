@@ -322,7 +322,7 @@ def test_posterior_bands(tmp_path):
                                      "start = 2026-12-02T07:15:00Z": "start = 2026-12-02T07:13:38Z",
                                      "stop = 2026-12-02T07:16:00Z": "stop = 2026-12-02T07:13:44Z",
                                      "step_s = 10.0": "step_s = 1.0"})
-    assert main(["lightcurve", str(cfg), "--out", str(tmp_path / "out"), "--no-plot"]) == 0
+    assert main(["lightcurve", str(cfg), "--out", str(tmp_path / "out"), "--no-figures"]) == 0
     summary = json.loads((tmp_path / "out" / "lightcurve.json").read_text())
     assert summary["posterior"] == {"model": "cell", "n_samples": 8}
     band = {k: np.array(v, float) for k, v in summary["series"]["mag_band"].items()}

@@ -198,7 +198,7 @@ def test_gradients_are_finite_and_match_finite_differences():
 
 
 def test_bad_options_name_the_choices():
-    with pytest.raises(ValueError, match=r"unknown shadowing 'smit'; known: none, smith, v_cavity"):
+    with pytest.raises(ValueError, match=r"unknown shadowing 'smit' \(did you mean 'smith'\?\); known: none, smith, v_cavity"):
         Specular(dist.Beckmann(0.1), 0.5, 1.5, shadowing="smit")
     with pytest.raises(ValueError, match=r"unknown normalisation 'ts'; known: seed, torrance_sparrow"):
         Specular(dist.Beckmann(0.1), 0.5, 1.5, normalisation="ts")

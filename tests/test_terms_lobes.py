@@ -82,9 +82,9 @@ def test_gradients_are_finite_at_the_mirror_direction():
 def test_bad_parameters_name_the_term():
     with pytest.raises(ValueError, match=r"abg: parameter 'B' = 0.0 is invalid; expected B > 0"):
         ABg(A=1.0, B=0.0, g=2.0)
-    with pytest.raises(ValueError, match=r"multi_lobe: unknown shadowing 'smit'; known: none, smith, v_cavity"):
+    with pytest.raises(ValueError, match=r"multi_lobe: unknown shadowing 'smit' \(did you mean 'smith'\?\); known: none, smith, v_cavity"):
         MultiLobeSpecular({"a": Lobe(dist.GGX(0.1), 1.0)}, n=1.5, shadowing="smit")
-    with pytest.raises(KeyError, match=r"unknown term 'abgg'; known: abg, binomial, diffraction, lambertian, multi_lobe"):
+    with pytest.raises(KeyError, match=r"unknown term 'abgg' \(did you mean 'abg'\?\); known: abg, binomial, diffraction, lambertian, multi_lobe"):
         registry.lookup("term", "abgg")
 
 

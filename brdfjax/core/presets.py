@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..runtime.choices import check_choices
 from .distributions import Beckmann, BeckmannAniso, GGXAniso
 from .terms import SEED_FORM, Lambertian, Model, Oriented, Specular
 
@@ -56,9 +57,7 @@ KAPTON: dict[str, float] = {
 
 
 def _check(name: str, defaults: dict[str, float], overrides: dict[str, float]) -> dict[str, float]:
-    unknown = set(overrides) - set(defaults)
-    if unknown:
-        raise KeyError(f"{name}: unknown parameter(s) {sorted(unknown)}; known: {', '.join(defaults)}")
+    check_choices("parameter", sorted(overrides), defaults, error=KeyError, prefix=f"{name}: ")
     return {**defaults, **overrides}
 
 

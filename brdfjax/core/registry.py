@@ -12,6 +12,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
+from ..runtime.choices import check_choice
 from . import distributions as _d, presets as _presets
 from .terms import (
     _BINOMIAL_KEY as BINOMIAL_KEY,
@@ -85,9 +86,7 @@ _REGISTRIES = {"distribution": DISTRIBUTIONS, "term": TERMS, "preset": PRESETS}
 def lookup(kind: str, name: str) -> Any:
     """The registered object ``name`` of ``kind`` ('distribution', 'term', 'preset')."""
     table = _REGISTRIES[kind]
-    if name not in table:
-        raise KeyError(f"unknown {kind} '{name}'; known: {', '.join(sorted(table))}")
-    return table[name]
+    return table[check_choice(kind, name, table, error=KeyError, sort=True)]
 
 
 def parameter_names(cls: type) -> dict[str, str]:

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
+from ..runtime.choices import check_choice, check_choices
 from .distributions import AbstractDistribution, Beckmann
 from .fields import check_param, param
 from .fresnel import fresnel_microfacet, q_factor_parts
@@ -90,12 +91,9 @@ SEED_FORM: dict[str, str] = {"shadowing": "none", "normalisation": "seed", "fres
 
 
 def _check_options(owner: str, shadowing: str, normalisation: str, fresnel: str = "q_factor") -> None:
-    if fresnel not in FRESNELS:
-        raise ValueError(f"{owner}: unknown fresnel '{fresnel}'; known: {', '.join(FRESNELS)}")
-    if shadowing not in SHADOWING:
-        raise ValueError(f"{owner}: unknown shadowing '{shadowing}'; known: {', '.join(SHADOWING)}")
-    if normalisation not in NORMALISATIONS:
-        raise ValueError(f"{owner}: unknown normalisation '{normalisation}'; known: {', '.join(NORMALISATIONS)}")
+    check_choice("fresnel", fresnel, FRESNELS, prefix=f"{owner}: ")
+    check_choice("shadowing", shadowing, SHADOWING, prefix=f"{owner}: ")
+    check_choice("normalisation", normalisation, NORMALISATIONS, prefix=f"{owner}: ")
 
 
 def _specular_geometry(dirs: Directions, normalisation: str) -> Array:
@@ -607,7 +605,7 @@ class Model(AbstractTerm):
         flat = alias.get(name, name)
         if flat not in paths:
             known = sorted(set(alias) | (set(paths) - set(alias.values())))
-            raise KeyError(f"unknown parameter '{name}'; known: {', '.join(known)}")
+            check_choice("parameter", name, known, error=KeyError)
         return flat
 
     def parameter_units(self) -> dict[str, str]:
@@ -681,11 +679,7 @@ def solar_cell(**overrides: float) -> Model:
     dphi0, a, b, c, rho_s3`` (angles in radians); keyword overrides replace
     the seed values.  ``theta_i`` and ``phi_ref`` belong to the frame.
     """
-    unknown = set(overrides) - set(SOLAR_CELL_SEED)
-    if unknown:
-        raise KeyError(
-            f"solar_cell: unknown parameter(s) {sorted(unknown)}; known: {', '.join(SOLAR_CELL_SEED)}"
-        )
+    check_choices("parameter", sorted(overrides), SOLAR_CELL_SEED, error=KeyError, prefix="solar_cell: ")
     p = {**SOLAR_CELL_SEED, **overrides}
     return Model(
         terms={

@@ -63,6 +63,7 @@ from ..core import registry
 from ..core.terms import Model
 from ..fit import FitInputError, FitResult, FrameData, TableData, fit
 from ..fit.internal import as_param, natural_unit, to_natural
+from ..runtime.choices import check_choices
 from ..runtime.errors import InputError
 from .context import build_context, gap_measures, residual_maps
 from .effects import EFFECT_LIBRARY, camera_params, response_features
@@ -129,9 +130,7 @@ def _check_blocks(blocks: Sequence[Any], what: str) -> list[Any]:
 def _select_effects(library: Mapping[str, Any], names: Sequence[str] | None, base_model: Model) -> tuple[list[str], list[Candidate]]:
     explicit = names is not None
     names = list(library) if names is None else list(names)
-    unknown = [n for n in names if n not in library]
-    if unknown:
-        raise DiagnoseInputError(f"unknown effect(s) {unknown}; known: {', '.join(library)}")
+    check_choices("effect", names, library, error=DiagnoseInputError)
     chosen, skipped = [], []
     for n in names:
         eff = library[n]

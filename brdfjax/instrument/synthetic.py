@@ -110,6 +110,7 @@ from ..core.detector import Detector
 from ..core.render import Frame, render, render_geometry
 from ..core.terms import AbstractTerm
 from ..io.header import geometry_attrs
+from ..runtime.choices import check_choices
 from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
 from .raw import (
     Calibration,
@@ -346,9 +347,7 @@ class InstrumentConfig(StrictModel):
         return float(2**self.adc_bits - 1)
 
     def _check_names(self, names: Sequence[str]) -> None:
-        unknown = [n for n in names if n not in EFFECTS]
-        if unknown:
-            raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+        check_choices("effect", names, EFFECTS)
 
     def with_effects(self, **enabled: bool) -> "InstrumentConfig":
         """A copy with effects switched on or off by name: ``cfg.with_effects(shot_noise=False)``."""

@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -42,6 +43,7 @@ import h5py
 import numpy as np
 
 from ..io.fingerprint import check_resume
+from ..runtime.progress import ProgressLine, make_console
 from ._priors import SampleError
 
 __all__ = ["ChainInfo", "Diagnostics", "open_chain", "run_chain", "diagnose", "read_chain"]
@@ -216,10 +218,16 @@ def run_chain(
         out.wall_s = time.perf_counter() - t0
         return out
     last_tau = None
+    # emcee's bar (tqdm) on a terminal; plain lines otherwise (a log file gets no carriage returns)
+    bar = progress and sys.stderr.isatty()
+    lines = ProgressLine(make_console(), "sampling (emcee)", remaining, unit="steps", min_interval_s=10.0) \
+        if progress and not bar else None
     try:
-        for i, _ in enumerate(sampler.sample(state, iterations=remaining, progress=progress), start=1):
+        for i, _ in enumerate(sampler.sample(state, iterations=remaining, progress=bar), start=1):
             it = done + i
             out.iterations, out.new_steps = it, i
+            if lines is not None:
+                lines.update(i)
             if on_step is not None:
                 on_step(it)
             if stop_when_converged and it % check_every == 0:

@@ -58,6 +58,7 @@ from ...instrument.synthetic import (
     shift_add,
 )
 from ...io import write_frame_exr
+from ...runtime.choices import check_choice
 from .base import weight_names
 from .model import (
     inner_specular,
@@ -390,7 +391,7 @@ EXCLUSIVE = {
 def inject(name: str, rng: np.random.Generator, scenario: Scenario) -> Scenario:
     """``scenario`` with the effect ``name`` added to its truth (random plausible parameters; see each generator)."""
     if name not in GENERATORS:
-        raise KeyError(f"unknown effect '{name}'; known: {', '.join(GENERATORS)}")
+        check_choice("effect", name, GENERATORS, error=KeyError)
     if name in scenario.effects:
         raise ValueError(f"inject: the scenario already has the effect '{name}'")
     for other in scenario.effects:
