@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import brdfjax as bj
 from brdfjax import __version__
 from brdfjax.cli import COMMANDS, main
 from brdfjax.io import CHANNELS, read_frame_exr
@@ -52,6 +53,22 @@ def test_simulate_writes_exr_png_summary(small_run):
     assert sorted(os.listdir(out)) == ["summary.json", "ti20.exr", "ti20.png", "ti60.exr", "ti60.png"]
     for stem in ("ti20", "ti60"):
         assert (out / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_summary_times_are_wall_spans_within_the_total(small_run):
+    _, _, out = small_run
+    s = json.loads((out / "summary.json").read_text())
+    for f in s["frames"]:
+        # the EXR and PNG are written in parallel threads: the frame's times are spans, not sums
+        assert f["wall_s"] <= s["wall_s"] + 1e-3 and f["write_s"] <= f["wall_s"] + 1e-3
+        assert set(f["file_s"]) == {"exr", "png"} and max(f["file_s"].values()) <= f["write_s"] + 1e-3
+
+
+def test_term_labels_name_what_a_frame_shows():
+    from brdfjax.plotting import term_labels
+
+    assert term_labels(bj.solar_cell()) == {"center": "centre peak (center)", "offset": "offset peak (offset)",
+                                            "bars": "diffraction bars (bars)"}
 
 
 def test_exr_channels_and_attributes(small_run):

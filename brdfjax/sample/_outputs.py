@@ -207,7 +207,7 @@ def plot_predictive(
         ax.set_yscale("log")
         ax.set_ylabel("BRDF (sr$^{-1}$)")
         ax.set_title(f"{title}: column n_h = {int(n_h[c])}", fontsize=11)
-        rax.set_ylabel("/ posterior median model")
+        rax.set_ylabel("ratio to the posterior median")
         rax.set_xlabel("pixel row n_v")
         rax.axhline(1.0, color="0.5", lw=0.6)
         for a in (ax, rax):

@@ -22,7 +22,7 @@ import numpy as np
 from .. import __version__
 from ..core.render import render_frame
 from ..io import frame_attrs, write_frame_exr, write_json_atomic
-from ..plotting import plot_frame
+from ..plotting import plot_frame, term_labels
 
 __all__ = ["FrameResult", "run_simulate", "simulate_frame"]
 
@@ -136,6 +136,7 @@ def run_simulate(
     model = cfg.build_model()
     frames = cfg.build_frames()
 
+    labels = term_labels(model)
     t_start = time.perf_counter()
     entries = []
 
@@ -153,7 +154,9 @@ def run_simulate(
 
     def write_png(res: FrameResult) -> tuple[str, float, float]:
         t0 = time.perf_counter()
-        return plot_frame(res.brdf, grid, detector, res.frame, out / f"{res.stem}.png").name, t0, time.perf_counter()
+        png = plot_frame(res.brdf, grid, detector, res.frame, out / f"{res.stem}.png",
+                         terms=res.terms if len(res.terms) > 1 else None, labels=labels)
+        return png.name, t0, time.perf_counter()
 
     def finish(res: FrameResult, futures: dict[str, Any], fcfg, t_frame: float, t_submit: float) -> None:
         # Wait for this frame's files (an exception in a writer is raised here), then report it.  The EXR and
