@@ -141,7 +141,7 @@ BAD_INPUTS = [
     ("simulate", ["--out", "{w}/a_file.txt", "--no-figures"], "is a file, not a folder"),
     ("simulate", ["--out", "/proc/x", "--no-figures"], "cannot create anything in /proc"),
     ("simulate", ["--out", "{w}/a_file.txt/sub", "--no-figures"], "is a file, so the folder cannot be created"),
-    ("simulate", ["--out", "{w}/o", "--step", "0"], "step"),
+    ("simulate", ["--out", "{w}/o", "--step", "0"], "argument --step: must be a positive integer, got 0"),
     ("simulate", ["--out", "{w}/o", "--precision", "float16"], "invalid choice: 'float16'"),
     # synthesize
     ("synthesize", ["--out", "{w}/syn", "--nd", "abc"], "--nd 'abc'"),
@@ -153,7 +153,7 @@ BAD_INPUTS = [
     ("synthesize", ["--out", "{w}/syn", "--seed", "x"], "invalid int value: 'x'"),
     # reduce
     ("reduce", ["{w}/no_such_set", "--out", "{w}/r"], "no_such_set: no such manifest or folder"),
-    ("reduce", ["{w}/set", "--out", "{w}/r", "--step", "0"], "--step must be a positive integer, got 0"),
+    ("reduce", ["{w}/set", "--out", "{w}/r", "--step", "0"], "argument --step: must be a positive integer, got 0"),
     ("reduce", ["{w}/set", "--out", "{w}/r", "--merge", "replacement", "--correct-nonlinearity"], "needs --merge weighted"),
     ("reduce", ["{w}/set", "--out", "{w}/a_file.txt"], "is a file, not a folder"),
     ("reduce", ["{w}/set", "--out", "/proc/x"], "cannot create anything in /proc"),
@@ -178,7 +178,7 @@ BAD_INPUTS = [
     ("sample", ["{w}/samp.toml", "--out", "{w}/a_file.txt"], "is a file, not a folder"),
     ("sample", ["{w}/samp.toml", "--out", "/proc/x"], "cannot create anything in /proc"),
     ("sample", ["{w}/samp.toml", "--out", "{w}/s1", "--walkers", "3"], "n_walkers = 3 is fewer than twice"),
-    ("sample", ["{w}/samp.toml", "--out", "{w}/s2", "--steps", "0"], "--steps must be a positive integer"),
+    ("sample", ["{w}/samp.toml", "--out", "{w}/s2", "--steps", "0"], "argument --steps: must be a positive integer"),
     ("sample", ["{w}/samp.toml", "--out", "{w}/s3", "--resume"], "there is no chain to resume"),
     ("sample", ["{w}/sample_prior.toml", "--out", "{w}/s4"], "prior on unknown parameter"),
     ("sample", ["{w}/sample_fixed.toml", "--out", "{w}/s5"], "prior on 'm2', which is held fixed"),
