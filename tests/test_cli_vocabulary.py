@@ -117,3 +117,19 @@ def test_a_table_path_that_is_a_directory_gets_its_own_message(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert "data.tables[0].path" in proc.stderr and "is a directory" in proc.stderr, proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_no_progress_silences_progress_lines_but_not_status_lines():
+    import io
+
+    from brdfjax.runtime.progress import ProgressLine, make_console
+
+    for no_progress, expect_lines in ((False, True), (True, False)):
+        console = make_console(no_progress=no_progress)
+        console.file = io.StringIO()
+        with ProgressLine(console, "work", 3, min_interval_s=0.0) as bar:
+            for i in range(1, 4):
+                bar.update(i)
+        console.print("status line", markup=False)
+        text = console.file.getvalue()
+        assert ("work: 3/3" in text) is expect_lines and "status line" in text and "\r" not in text
