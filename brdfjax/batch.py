@@ -24,7 +24,7 @@ run again.  Each result file also records the job's problem fingerprint
 (:mod:`brdfjax.io.fingerprint`: the command line and the SHA-256 of its
 config file): a job that succeeded under another config is not silently
 counted as done, the rerun is refused naming the job and what differs.
-Progress is shown as a bar on stderr.
+Progress goes to stderr: a bar on a terminal, one plain line per finished job otherwise (a log file).
 
 Ray is an optional extra (``pip install brdfjax[cluster]``): on a cluster the
 study folder and the configs must be on a filesystem every node sees.
@@ -45,12 +45,13 @@ from pathlib import Path
 from typing import Any
 
 from pydantic import Field, field_validator
-from tqdm import tqdm
 
 from .config import ConfigError, StrictModel, check_choice, read_toml, validate
 from .io import write_json_atomic
 from .io.fingerprint import check_resume, file_digest, value_digest
+from .runtime.cli_args import DIR, add_no_figures, positive_int
 from .runtime.errors import InputError
+from .runtime.progress import ProgressLine, make_console
 
 __all__ = ["StudyError", "Job", "Study", "load_study", "run_study", "add_arguments", "run", "BACKENDS"]
 
@@ -114,12 +115,14 @@ def load_study(path: str | os.PathLike) -> tuple[Study, Path]:
     return study, p.parent
 
 
-def _describe(job: Job, base: Path, out: Path) -> dict[str, Any]:
+def _describe(job: Job, base: Path, out: Path, figures: bool = True) -> dict[str, Any]:
     """The job as it runs (absolute paths): what a result file must match to be skipped."""
     argv = [job.command]
     if job.config is not None:
         argv.append(str((base / job.config).resolve()))
     argv += ["--out", str((out / job.name).resolve()), *job.args]
+    if not figures and "--no-figures" not in argv:
+        argv.append("--no-figures")
     fingerprint = {"argv": value_digest(argv)}
     if job.config is not None:
         fingerprint["config_file"] = file_digest(base / job.config)
@@ -212,8 +215,14 @@ def run_study(
     workers: int | None = None,
     progress: bool = True,
     on_result: Callable[[dict[str, Any]], None] | None = None,
+    figures: bool = True,
+    console: Any = None,
 ) -> StudyReport:
-    """Run the jobs of a study not yet done in ``out_dir``; one result file per job (see the module docstring)."""
+    """Run the jobs of a study not yet done in ``out_dir``; one result file per job (see the module docstring).
+
+    ``figures=False`` adds ``--no-figures`` to every job's command line (every subcommand takes it).
+    ``console``: where progress goes (default: stderr; a rich bar on a terminal, plain lines otherwise).
+    """
     t0 = time.perf_counter()
     study, base = load_study(study_path)
     b = study.batch
@@ -230,7 +239,7 @@ def run_study(
     report = StudyReport(backend)
     specs = []
     for job in study.jobs:
-        spec = _describe(job, base, out)
+        spec = _describe(job, base, out, figures)
         if _done(results / f"{job.name}.json", spec):
             report.skipped.append(job.name)
         else:
@@ -241,17 +250,18 @@ def run_study(
         stream = _run_pool(specs, workers)
     else:
         stream = (run_job(s) for s in specs)
-    bar = tqdm(total=len(study.jobs), initial=len(report.skipped), desc=f"study ({backend})", unit="job",
-               disable=not progress, file=sys.stderr)
-    with bar:
+    console = make_console(no_progress=not progress) if console is None else console
+    with ProgressLine(console, f"study ({backend})", len(study.jobs), unit="jobs", min_interval_s=0.0) as bar:
+        bar.update(len(report.skipped))
         for rec in stream:
             write_json_atomic(results / f"{rec['name']}.json", rec)
             (report.ran if rec["ok"] else report.failed).append(rec["name"])
             if on_result is not None:
                 on_result(rec)
-            bar.update(1)
+            bar.update(len(report.skipped) + len(report.ran) + len(report.failed), rec["name"])
             if not rec["ok"]:
-                bar.write(f"job {rec['name']} failed (exit {rec['exit_code']}): {rec['output_tail'][-300:]}")
+                console.print(f"job {rec['name']} failed (exit {rec['exit_code']}): {rec['output_tail'][-300:]}",
+                              markup=False)
     report.wall_s = time.perf_counter() - t0
     write_json_atomic(out / "study.json", {
         "study": str(Path(study_path).resolve()), "backend": backend, "jobs": [j.name for j in study.jobs],
@@ -264,25 +274,28 @@ def run_study(
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("study", metavar="STUDY", help="a study file (TOML: [batch] and [[jobs]])")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder: DIR/NAME/ per job, DIR/jobs/NAME.json")
+    p.add_argument("study", metavar="STUDY", help="a study file (TOML: [batch] and [[jobs]]; see configs/batch_example.toml)")
+    p.add_argument("--out", required=True, metavar=DIR, help="output folder: DIR/NAME/ per job, DIR/jobs/NAME.json")
     p.add_argument("--backend", choices=BACKENDS, default=None, help="override [batch].backend")
-    p.add_argument("--address", default=None, help="Ray cluster address (override [batch].address)")
-    p.add_argument("--workers", type=int, default=None, help="concurrent jobs (override [batch].workers)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--address", default=None, metavar="ADDRESS", help="Ray cluster address (override [batch].address)")
+    p.add_argument("--workers", type=positive_int, default=None, metavar="N", help="concurrent jobs (override [batch].workers)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar or progress lines")
+    add_no_figures(p, "run every job with --no-figures")
 
 
 def run(args: argparse.Namespace) -> int:
     """Exit 0 when every job succeeded, 1 when some failed, 2 for a bad study file."""
     try:
         report = run_study(args.study, args.out, backend=args.backend, address=args.address, workers=args.workers,
-                           progress=not args.no_progress)
+                           progress=not (args.no_progress or args.quiet), figures=not args.no_figures,
+                           console=make_console(args.quiet, args.no_progress))
     except StudyError as e:
         print(f"brdfjax batch: error: {e}", file=sys.stderr)
         return 2
-    print(
-        f"brdfjax batch: {len(report.ran)} ran, {len(report.skipped)} skipped (done before), {len(report.failed)} failed "
-        f"on {report.backend} in {report.wall_s:.1f} s; results in {Path(args.out) / 'jobs'}",
-        file=sys.stderr,
-    )
+    if not args.quiet:
+        print(
+            f"brdfjax batch: {len(report.ran)} ran, {len(report.skipped)} skipped (done before), {len(report.failed)} "
+            f"failed on {report.backend} in {report.wall_s:.1f} s; results in {Path(args.out) / 'jobs'}",
+            file=sys.stderr,
+        )
     return 1 if report.failed else 0

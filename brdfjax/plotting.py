@@ -20,9 +20,31 @@ import numpy as np
 # no figure (``brdfjax fit --no-figures``, a batch worker, a reduction without plots) never loads it.
 from .core.detector import Detector, PixelGrid
 from .core.render import Frame
+from .core.terms import Diffraction, Lambertian, OffsetNormal
 from .io import atomic_output
 
-__all__ = ["plot_frame", "log10_floor"]
+__all__ = ["plot_frame", "log10_floor", "term_labels"]
+
+
+def term_labels(model: Any) -> dict[str, str]:
+    """What each term of a model looks like on a frame, for figure labels: ``{"center": "centre peak (center)",
+    "offset": "offset peak (offset)", "bars": "diffraction bars (bars)", ...}``."""
+    out: dict[str, str] = {}
+    first_peak = True
+    for name, term in model.terms.items():
+        if isinstance(term, Diffraction):
+            what = "diffraction bars"
+        elif isinstance(term, OffsetNormal):
+            what = "offset peak"
+        elif isinstance(term, Lambertian):
+            what = "diffuse floor"
+        elif hasattr(term, "distribution") or hasattr(term, "lobes") or hasattr(term, "term"):
+            what = "centre peak" if first_peak else "specular peak"
+            first_peak = False
+        else:
+            what = getattr(term, "kind", type(term).__name__)
+        out[name] = f"{what} ({name})"
+    return out
 
 #: Decades below the maximum shown in the image.
 DECADES = 8.0
@@ -164,6 +186,8 @@ def plot_frame(
     *,
     decades: float = DECADES,
     dpi: int = 110,
+    terms: dict[str, Any] | None = None,
+    labels: dict[str, str] | None = None,
 ) -> Path:
     """Save a seed-style PNG of one frame to ``path`` (atomically); returns the path.
 
@@ -172,6 +196,11 @@ def plot_frame(
     ``theta_s`` (solid) and ``phi_s`` (dashed) labelled in degrees.  Right: the
     BRDF along the pixel column through the centre peak (``n_h = 0``) and the
     column through the brightest pixel, log scale against ``n_v``.  ``brdf`` is the ``(rows, cols)`` image of ``grid``.
+
+    ``terms`` (name -> image, e.g. the simulation's per-term images) names each term on the image, with an
+    arrow to the brightest pixel where it makes at least half the BRDF, and draws each term's profile along
+    the first column (dashed); ``labels`` (name -> text, default :func:`term_labels`-style names) says what
+    each is ("centre peak", "offset peak", "diffraction bars").
     """
     b = np.asarray(brdf, dtype=np.float64)
     if b.shape != grid.shape:
@@ -221,6 +250,29 @@ def plot_frame(
                 va="center",
                 bbox=dict(boxstyle="round,pad=0.15", fc=style["color"], ec="none", alpha=0.85),
             )
+    term_images = {k: np.asarray(v, dtype=np.float64) for k, v in (terms or {}).items()}
+    offsets = [(60, -35), (-110, 40), (-110, -40), (70, 35), (-80, 0), (80, 0)]  # in the order labels are placed
+    rows_i, cols_i = np.indices(b.shape)
+    anchors: list[tuple[int, int]] = []
+    # the peaks first, so that a band through a peak is labelled away from it
+    for name, t in sorted(term_images.items(), key=lambda e: -float(np.nanmax(e[1], initial=0.0))):
+        if t.shape != b.shape:
+            continue
+        dominant = np.isfinite(t) & (t > 0) & (t >= 0.5 * np.where(np.isfinite(b), b, np.inf))
+        apart = dominant.copy()
+        for ar, ac in anchors:
+            apart &= np.hypot(rows_i - ar, cols_i - ac) > 0.12 * max(b.shape)
+        pick = apart if apart.any() else dominant
+        if not pick.any():
+            continue
+        rr, cc = np.unravel_index(int(np.argmax(np.where(pick, t, -np.inf))), t.shape)
+        anchors.append((rr, cc))
+        ax.annotate(
+            (labels or {}).get(name, name), (n_h[cc], n_v[rr]), xytext=offsets[(len(anchors) - 1) % len(offsets)],
+            textcoords="offset points", fontsize=8.5, color="black", ha="center", va="center",
+            bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="none", alpha=0.85),
+            arrowprops=dict(arrowstyle="->", color="white", lw=1.0),
+        )
     ax.set_xlim(box[0], box[1])
     ax.set_ylim(box[3], box[2])
     ax.set_xlabel(r"$n_h$ (pixel)")
@@ -241,8 +293,13 @@ def plot_frame(
         ax_col.semilogy(
             n_v, np.where(col > 0, col, np.nan), color=f"C{k}", lw=1.0, label=f"column $n_h$ = {n_h[ci]}"
         )
+    for k, (name, t) in enumerate(term_images.items()):  # what each column is made of: the first column, per term
+        if t.shape == b.shape and np.nanmax(t[:, columns[0]], initial=0.0) > 0:
+            tc = t[:, columns[0]]
+            ax_col.semilogy(n_v, np.where(tc > 0, tc, np.nan), ls="--", lw=0.9, color=f"C{k + 4}",
+                            label=f"{(labels or {}).get(name, name)}, column $n_h$ = {n_h[columns[0]]}")
     ax_col.plot([n_v[r]], [b[r, c]], "o", ms=4, color="C3", label=f"maximum {b[r, c]:.4g} sr$^{{-1}}$")
-    ax_col.legend(fontsize=8, loc="upper left")
+    ax_col.legend(fontsize=7.5, loc="upper left")
     ax_col.set_ylim(10 ** vmin, 10 ** (vmax + 0.3))
     ax_col.set_xlim(box[2], box[3])
     ax_col.set_xlabel(r"$n_v$ (pixel)")

@@ -70,6 +70,9 @@ angle_unit = "deg"
 [model.terms.spec]
 kind = "specular"
 distribution = "beckmann"
+shadowing = "none"           # the seed's Eq 70 form, which the reference tables are made with
+normalisation = "seed"
+fresnel = "q_factor"
 params = {{ m = 0.08, rho_s = 0.5, n = {n} }}
 
 [model.terms.diffuse]

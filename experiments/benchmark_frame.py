@@ -318,8 +318,8 @@ def _worker_lobe(args) -> dict:
     n_pairs = w_s[0].size
     terms = {
         "brdfjax_ts_smith": bj.Specular(bj.Beckmann(m), rho_s=1.0, n=n, k=k, shadowing="smith",
-                                        normalisation="torrance_sparrow"),
-        "brdfjax_seed": bj.Specular(bj.Beckmann(m), rho_s=1.0, n=n, k=k),
+                                        normalisation="torrance_sparrow", fresnel="q_factor"),
+        "brdfjax_seed": bj.Specular(bj.Beckmann(m), rho_s=1.0, n=n, k=k, **bj.SEED_FORM),
     }
     ws_dev = [jnp.asarray(c) for c in w_s]
 

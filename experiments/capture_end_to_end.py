@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     reduced = out / "reduced"
     if not (reduced / "summary.json").exists():
-        rc = cli(["reduce", str(manifest), "--out", str(reduced), "--no-plot"])
+        rc = cli(["reduce", str(manifest), "--out", str(reduced), "--no-figures"])
         if rc:
             return rc
     times["reduce_s"] = time.perf_counter() - t0

@@ -137,7 +137,7 @@ def glint_maps(quick: bool) -> dict:
 
 def glint_height() -> dict:
     m, n, theta = 2e-4, 1.5, np.deg2rad(30.0)
-    model = bj.Model({"s": bj.Specular(bj.Beckmann(m), rho_s=1.0, n=n)})
+    model = bj.Model({"s": bj.Specular(bj.Beckmann(m), rho_s=1.0, n=n, **bj.SEED_FORM)})
     r = np.array([[0.0, 0.0, 7e6]])
     s, o = np.array([np.sin(theta), 0, np.cos(theta)]), np.array([-np.sin(theta), 0, np.cos(theta)])
     g = Geometry.from_positions(r, np.array([[7e3, 0, 0]]), r + s * AU_M, r + o * 1e6)

@@ -130,13 +130,13 @@ def _summary(res, t0: float) -> dict:
 
 
 def single_lobe(distribution: str, width: float, rho_s: float, rho_d: float, index: dict, shadowing="none", normalisation="seed"):
-    spec = bj.Specular(DIST[distribution](width), rho_s, shadowing=shadowing, normalisation=normalisation, **index)
+    spec = bj.Specular(DIST[distribution](width), rho_s, shadowing=shadowing, normalisation=normalisation, fresnel="q_factor", **index)
     return bj.Model(terms={"spec": spec, "diffuse": bj.Lambertian(rho_d)})
 
 
 def two_lobes(d1: str, w1: float, r1: float, d2: str, w2: float, r2: float, rho_d: float, index: dict, normalisation: str):
     lobes = {"spike": Lobe(DIST[d1](w1), r1), "halo": Lobe(DIST[d2](w2), r2)}
-    spec = MultiLobeSpecular(lobes, shadowing="smith", normalisation=normalisation, **index)
+    spec = MultiLobeSpecular(lobes, shadowing="smith", normalisation=normalisation, fresnel="q_factor", **index)
     return bj.Model(terms={"spec": spec, "diffuse": bj.Lambertian(rho_d)})
 
 
@@ -145,7 +145,7 @@ def two_lobe_model(name: str, variant: str, params: dict, normalisation: str) ->
     _, _, dname, index = DATASETS[name]
     halo = bj.HyperCauchy(0.3, 3.0) if variant == "multi_lobe_hc" else bj.Beckmann(0.3)
     lobes = {"spike": Lobe(DIST[dname](0.01), 0.1), "halo": Lobe(halo, 0.1)}
-    model = bj.Model(terms={"spec": MultiLobeSpecular(lobes, shadowing="smith", normalisation=normalisation, **index),
+    model = bj.Model(terms={"spec": MultiLobeSpecular(lobes, shadowing="smith", normalisation=normalisation, fresnel="q_factor", **index),
                             "diffuse": bj.Lambertian(0.01)})
     return model.with_params(params)
 
@@ -167,7 +167,7 @@ def three_lobe_runs(run, name: str, two: bj.Model) -> None:
     for label, wm in (("three_lobes_geo", (ws * wh) ** 0.5), ("three_lobes_4x", 4.0 * ws)):
         lobes = {"spike": Lobe(DIST[dname](ws), 0.85 * rs), "mid": Lobe(bj.HyperCauchy(wm, 2.0), 0.2 * rs),
                  "halo": Lobe(bj.HyperCauchy(wh, gh), rh)}
-        model = bj.Model(terms={"spec": MultiLobeSpecular(lobes, shadowing="smith", normalisation=spec2.normalisation,
+        model = bj.Model(terms={"spec": MultiLobeSpecular(lobes, shadowing="smith", normalisation=spec2.normalisation, fresnel="q_factor",
                                                           n=spec2.n, k=spec2.k),
                                 "diffuse": bj.Lambertian(rho_d)})
         spec = {f"spec.spike.{wname}": "free", "spec.spike.rho_s": "free", "spec.mid.sigma": "free",
@@ -222,7 +222,7 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
     # (b') a distribution with a free tail (Hyper-Cauchy), Smith G2 (finite Lambda needs gamma > 1.5)
     tail = {"value": 2.5, "lower": 1.5, "upper": 30.0}
     run("tail_hc", bj.Model(terms={
-        "spec": bj.Specular(bj.HyperCauchy(wb, 2.5), rb, shadowing="smith", normalisation=best_norm, **index),
+        "spec": bj.Specular(bj.HyperCauchy(wb, 2.5), rb, shadowing="smith", normalisation=best_norm, fresnel="q_factor", **index),
         "diffuse": bj.Lambertian(db)}),
         {"spec.sigma": "free", "spec.gamma": tail, "spec.rho_s": "free", "diffuse.rho_d": "free"})
     # (c) two lobes sharing the index: a spike half as wide as (b) and a halo (Beckmann 5x wider, or
@@ -233,7 +233,7 @@ def fit_dataset(name: str, verbose: bool = True) -> tuple[dict, dict]:
         ("multi_lobe_hc", bj.HyperCauchy(2.0 * wb, 2.5), {"spec.halo.sigma": "free", "spec.halo.gamma": tail}),
     ):
         lobes = {"spike": Lobe(DIST[dname](0.5 * wb), 0.3 * rb), "halo": Lobe(halo, 0.7 * rb)}
-        model = bj.Model(terms={"spec": MultiLobeSpecular(lobes, shadowing="smith", normalisation=best_norm, **index),
+        model = bj.Model(terms={"spec": MultiLobeSpecular(lobes, shadowing="smith", normalisation=best_norm, fresnel="q_factor", **index),
                                 "diffuse": bj.Lambertian(db)})
         spec = {f"spec.spike.{wname}": "free", "spec.spike.rho_s": "free", "spec.halo.rho_s": "free",
                 "diffuse.rho_d": "free", **hspec}
@@ -322,7 +322,7 @@ def _stored_model(label: str, name: str, fits: dict) -> bj.Model:
         two = _stored_model("multi_lobe", name, fits)
         lobes = {"spike": Lobe(DIST[dname](0.01), 0.1), "mid": Lobe(bj.HyperCauchy(0.05, 2.0), 0.1),
                  "halo": Lobe(bj.HyperCauchy(0.3, 3.0), 0.1)}
-        spec = MultiLobeSpecular(lobes, shadowing="smith", normalisation=two.terms["spec"].normalisation, **index)
+        spec = MultiLobeSpecular(lobes, shadowing="smith", normalisation=two.terms["spec"].normalisation, fresnel="q_factor", **index)
         return bj.Model(terms={"spec": spec, "diffuse": bj.Lambertian(0.01)}).with_params(fits["three_lobes"]["parameters"])
     if label == "binomial":
         model = bj.Model(terms={"spec": Binomial(np.zeros((2, 3)), np.zeros((2, 1)), 1.0, l1=1), "diffuse": bj.Lambertian(0.01)})

@@ -51,7 +51,7 @@ def main(argv=None) -> int:
         file, index = CASES[name]
         table = read_merl_inplane(REAL / file) if file.startswith("merl") else read_cornell_brdf(REAL / file)
         table = table.select(slice(None, None, args.step))
-        model = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.1), rho_s=0.5, **index), "diffuse": bj.Lambertian(0.05)})
+        model = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.1), rho_s=0.5, **index, **bj.SEED_FORM), "diffuse": bj.Lambertian(0.05)})
         params = {"spec.alpha": "auto", "spec.rho_s": "auto", "diffuse.rho_d": "auto"}
         t0 = time.perf_counter()
         d = diagnose(model, table, params, effects=EFFECTS, max_steps=args.max_steps,

@@ -16,7 +16,7 @@ prints the headline numbers beside the seed's (physics.md, "Reference numbers"):
 
 Usage::
 
-    python experiments/reproduce_seed.py [--out runs/reproduce_seed] [--step 1] [--no-plot]
+    python experiments/reproduce_seed.py [--out runs/reproduce_seed] [--step 1] [--no-figures]
 """
 
 from __future__ import annotations
@@ -133,7 +133,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="runs/reproduce_seed", help="output folder (default runs/reproduce_seed)")
     ap.add_argument("--step", type=int, default=None, help="override grid.step (default: the configs' full resolution)")
-    ap.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
+    ap.add_argument("--no-figures", action="store_true", dest="no_plot", help="skip the PNG figures")
+    ap.add_argument("--no-plot", action="store_true", dest="no_plot", help=argparse.SUPPRESS)  # the old spelling
     args = ap.parse_args(argv)
 
     from rich.console import Console

@@ -132,3 +132,23 @@ def test_study_through_ray_killed_then_resumed(study, tmp_path, warm_cache):
     assert {n: (out / n / "result.json").stat().st_mtime_ns for n in done} == mtimes  # not redone
     m1 = [json.loads((out / n / "result.json").read_text())["parameters"]["m1"]["value"] for n in ("fit0", "fit1", "fit2")]
     assert m1 == pytest.approx([m1[0]] * 3, rel=1e-4)
+
+
+def test_shipped_example_study_runs_and_logs_plain_progress(tmp_path, warm_cache):
+    """configs/batch_example.toml: two fits of the Cornell Krylon table; progress as plain lines in a log."""
+    import io
+
+    from rich.console import Console
+
+    log = io.StringIO()
+    console = Console(file=log, force_terminal=False, width=120)
+    example = Path(__file__).resolve().parents[1] / "configs" / "batch_example.toml"
+    report = run_study(example, tmp_path / "run", console=console, figures=False)
+    assert sorted(report.ran) == ["krylon_beckmann", "krylon_ggx"] and not report.failed
+    for name in report.ran:
+        r = json.loads((tmp_path / "run" / name / "result.json").read_text())
+        assert r["converged"], name
+        assert r["blocks"][0]["log_rms"] < 0.45, (name, r["blocks"][0]["log_rms"])  # 0.385 (GGX), 0.381 (Beckmann)
+        assert "--no-figures" in json.loads((tmp_path / "run" / "jobs" / f"{name}.json").read_text())["argv"]
+    text = log.getvalue()
+    assert "\r" not in text and "study (process): 2/2 jobs" in text, text

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import brdfjax as bj
 from brdfjax import __version__
 from brdfjax.cli import COMMANDS, main
 from brdfjax.io import CHANNELS, read_frame_exr
@@ -52,6 +53,22 @@ def test_simulate_writes_exr_png_summary(small_run):
     assert sorted(os.listdir(out)) == ["summary.json", "ti20.exr", "ti20.png", "ti60.exr", "ti60.png"]
     for stem in ("ti20", "ti60"):
         assert (out / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_summary_times_are_wall_spans_within_the_total(small_run):
+    _, _, out = small_run
+    s = json.loads((out / "summary.json").read_text())
+    for f in s["frames"]:
+        # the EXR and PNG are written in parallel threads: the frame's times are spans, not sums
+        assert f["wall_s"] <= s["wall_s"] + 1e-3 and f["write_s"] <= f["wall_s"] + 1e-3
+        assert set(f["file_s"]) == {"exr", "png"} and max(f["file_s"].values()) <= f["write_s"] + 1e-3
+
+
+def test_term_labels_name_what_a_frame_shows():
+    from brdfjax.plotting import term_labels
+
+    assert term_labels(bj.solar_cell()) == {"center": "centre peak (center)", "offset": "offset peak (offset)",
+                                            "bars": "diffraction bars (bars)"}
 
 
 def test_exr_channels_and_attributes(small_run):
@@ -97,7 +114,7 @@ def test_summary_numbers_match_fig33(small_run):
 def test_step_flag_overrides_config(small_run, tmp_path, capsys):
     _, config, _ = small_run
     out = tmp_path / "o"
-    assert main(["simulate", str(config), "--out", str(out), "--step", "32", "--no-plot"]) == 0
+    assert main(["simulate", str(config), "--out", str(out), "--step", "32", "--no-figures"]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["step"] == 32 and s["grid_shape"] == [11, 11]
     assert sorted(os.listdir(out)) == ["summary.json", "ti20.exr", "ti60.exr"]
@@ -133,9 +150,10 @@ def test_missing_config_exits_2(tmp_path, capsys):
 
 def test_bad_flag_value_exits_2(small_run, tmp_path, capsys):
     _, config, _ = small_run
-    rc = main(["simulate", str(config), "--out", str(tmp_path / "o"), "--step", "0"])
+    with pytest.raises(SystemExit) as info:  # blamed on the flag, not on the config's grid.step
+        main(["simulate", str(config), "--out", str(tmp_path / "o"), "--step", "0"])
     err = capsys.readouterr().err
-    assert rc == 2 and "grid.step" in err
+    assert info.value.code == 2 and "argument --step: must be a positive integer, got 0" in err and "grid.step" not in err
 
 
 def test_usage_errors(capsys):
@@ -150,7 +168,7 @@ def test_usage_errors(capsys):
 
 def test_default_config_when_none_given(tmp_path):
     out = tmp_path / "d"
-    assert main(["simulate", "--out", str(out), "--step", "128", "--no-plot"]) == 0
+    assert main(["simulate", "--out", str(out), "--step", "128", "--no-figures"]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["config"].endswith(os.path.join("brdfjax", "data", "default.toml"))
     assert [f["name"] for f in s["frames"]] == ["ti20", "ti60"]
@@ -161,7 +179,7 @@ def test_python_m_brdfjax_float64(small_run, tmp_path):
     _, config, _ = small_run
     out = tmp_path / "f64"
     proc = subprocess.run(
-        [sys.executable, "-m", "brdfjax", "simulate", str(config), "--out", str(out), "--precision", "float64", "--no-plot"],
+        [sys.executable, "-m", "brdfjax", "simulate", str(config), "--out", str(out), "--precision", "float64", "--no-figures"],
         capture_output=True,
         text=True,
         cwd=ROOT,
@@ -219,7 +237,7 @@ def test_reduce_refuses_to_overwrite_inputs(tmp_path, capsys):
 
     work = tmp_path / "set"
     shutil.copytree(EXAMPLE_SET, work)
-    assert main(["reduce", str(work), "--out", str(work), "--no-plot"]) == 2  # a refusal (brdfjax.runtime.errors)
+    assert main(["reduce", str(work), "--out", str(work), "--no-figures"]) == 2  # a refusal (brdfjax.runtime.errors)
     assert "would overwrite an input" in capsys.readouterr().err
 
 
@@ -262,7 +280,7 @@ def test_synthesize_then_reduce_round_trip(tmp_path, capsys):
     smaller = ND_STACKS[ND_STACKS.index(stack.attrs.nd_filters) - 1]
     od_gap = stack.attrs.optical_density - sum(float(x) for x in smaller.split("+") if x)
     assert (peak - stack.attrs.black_level) * 10**od_gap > 0.8 * full
-    assert main(["reduce", str(tmp_path / "set"), "--out", str(tmp_path / "red"), "--no-plot"]) == 0
+    assert main(["reduce", str(tmp_path / "set"), "--out", str(tmp_path / "red"), "--no-figures"]) == 0
     red = read_reduced_frame(tmp_path / "red" / "ti40.exr")
     # Same seeds, same instrument: the noiseless expectation the reduction should recover.
     import brdfjax as bj
@@ -286,14 +304,14 @@ def test_synthesize_bad_effect_name_exit_2(tmp_path, capsys):
     cfg = tmp_path / "small.toml"
     cfg.write_text(SMALL_CONFIG)
     assert main(["synthesize", str(cfg), "--out", str(tmp_path / "set"), "--without", "stray_lite"]) == 2
-    assert "unknown effect(s) ['stray_lite']; known:" in capsys.readouterr().err
+    assert "unknown effect(s) ['stray_lite'] (did you mean 'stray_light'?); known:" in capsys.readouterr().err
 
 
 def test_reduce_correct_nonlinearity_flag(tmp_path, capsys):
     from brdfjax.cli import main
     from brdfjax.instrument.reduce import read_reduced_frame
 
-    assert main(["reduce", str(EXAMPLE_SET), "--out", str(tmp_path / "c"), "--no-plot", "--correct-nonlinearity"]) == 0
+    assert main(["reduce", str(EXAMPLE_SET), "--out", str(tmp_path / "c"), "--no-figures", "--correct-nonlinearity"]) == 0
     assert read_reduced_frame(tmp_path / "c" / "solar_cell_20deg.exr").attrs["nonlinearity_corrected"] in (1, True)
     assert main(["reduce", str(EXAMPLE_SET), "--out", str(tmp_path / "r"), "--merge", "replacement",
                  "--correct-nonlinearity"]) == 2

@@ -31,7 +31,7 @@ def _simulate(tmp_path: Path, cache: Path, *flags: str) -> None:
     env.update(BRDFJAX_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
     out = tmp_path / f"out{len(list(tmp_path.iterdir()))}"
     proc = subprocess.run(
-        [sys.executable, "-m", "brdfjax", *flags, "simulate", "--out", str(out), "--step", "256", "--no-plot"],
+        [sys.executable, "-m", "brdfjax", *flags, "simulate", "--out", str(out), "--step", "256", "--no-figures"],
         capture_output=True, text=True, cwd=ROOT, env=env, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr

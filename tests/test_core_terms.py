@@ -186,7 +186,7 @@ def test_model_parameter_names_and_replacement():
     m2 = m.with_params({"m1": 3e-4, "bars.a": 7.5e-4})
     assert float(m2.params()["m1"]) == pytest.approx(3e-4) and float(m2.params()["a"]) == pytest.approx(7.5e-4)
     assert m.parameter_units()["dtheta"] == "rad" and m.parameter_units()["a"] == "m"
-    with pytest.raises(KeyError, match="unknown parameter 'mm1'; known: .*m1"):
+    with pytest.raises(KeyError, match=r"unknown parameter 'mm1' \(did you mean 'm1'\?\); known: .*m1"):
         m.with_params({"mm1": 1.0})
     with pytest.raises(KeyError, match="unknown parameter"):
         bj.solar_cell(m3=1.0)
@@ -227,7 +227,7 @@ def test_bad_parameters_raise_clear_errors():
         bj.Specular(D.Beckmann(0.1), rho_s=-1.0, n=1.5)
     from brdfjax.core.registry import lookup, term_from_params as build_term
 
-    with pytest.raises(KeyError, match="unknown distribution 'ggxx'; known: .*ggx"):
+    with pytest.raises(KeyError, match=r"unknown distribution 'ggxx' \(did you mean 'ggx'\?\); known: .*ggx"):
         lookup("distribution", "ggxx")
     with pytest.raises(KeyError, match="unknown term 'mirror'"):
         build_term("mirror", {})

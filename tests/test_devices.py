@@ -137,7 +137,7 @@ def test_capture_writes_the_raw_format_that_reduce_reads(captured):
     assert state["interlock_safe_nd"] == "4.0+1.0+0.2"
     assert not (manifest.parent / ".parts").exists()
     # brdfjax reduce runs on it unchanged
-    assert main(["reduce", str(manifest), "--out", str(tmp / "reduced"), "--no-plot"]) == 0
+    assert main(["reduce", str(manifest), "--out", str(tmp / "reduced"), "--no-figures"]) == 0
     from brdfjax.instrument.reduce import read_reduced_frame
 
     red = read_reduced_frame(tmp / "reduced" / "ti20.exr")

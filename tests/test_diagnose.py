@@ -86,7 +86,7 @@ def test_no_usable_pixels(tiny):
 
 def test_unknown_effect(tiny):
     truth, frames = tiny
-    with pytest.raises(DiagnoseInputError, match=r"unknown effect\(s\) \['difraction'\]; known: .*diffraction"):
+    with pytest.raises(DiagnoseInputError, match=r"unknown effect\(s\) \['difraction'\] \(did you mean 'diffraction'\?\); known: .*diffraction"):
         diagnose(_without(truth, "bars"), frames, {"m1": "free"}, effects=["difraction"])
 
 
@@ -104,8 +104,8 @@ def test_table_diffuse_floor_withheld():
     from brdfjax.core.geometry import Directions
     from brdfjax.fit import TableData
 
-    truth = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5), "floor": bj.Lambertian(0.3)})
-    base = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5)})
+    truth = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5, **bj.SEED_FORM), "floor": bj.Lambertian(0.3)})
+    base = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.08), rho_s=1.0, n=1.5, **bj.SEED_FORM)})
     ti = np.repeat(np.radians([20.0, 40.0]), 60)
     ts = np.tile(np.radians(np.linspace(1.0, 80.0, 60)), 2)
     phi_s = np.full(ti.shape, np.pi)
@@ -229,7 +229,7 @@ def test_cli_bad_input(tmp_path, capsys):
 
     out = tmp_path / "out"
     assert main(["diagnose", str(_write_config(tmp_path, '["difraction"]')), "--out", str(out)]) == 2
-    assert "unknown effect(s) ['difraction']; known: offset_normal_peak" in capsys.readouterr().err
+    assert "unknown effect(s) ['difraction'] (did you mean 'diffraction'?); known: offset_normal_peak" in capsys.readouterr().err
     bad = tmp_path / "bad.toml"
     bad.write_text(CONFIG.replace("EFFECTS", "[]").replace("max_steps = 1", "max_steps = -1"))
     assert main(["diagnose", str(bad), "--out", str(out)]) == 2
@@ -264,7 +264,7 @@ def test_refit_top_keeps_the_runners_up():
             return Signature(0.0, self.scores[min(step, 1)], "set by the test")
 
     library = {"A": Copy("A", (100.0, 1.0)), "B": Copy("B", (90.0, 2.0)), "C": Copy("C", (1.0, 95.0)), "D": Copy("D", (0.5, 94.0))}
-    truth = bj.Model(terms={"center": bj.Specular(bj.Beckmann(2e-4), rho_s=0.02, n=3.6), "bg": bj.Lambertian(0.05)})
+    truth = bj.Model(terms={"center": bj.Specular(bj.Beckmann(2e-4), rho_s=0.02, n=3.6, **bj.SEED_FORM), "bg": bj.Lambertian(0.05)})
     frames = render_noisy_frames(truth, [20.0], roi=(-160, 160, -160, 160), step=16, seed=4)
     base = bj.Model(terms={"center": truth.terms["center"]})
     d = diagnose(base, frames, {"center.m": 2.4e-4, "center.rho_s": 0.02}, library=library, refit_top=2, max_steps=2,

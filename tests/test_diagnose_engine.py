@@ -37,7 +37,7 @@ def _withheld_module():
     spec.loader.exec_module(mod)
     return mod
 
-LOBE = {"spec": Specular(bj.GGX(0.08), rho_s=1.0, n=1.5)}
+LOBE = {"spec": Specular(bj.GGX(0.08), rho_s=1.0, n=1.5, **bj.SEED_FORM)}
 START = {"spec.alpha": 0.1, "spec.rho_s": 0.8}
 
 
@@ -90,7 +90,7 @@ def test_failed_refit_is_not_ranked_and_weak_effects_stay_off_the_path():
 
 def _lobe_extension(ctx, name: str, alpha: float, rho_s: float, alpha_bounds: tuple[float, float], note: str) -> Extension:
     """The model extended by a GGX lobe ``name`` (weight >= 0 and width within ``alpha_bounds`` free)."""
-    model = bj.Model(terms={**ctx.model.terms, name: Specular(bj.GGX(alpha), rho_s=rho_s, n=1.5)}, aliases=ctx.model.aliases)
+    model = bj.Model(terms={**ctx.model.terms, name: Specular(bj.GGX(alpha), rho_s=rho_s, n=1.5, **bj.SEED_FORM)}, aliases=ctx.model.aliases)
     params = {**ctx.params, f"{name}.rho_s": Param(rho_s, lower=0.0), f"{name}.alpha": Param(alpha, lower=alpha_bounds[0], upper=alpha_bounds[1])}
     return Extension(model, params, 2, note=note)
 
@@ -190,7 +190,7 @@ class _Tail(type(EFFECT_LIBRARY["lambertian"])):
         return "tail" in model.terms
 
     def extend(self, ctx):
-        terms = {**ctx.model.terms, "tail": Specular(bj.GGX(0.5), rho_s=0.3, n=1.5), "tailfloor": Lambertian(0.04)}
+        terms = {**ctx.model.terms, "tail": Specular(bj.GGX(0.5), rho_s=0.3, n=1.5, **bj.SEED_FORM), "tailfloor": Lambertian(0.04)}
         params = {**ctx.params, "tail.rho_s": Param(0.3, lower=0.0), "tail.alpha": Param.fixed(0.5),
                   "tailfloor.rho_d": Param.fixed(0.04)}
         return Extension(bj.Model(terms=terms, aliases=ctx.model.aliases), params, 1, note="a wide tail")
@@ -224,7 +224,7 @@ class _OneFloor(type(EFFECT_LIBRARY["lambertian"])):
 def test_a_near_tie_is_decided_on_the_joint_refit_by_a_swap():
     # truth: lobe + floor 0.05 + second lobe; at step 1 the tail (part lobe, part floor) beats the floor by 7.6 %
     # (measured 36641 vs 33860), the second lobe joins, and only a swap of the tail for the floor reaches the noise
-    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.05), "bump": Specular(bj.GGX(0.3), rho_s=0.5, n=1.5)})
+    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.05), "bump": Specular(bj.GGX(0.3), rho_s=0.5, n=1.5, **bj.SEED_FORM)})
     table, _ = _table(truth)
     lib = {"floor": _OneFloor(), "tail": _Tail(), "bump": _Bump()}
     d = diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, max_steps=3, fresh_top=0)

@@ -136,10 +136,10 @@ BAD_INPUTS = [
     # simulate
     ("simulate", ["{w}/no_such.toml", "--out", "{w}/o"], "no_such.toml"),
     ("simulate", ["{w}/sim_bad.toml", "--out", "{w}/o"], "stepp"),
-    ("simulate", ["--out", "{w}/a_file.txt", "--no-plot"], "is a file, not a folder"),
-    ("simulate", ["--out", "/proc/x", "--no-plot"], "cannot create anything in /proc"),
-    ("simulate", ["--out", "{w}/a_file.txt/sub", "--no-plot"], "is a file, so the folder cannot be created"),
-    ("simulate", ["--out", "{w}/o", "--step", "0"], "step"),
+    ("simulate", ["--out", "{w}/a_file.txt", "--no-figures"], "is a file, not a folder"),
+    ("simulate", ["--out", "/proc/x", "--no-figures"], "cannot create anything in /proc"),
+    ("simulate", ["--out", "{w}/a_file.txt/sub", "--no-figures"], "is a file, so the folder cannot be created"),
+    ("simulate", ["--out", "{w}/o", "--step", "0"], "argument --step: must be a positive integer, got 0"),
     ("simulate", ["--out", "{w}/o", "--precision", "float16"], "invalid choice: 'float16'"),
     # synthesize
     ("synthesize", ["--out", "{w}/syn", "--nd", "abc"], "--nd 'abc'"),
@@ -151,13 +151,13 @@ BAD_INPUTS = [
     ("synthesize", ["--out", "{w}/syn", "--seed", "x"], "invalid int value: 'x'"),
     # reduce
     ("reduce", ["{w}/no_such_set", "--out", "{w}/r"], "no_such_set: no such manifest or folder"),
-    ("reduce", ["{w}/set", "--out", "{w}/r", "--step", "0"], "--step must be a positive integer, got 0"),
+    ("reduce", ["{w}/set", "--out", "{w}/r", "--step", "0"], "argument --step: must be a positive integer, got 0"),
     ("reduce", ["{w}/set", "--out", "{w}/r", "--merge", "replacement", "--correct-nonlinearity"], "needs --merge weighted"),
     ("reduce", ["{w}/set", "--out", "{w}/a_file.txt"], "is a file, not a folder"),
     ("reduce", ["{w}/set", "--out", "/proc/x"], "cannot create anything in /proc"),
     ("reduce", ["{w}/beam_is_sample", "--out", "{w}/r_bs"], "solar_cell_20deg.exr"),
     ("reduce", ["{w}/missing", "--out", "{w}/r_m"], "solar_cell_20deg_background.exr"),
-    ("reduce", ["{w}/saturated", "--out", "{w}/r_sat", "--no-plot"], "saturated in every exposure"),
+    ("reduce", ["{w}/saturated", "--out", "{w}/r_sat", "--no-figures"], "saturated in every exposure"),
     ("reduce", ["{w}/set", "--out", "{w}/set"], "would overwrite an input"),
     # fit
     ("fit", ["{w}/no_such.toml", "--out", "{w}/f"], "no_such.toml"),
@@ -176,7 +176,7 @@ BAD_INPUTS = [
     ("sample", ["{w}/samp.toml", "--out", "{w}/a_file.txt"], "is a file, not a folder"),
     ("sample", ["{w}/samp.toml", "--out", "/proc/x"], "cannot create anything in /proc"),
     ("sample", ["{w}/samp.toml", "--out", "{w}/s1", "--walkers", "3"], "n_walkers = 3 is fewer than twice"),
-    ("sample", ["{w}/samp.toml", "--out", "{w}/s2", "--steps", "0"], "--steps must be a positive integer"),
+    ("sample", ["{w}/samp.toml", "--out", "{w}/s2", "--steps", "0"], "argument --steps: must be a positive integer"),
     ("sample", ["{w}/samp.toml", "--out", "{w}/s3", "--resume"], "there is no chain to resume"),
     ("sample", ["{w}/sample_prior.toml", "--out", "{w}/s4"], "prior on unknown parameter"),
     ("sample", ["{w}/sample_fixed.toml", "--out", "{w}/s5"], "prior on 'm2', which is held fixed"),
@@ -271,7 +271,7 @@ def test_partial_saturation_is_counted_and_reported(w, capsys):
     import json
 
     out = w / "r_ok"
-    assert main(["reduce", str(w / "set"), "--out", str(out), "--no-plot"]) == 0
+    assert main(["reduce", str(w / "set"), "--out", str(out), "--no-figures"]) == 0
     err = capsys.readouterr().err
     (fr,) = json.loads((out / "summary.json").read_text())["frames"]
     assert fr["saturated_pixels"] >= 0 and fr["partly_saturated_pixels"] > 0

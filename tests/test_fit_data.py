@@ -84,7 +84,7 @@ def test_footprint_is_convolved_and_recorded_with_a_free_incidence_angle():
     # and says that it convolved.
     det = bj.Detector.seed()
     grid = det.grid(2, (-40, 40, -30, 30))
-    model = bj.Model(terms={"p": bj.Specular(bj.Beckmann(1e-4), rho_s=0.02, n=1.5), "floor": bj.Lambertian(0.5)})
+    model = bj.Model(terms={"p": bj.Specular(bj.Beckmann(1e-4), rho_s=0.02, n=1.5, **bj.SEED_FORM), "floor": bj.Lambertian(0.5)})
     truth = np.asarray(
         bj.render(model, bj.Frame.from_degrees(30.02), det.at(np.radians(30.0)), grid=grid, precision="float64")
     )

@@ -14,7 +14,7 @@ from brdfjax.instrument.synthetic import convolve_footprint, footprint_kernel
 # three kinds of term: a nonlinear one with a scale (rho_s), a pure scale (rho_d), and one only phi_ref turns
 MODEL = bj.Model(
     terms={
-        "peak": bj.Specular(bj.Beckmann(1e-4), rho_s=0.7, n=1.5),
+        "peak": bj.Specular(bj.Beckmann(1e-4), rho_s=0.7, n=1.5, **bj.SEED_FORM),
         "floor": bj.Lambertian(rho_d=1e-3),
         "bars": bj.Diffraction(rho=30.0, a=8e-4, b=1e-5, c=4e-5),
     }
@@ -117,3 +117,20 @@ def test_progress_is_heard_whether_or_not_a_solve_without_listeners_was_compiled
     loud = fit(lamb, tab, {"diffuse.rho_d": 0.1}, first_stage=None, progress=lambda k, chi2: heard.append(chi2))
     assert quiet.converged and loud.converged and quiet.chi2 == pytest.approx(loud.chi2, rel=1e-12)
     assert len(heard) >= 2 and heard[-1] == pytest.approx(loud.cost, rel=1e-6, abs=1e-9)
+
+
+def test_structured_jacobian_equals_jacfwd_for_the_standard_microfacet_form(assert_jacobian_matches_jacfwd):
+    """The default Specular (Smith G2, Walter normalisation, Fresnel at the microfacet) on a wide lobe, phi_ref
+    free: its phi_ref column is taken as 0 (the term cannot turn), which jacfwd checks."""
+    model = bj.Model(terms={"peak": bj.Specular(bj.GGX(0.05), rho_s=0.7, n=1.5), "floor": bj.Lambertian(rho_d=1e-3),
+                            "bars": bj.Diffraction(rho=30.0, a=8e-4, b=1e-5, c=4e-5)})  # bars: phi_ref's column
+    det = bj.Detector.seed()
+    g = det.grid(16, (-320, 320, -240, 240))
+    frames = []
+    for i, ti in enumerate((20.0, 60.0)):
+        img = np.asarray(bj.render(model, bj.Frame.from_degrees(ti), det, grid=g, precision="float64"))
+        noisy = img * np.exp(0.03 * np.random.default_rng(i).standard_normal(img.shape))
+        frames.append(FrameData(noisy, 0.03, np.radians(ti), det, g, name=f"ti{ti:g}"))
+    spec = {"peak.alpha": 0.06, "peak.rho_s": 0.6, "peak.n": 1.4, "floor.rho_d": 1.2e-3, "phi_ref": 0.001}
+    p = prepare_problem(model, frames, spec, solver=LevenbergMarquardt()).problem
+    assert_jacobian_matches_jacfwd(p, np.resize(V, p.u0.shape[0]))

@@ -30,7 +30,7 @@ PAINT = dict(n=1.5)
 
 def _model(distribution, **index):
     width = bj.GGX(0.1) if distribution == "ggx" else bj.Beckmann(0.1)
-    return bj.Model(terms={"spec": bj.Specular(width, rho_s=0.5, **index), "diffuse": bj.Lambertian(0.05)})
+    return bj.Model(terms={"spec": bj.Specular(width, rho_s=0.5, **index, **bj.SEED_FORM), "diffuse": bj.Lambertian(0.05)})
 
 
 def _report(label, res):

@@ -16,8 +16,8 @@ from brdfjax.instrument.synthetic import convolve_footprint, footprint_kernel
 # hand-written columns carry it)
 MODEL = bj.Model(
     terms={
-        "center": bj.Specular(bj.Beckmann(1.5e-3), rho_s=0.05, n=3.0),
-        "offset": bj.OffsetNormal(bj.Specular(bj.Beckmann(1.5e-3), rho_s=0.7, n=1.4), dtheta=np.radians(0.15),
+        "center": bj.Specular(bj.Beckmann(1.5e-3), rho_s=0.05, n=3.0, **bj.SEED_FORM),
+        "offset": bj.OffsetNormal(bj.Specular(bj.Beckmann(1.5e-3), rho_s=0.7, n=1.4, **bj.SEED_FORM), dtheta=np.radians(0.15),
                                   dphi0=np.radians(45.0)),
         "bars": bj.Diffraction(rho=30.0, a=8e-4, b=1e-5, c=4e-4),
     }
@@ -60,7 +60,7 @@ def _peak_on_floor_table(lo_deg: float, hi_deg: float, n: int, seed: int):
     """A Beckmann lobe on a Lambertian floor scanned in-plane at theta_i = 30 deg, 2 % log-normal noise."""
     ts = np.radians(np.linspace(lo_deg, hi_deg, n))
     dirs = dict(theta_i=np.full(n, np.radians(30.0)), phi_i=np.zeros(n), theta_s=ts, phi_s=np.full(n, np.pi))
-    model = bj.Model(terms={"peak": bj.Specular(bj.Beckmann(0.05), rho_s=0.5, n=1.5), "floor": bj.Lambertian(rho_d=0.01)})
+    model = bj.Model(terms={"peak": bj.Specular(bj.Beckmann(0.05), rho_s=0.5, n=1.5, **bj.SEED_FORM), "floor": bj.Lambertian(rho_d=0.01)})
     brdf = np.asarray(model(bj.Directions.from_angles(dirs["theta_i"], dirs["phi_i"], ts, dirs["phi_s"]), 632.8e-9))
     brdf = brdf * np.exp(0.02 * np.random.default_rng(seed).standard_normal(n))
     return model, TableData(**dirs, brdf=brdf, sigma_rel=0.02, wavelength=632.8e-9)

@@ -78,7 +78,7 @@ def test_lambertian_sphere_phase_function():
 def test_glint_height_disk_average_vs_analytic_and_point_sun():
     """A mirror-like facet (Beckmann m = 2e-4) in the exact specular geometry: disk-averaged vs analytic."""
     m, rho_s, n, theta = 2e-4, 1.0, 1.5, np.deg2rad(30.0)
-    model = bj.Model({"s": bj.Specular(bj.Beckmann(m), rho_s=rho_s, n=n)})
+    model = bj.Model({"s": bj.Specular(bj.Beckmann(m), rho_s=rho_s, n=n, **bj.SEED_FORM)})
     g = _one_step([np.sin(theta), 0, np.cos(theta)], [-np.sin(theta), 0, np.cos(theta)])
     disk = SunDisk.rings(16)
     flux = float(facet_flux(_plate(model, 1.0), g, disk)["flux"][0, 0])
@@ -321,7 +321,7 @@ def test_posterior_bands(tmp_path):
                                      "start = 2026-12-02T07:15:00Z": "start = 2026-12-02T07:13:38Z",
                                      "stop = 2026-12-02T07:16:00Z": "stop = 2026-12-02T07:13:44Z",
                                      "step_s = 10.0": "step_s = 1.0"})
-    assert main(["lightcurve", str(cfg), "--out", str(tmp_path / "out"), "--no-plot"]) == 0
+    assert main(["lightcurve", str(cfg), "--out", str(tmp_path / "out"), "--no-figures"]) == 0
     summary = json.loads((tmp_path / "out" / "lightcurve.json").read_text())
     assert summary["posterior"] == {"model": "cell", "n_samples": 8}
     band = {k: np.array(v, float) for k, v in summary["series"]["mag_band"].items()}

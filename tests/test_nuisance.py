@@ -31,7 +31,7 @@ from brdfjax.sample import SampleError, sample
 
 LN10 = math.log(10.0)
 MODEL = bj.Model(
-    terms={"specular": bj.Specular(bj.Beckmann(4e-4), rho_s=0.5, n=1.5, k=0.0), "diffuse": bj.Lambertian(0.05)},
+    terms={"specular": bj.Specular(bj.Beckmann(4e-4), rho_s=0.5, n=1.5, k=0.0, **bj.SEED_FORM), "diffuse": bj.Lambertian(0.05)},
     aliases=(("m", "specular.m"), ("rho_s", "specular.rho_s")),
 )
 SPEC = {"m": 4.2e-4, "rho_s": 0.45}

@@ -127,13 +127,13 @@ def _albedo(term, theta_i, m, n_r=500, n_psi=96, r_max=9.0, unit_fresnel=False):
 def test_white_furnace_albedo_at_most_one_and_f_weighted_one_for_narrow_lobes():
     # lossless microfacets (F = 1): D G / (4 cos ti cos ts) integrates to <= 1, -> 1 as the lobe narrows
     for m in (0.02, 0.2, 0.5):
-        term = Specular(dist.Beckmann(m), 1.0, 1.5, shadowing="smith", normalisation="torrance_sparrow")
+        term = Specular(dist.Beckmann(m), 1.0, 1.5, shadowing="smith", normalisation="torrance_sparrow", fresnel="q_factor")
         albedo = [_albedo(term, np.deg2rad(ti), m, unit_fresnel=True) for ti in (0.0, 40.0, 70.0, 85.0)]
         assert all(0.5 < a <= 1.0 + 1e-4 for a in albedo), (m, albedo)  # quadrature error ~3e-5
         if m == 0.02:
             np.testing.assert_allclose(albedo[:3], 1.0, atol=2e-3)
     # without shadowing the Torrance-Sparrow form exceeds 1 at grazing incidence: what G2 repairs
-    bare = Specular(dist.Beckmann(0.5), 1.0, 1.5, normalisation="torrance_sparrow")
+    bare = Specular(dist.Beckmann(0.5), 1.0, 1.5, shadowing="none", normalisation="torrance_sparrow", fresnel="q_factor")
     assert _albedo(bare, np.deg2rad(85.0), 0.5, unit_fresnel=True) > 1.05
     # narrow lobe: the albedo is the Fresnel reflectance in the mirror direction (Q/2 = (F_s + F_p)/2)
     m = 0.005
@@ -155,23 +155,26 @@ def test_reciprocity(shadowing, normalisation):
         np.testing.assert_allclose(f[:20], f[20:], rtol=1e-9)
 
 
-def test_defaults_reproduce_the_seed_and_match_the_oracle():
+def test_seed_form_reproduces_the_seed_and_match_the_oracle():
     ti, ts = np.deg2rad(40.0), np.deg2rad(np.linspace(0, 89, 30))
     dirs = bj.Directions.from_angles(ti, 0.0, ts, np.pi)
-    seed = Specular(dist.Beckmann(0.2), 0.5, 1.5)
-    explicit = Specular(dist.Beckmann(0.2), 0.5, 1.5, shadowing="none", normalisation="seed")
+    seed = Specular(dist.Beckmann(0.2), 0.5, 1.5, **bj.SEED_FORM)
+    explicit = Specular(dist.Beckmann(0.2), 0.5, 1.5, shadowing="none", normalisation="seed", fresnel="q_factor")
     np.testing.assert_array_equal(np.asarray(seed(dirs, 5e-7)), np.asarray(explicit(dirs, 5e-7)))
     oracle = ref.specular(ti, 0.0, ts, np.pi, lambda th, ph: ref.beckmann(th, 0.2), 0.5, 1.5)
     np.testing.assert_allclose(np.asarray(seed(dirs, 5e-7)), oracle, rtol=1e-10)
+    # the default is the standard form, not the seed's
+    default = Specular(dist.Beckmann(0.2), 0.5, 1.5)
+    assert {k: getattr(default, k) for k in bj.STANDARD_FORM} == bj.STANDARD_FORM
     lam = lambda t: ref.smith_lambda_beckmann(t, 0.2)  # noqa: E731
     for norm in ("seed", "torrance_sparrow"):
-        got = Specular(dist.Beckmann(0.2), 0.5, 1.5, shadowing="smith", normalisation=norm)(dirs, 5e-7)
+        got = Specular(dist.Beckmann(0.2), 0.5, 1.5, shadowing="smith", normalisation=norm, fresnel="q_factor")(dirs, 5e-7)
         want = ref.specular_shadowed(ti, 0.0, ts, np.pi, lambda th, ph: ref.beckmann(th, 0.2), 0.5, 1.5, lam, norm)
         np.testing.assert_allclose(np.asarray(got), want, rtol=1e-9)
     # the two normalisations agree in the mirror direction
     mirror = bj.Directions.from_angles(ti, 0.0, ti, np.pi)
-    a = Specular(dist.Beckmann(0.2), 0.5, 1.5)(mirror, 5e-7)
-    b = Specular(dist.Beckmann(0.2), 0.5, 1.5, normalisation="torrance_sparrow")(mirror, 5e-7)
+    a = Specular(dist.Beckmann(0.2), 0.5, 1.5, **bj.SEED_FORM)(mirror, 5e-7)
+    b = Specular(dist.Beckmann(0.2), 0.5, 1.5, shadowing="none", fresnel="q_factor")(mirror, 5e-7)
     assert float(a) == pytest.approx(float(b), rel=1e-12)
 
 
@@ -194,7 +197,7 @@ def test_gradients_are_finite_and_match_finite_differences():
 
 
 def test_bad_options_name_the_choices():
-    with pytest.raises(ValueError, match=r"unknown shadowing 'smit'; known: none, smith, v_cavity"):
+    with pytest.raises(ValueError, match=r"unknown shadowing 'smit' \(did you mean 'smith'\?\); known: none, smith, v_cavity"):
         Specular(dist.Beckmann(0.1), 0.5, 1.5, shadowing="smit")
     with pytest.raises(ValueError, match=r"unknown normalisation 'ts'; known: seed, torrance_sparrow"):
         Specular(dist.Beckmann(0.1), 0.5, 1.5, normalisation="ts")

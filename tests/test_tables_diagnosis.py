@@ -33,7 +33,7 @@ CASES = [
 def test_real_table_diagnosis_names_a_physical_effect_first(file, index):
     table = read_merl_inplane(REAL / file) if file.startswith("merl") else read_cornell_brdf(REAL / file)
     table = table.select(slice(None, None, STEP))
-    model = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.1), rho_s=0.5, **index), "diffuse": bj.Lambertian(0.05)})
+    model = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.1), rho_s=0.5, **index, **bj.SEED_FORM), "diffuse": bj.Lambertian(0.05)})
     params = {"spec.alpha": "auto", "spec.rho_s": "auto", "diffuse.rho_d": "auto"}
     d = diagnose(model, table, params, effects=EFFECTS, max_steps=1, fit_kwargs={"resolution_check": False})
     print(f"\n{file}:\n{d.summary()}")

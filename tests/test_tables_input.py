@@ -93,7 +93,7 @@ def test_wrong_azimuth_convention_peaks_on_the_backscatter_side_exits_2(tmp_path
 def _broad_lobe_csv(path: Path, ti: float, m: float = 0.145, sign: float = 1.0, step: float = 1.0) -> Path:
     """A signed in-plane scan of a Beckmann lobe (seed form) + Lambertian, 2 % scatter (a noise-free Lambertian floor
     would be identical rows: placeholders); sign -1 puts it on the source side."""
-    model = bj.Model(terms={"s": bj.Specular(bj.Beckmann(m), rho_s=0.5, n=1.5), "d": bj.Lambertian(0.02)})
+    model = bj.Model(terms={"s": bj.Specular(bj.Beckmann(m), rho_s=0.5, n=1.5, **bj.SEED_FORM), "d": bj.Lambertian(0.02)})
     ts = np.arange(-85.0, 86.0, step)
     t = np.full(ts.shape, math.radians(ti))
     dirs = bj.Directions.from_angles(t, 0 * t, np.radians(np.abs(ts)), np.where(ts >= 0, math.pi, 0.0))

@@ -82,9 +82,9 @@ def test_gradients_are_finite_at_the_mirror_direction():
 def test_bad_parameters_name_the_term():
     with pytest.raises(ValueError, match=r"abg: parameter 'B' = 0.0 is invalid; expected B > 0"):
         ABg(A=1.0, B=0.0, g=2.0)
-    with pytest.raises(ValueError, match=r"multi_lobe: unknown shadowing 'smit'; known: none, smith, v_cavity"):
+    with pytest.raises(ValueError, match=r"multi_lobe: unknown shadowing 'smit' \(did you mean 'smith'\?\); known: none, smith, v_cavity"):
         MultiLobeSpecular({"a": Lobe(dist.GGX(0.1), 1.0)}, n=1.5, shadowing="smit")
-    with pytest.raises(KeyError, match=r"unknown term 'abgg'; known: abg, binomial, diffraction, lambertian, multi_lobe"):
+    with pytest.raises(KeyError, match=r"unknown term 'abgg' \(did you mean 'abg'\?\); known: abg, binomial, diffraction, lambertian, multi_lobe"):
         registry.lookup("term", "abgg")
 
 
@@ -124,7 +124,7 @@ def test_config_round_trip_of_the_new_terms_and_options():
         "phong": Phong(0.8, 40.0),
     })
     np.testing.assert_allclose(np.asarray(model(SWAP, 5e-7)), np.asarray(expect(SWAP, 5e-7)), rtol=1e-12)
-    assert model.terms["spec"].shadowing == "smith" and model.terms["glint"].normalisation == "seed"
+    assert model.terms["spec"].shadowing == "smith" and model.terms["glint"].normalisation == "torrance_sparrow"  # the default
     text = describe_model(cfg)
     assert "spec: multi_lobe(" in text and "shadowing=smith" in text and "normalisation=torrance_sparrow" in text
 

@@ -18,7 +18,7 @@ M_TRUE, RHO_TRUE = 0.000526, 0.5  # Beckmann slope width: an in-plane FWHM of 0.
 
 
 def _model(m: float) -> bj.Model:
-    return bj.Model(terms={"s": bj.Specular(bj.Beckmann(m), rho_s=RHO_TRUE, n=1.5), "d": bj.Lambertian(0.05)})
+    return bj.Model(terms={"s": bj.Specular(bj.Beckmann(m), rho_s=RHO_TRUE, n=1.5, **bj.SEED_FORM), "d": bj.Lambertian(0.05)})
 
 
 @pytest.fixture(scope="module")

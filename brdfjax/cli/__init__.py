@@ -7,7 +7,7 @@ fit, diagnose, sample and capture commands live beside their packages
 (:mod:`brdfjax.cli.fit`, :mod:`brdfjax.diagnose.cli`,
 :mod:`brdfjax.sample.cli`, :mod:`brdfjax.devices.capture`).
 
-``brdfjax simulate [CONFIG] --out DIR [--step K] [--precision P] [--no-plot]``
+``brdfjax simulate [CONFIG] --out DIR [--step K] [--precision P] [--no-figures]``
 renders every frame of a TOML config (see :mod:`brdfjax.config`; without
 CONFIG the packaged default job) and writes, per frame, ``<name>.exr``
 (BRDF, theta_s, phi_s, solid angle; see :mod:`brdfjax.io.exr`) and
@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .. import __version__
-from ..runtime.compile_cache import enable_compilation_cache
+from ..runtime.cli_args import CONFIG, DIR, add_no_figures, add_shared_flags, positive_int
 from ..runtime.errors import EXIT_REFUSED, run_command
 
 # Each subcommand imports what it runs when it runs (a lazy entry below, or imports inside its
@@ -58,45 +58,46 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
         "config",
         nargs="?",
         default=None,
-        metavar="CONFIG",
+        metavar=CONFIG,
         help="TOML config (default: the packaged default job, brdfjax/data/default.toml)",
     )
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
-    p.add_argument("--step", type=int, default=None, metavar="K", help="evaluate every K-th pixel (overrides grid.step)")
+    p.add_argument("--out", required=True, metavar=DIR, help="output folder (created if needed)")
+    p.add_argument("--step", type=positive_int, default=None, metavar="K",
+                   help="evaluate every K-th pixel, K >= 1 (overrides grid.step)")
     p.add_argument(
         "--precision", choices=("float32", "float64"), default=None, help="floating-point precision (overrides precision)"
     )
-    p.add_argument("--no-plot", action="store_true", help="write the EXR files and summary only, no PNG figures")
+    add_no_figures(p, "write the EXR files and summary only, no PNG figures")
 
 
 def _reduce_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("manifest", metavar="MANIFEST", help="a measurement set's manifest.toml (or its folder)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
+    p.add_argument("--out", required=True, metavar=DIR, help="output folder (created if needed)")
     p.add_argument(
         "--merge",
         choices=("weighted", "replacement"),
         default="weighted",
         help="HDR merge: inverse-variance weighted (default) or the seed's replacement scheme (§3.6)",
     )
-    p.add_argument("--step", type=int, default=1, metavar="K", help="keep every K-th pixel of the output frames")
+    p.add_argument("--step", type=positive_int, default=1, metavar="K", help="keep every K-th pixel of the output frames")
     p.add_argument(
         "--correct-nonlinearity",
         action="store_true",
         help="correct the readings by the camera's response curve (manifest [calibration] nonlinearity_curve, "
         "else the seed's typical 1.72%% curve) before the weighted merge: removes the exposure-switch seams",
     )
-    p.add_argument("--no-plot", action="store_true", help="write the EXR files and summary only, no PNG figures")
+    add_no_figures(p, "write the EXR files and summary only, no PNG figures")
 
 
 def _synthesize_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "config", nargs="?", default=None, metavar="CONFIG",
+        "config", nargs="?", default=None, metavar=CONFIG,
         help="a simulate config naming the detector, model and frames (default: the packaged default job)",
     )
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder for the measurement set")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (the same seed gives the same files)")
+    p.add_argument("--out", required=True, metavar=DIR, help="output folder for the measurement set")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="noise seed (the same seed gives the same files)")
     p.add_argument(
-        "--camera-seed", type=int, default=None, help="seed of the camera's fixed per-pixel maps (overrides the config)"
+        "--camera-seed", type=int, default=None, metavar="N", help="seed of the camera's fixed per-pixel maps (overrides the config)"
     )
     p.add_argument("--nd", default=None, metavar="STACK", help='sample ND filters, e.g. "3.0" (default: chosen by the seed\'s rule)')
     p.add_argument(
@@ -167,7 +168,7 @@ COMMANDS: dict[str, Command] = {
     ),
     "sample": Command(
         "sample",
-        "parameter posteriors with emcee from a fit config ([sample] table): chain.h5, posterior.json, corner/trace plots",
+        "parameter posteriors (emcee or NUTS) from a fit config ([sample] table): chain.h5, posterior.json, corner/trace plots",
         _lazy("..sample.cli", "add_arguments"),
         _lazy("..sample.cli", "run"),
     ),
@@ -180,9 +181,18 @@ COMMANDS: dict[str, Command] = {
 }
 
 
+#: What a shared flag means for a command that has nothing of its kind (the flag is accepted everywhere, so
+#: that scripts and batch jobs can pass it to any command).
+SHARED_NOTES: dict[str, dict[str, str]] = {
+    "synthesize": {"--no-figures": "accepted for a uniform command line: synthesize writes no figures"},
+    "capture": {"--no-figures": "no live PNG preview (the same as --live off)"},
+    "simulate": {"--no-progress": "no per-frame progress lines (status lines still print)"},
+}
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The argument parser; ``only``: declare the arguments of that subcommand alone (the others are
-    listed with their help line), so that parsing one command imports only its own stack."""
+    listed with their help line; ``""``: of none), so that parsing one command imports only its own stack."""
     parser = argparse.ArgumentParser(
         prog="brdfjax",
         description="Differentiable near-specular BRDF models and CCD scatterometer frames in JAX.",
@@ -199,8 +209,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         if only is not None and cmd.name != only:
             continue
         cmd.add_arguments(p)
-        if not any("--quiet" in a.option_strings for a in p._actions):
-            p.add_argument("--quiet", action="store_true", help="no progress and no status lines (errors still print)")
+        add_shared_flags(p, SHARED_NOTES.get(cmd.name))
         p.set_defaults(_run=cmd.run)
     return parser
 
@@ -214,9 +223,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     words = list(sys.argv[1:] if argv is None else argv)
     chosen = next((w for w in words if not w.startswith("-")), None)
-    parser = build_parser(chosen if chosen in COMMANDS else None)
+    # no subcommand named (`brdfjax --help`, `--version`): declare no subcommand's arguments, so that none of
+    # their stacks is imported; `build_parser()` (every command's arguments) is for the docs and the tests
+    parser = build_parser(chosen if chosen in COMMANDS else "")
     args = parser.parse_args(words)
     if not args.no_cache:
+        from ..runtime.compile_cache import enable_compilation_cache  # imports JAX: not for --help/--version
+
         enable_compilation_cache()  # before any program is compiled: the second run on this machine starts warm
     return run_command(f"brdfjax {args.command}", lambda: args._run(args))
 

@@ -19,6 +19,7 @@ from pathlib import Path
 from ..fit.config import enable_config_precision
 from ..fit.job import run_fit
 from ..io import check_output_dir
+from ..runtime.cli_args import add_no_figures
 from ..runtime.progress import make_console
 
 __all__ = ["add_arguments", "run"]
@@ -27,11 +28,11 @@ __all__ = ["add_arguments", "run"]
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", metavar="CONFIG", help="a fit config (TOML; see configs/fit_synthetic_solar_cell.toml)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder: result.json, figures, work files")
-    p.add_argument("--no-figures", action="store_true", help="write result.json only")
+    add_no_figures(p, "write result.json only")
 
 
 def run(args: argparse.Namespace) -> int:
-    console = make_console(args.quiet)
+    console = make_console(args.quiet, args.no_progress)
     prog = "brdfjax fit"
     enable_config_precision(args.config)
     check_output_dir(args.out)

@@ -19,6 +19,7 @@ from ..config import load_simulate_config
 from ..core.detector import PixelGrid
 from ..io import check_output_dir, detector_from_attrs, frame_from_attrs, write_json_atomic
 from ..plotting import plot_frame
+from ..runtime.choices import check_choices
 from ..runtime.errors import EXIT_OK, InputError
 from ..runtime.progress import ProgressLine, make_console
 from ..simulate import run_simulate
@@ -37,7 +38,7 @@ def run_simulate_command(args: argparse.Namespace) -> int:
         # An edge may flip the process-wide switch; the library never does.
         jax.config.update("jax_enable_x64", True)
 
-    console = make_console(args.quiet)
+    console = make_console(args.quiet, args.no_progress)
     grid_note = f"every {cfg.grid.step}th pixel" if cfg.grid.step > 1 else "every pixel"
     console.print(
         f"brdfjax simulate: {cfg.source} -> {args.out}: {len(cfg.frames)} frame(s), {grid_note}"
@@ -45,7 +46,7 @@ def run_simulate_command(args: argparse.Namespace) -> int:
         + f", {cfg.precision}",
         markup=False,
     )
-    summary = run_simulate(cfg, args.out, plot=not args.no_plot, console=console)
+    summary = run_simulate(cfg, args.out, plot=not args.no_figures, console=console)
     console.print(f"wrote {Path(args.out) / 'summary.json'} ({summary['wall_s']:.1f} s)", markup=False)
     return EXIT_OK
 
@@ -92,7 +93,7 @@ def run_reduce_command(args: argparse.Namespace) -> int:
     if not Path(args.manifest).exists():
         raise InputError(f"{args.manifest}: no such manifest or folder (give a measurement set's manifest.toml)")
     check_output_dir(args.out)
-    console = make_console(args.quiet)
+    console = make_console(args.quiet, args.no_progress)
     console.print(f"brdfjax reduce: {args.manifest} -> {args.out} ({args.merge} merge)", markup=False)
     t0 = time.perf_counter()
     with ProgressLine(console, "reduce", None, unit="sample(s)", min_interval_s=0.0) as bar:
@@ -104,7 +105,7 @@ def run_reduce_command(args: argparse.Namespace) -> int:
     for path in paths:
         frame = read_reduced_frame(path)
         entry = _reduced_summary(path, frame)
-        if not args.no_plot:
+        if not args.no_figures:
             a = frame.attrs
             h0, h1, v0, v1 = a["roi"]
             det = detector_from_attrs(a, (v1 - v0 + 1, h1 - h0 + 1), follow_peak=False)
@@ -141,9 +142,7 @@ def run_synthesize_command(args: argparse.Namespace) -> int:
     cfg = load_simulate_config(args.config)
     inst_cfg = load_instrument_config(args.instrument, args.camera_seed)
     off = [x.strip() for x in args.without.split(",") if x.strip()]
-    unknown = sorted(set(off) - set(EFFECTS))
-    if unknown:
-        raise InputError(f"--without: unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+    check_choices("effect", sorted(set(off)), EFFECTS, error=InputError, prefix="--without: ")
     if cfg.grid.step != 1 or cfg.roi:
         raise InputError(f"{cfg.source}: grid.step/grid.roi do not apply: the synthetic camera reads the whole array")
     if args.nd is not None:
@@ -152,7 +151,7 @@ def run_synthesize_command(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise InputError(f"--nd {args.nd!r}: {e}") from None
     check_output_dir(args.out)
-    console = make_console(args.quiet)
+    console = make_console(args.quiet, args.no_progress)
     detector = cfg.build_detector()
     # The seed instrument's beam footprint and stray-light offsets are sizes on the array: scale
     # them to this detector's pixels (a no-op on the seed camera).

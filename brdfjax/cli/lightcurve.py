@@ -19,6 +19,7 @@ import jax
 from ..io import check_output_dir
 from ..lightcurve.config import load_lightcurve_config
 from ..lightcurve.run import run_lightcurve
+from ..runtime.cli_args import add_no_figures
 
 __all__ = ["add_arguments", "run"]
 
@@ -26,18 +27,25 @@ __all__ = ["add_arguments", "run"]
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", metavar="CONFIG", help="light-curve TOML config (see configs/lightcurve_box_wing.toml)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
-    p.add_argument("--no-plot", action="store_true", help="write the CSV and JSON only")
+    add_no_figures(p, "write the CSV and JSON only")
 
 
 def run(args: argparse.Namespace) -> int:
     prog = "brdfjax lightcurve"
+
+    def log(s: str) -> None:
+        if not args.quiet:
+            sys.stderr.write(f"{prog}: {s}\n")
+
     # InputError (exit 2), OSError (2), interrupts (130) and bugs (1): brdfjax.runtime.errors.run_command, from cli.main
     cfg = load_lightcurve_config(args.config)
     check_output_dir(args.out)
     if cfg.precision == "float64":
         # An edge may flip the process-wide switch; the library never does.
         jax.config.update("jax_enable_x64", True)
-    summary = run_lightcurve(cfg, args.out, plot=not args.no_plot, log=lambda s: sys.stderr.write(f"{prog}: {s}\n"))
+    summary = run_lightcurve(cfg, args.out, plot=not args.no_figures, log=log)
+    if args.quiet:
+        return 0
     for label, g in summary["glints"].items():
         sys.stderr.write(
             f"{prog}: {label}: {g['count']} glint(s) brighter than {summary['glint_threshold_mag']:g} mag, "

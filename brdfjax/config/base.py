@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import difflib
 import tomllib
 import types
 import typing
@@ -25,6 +24,7 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
 
+from ..runtime.choices import check_choice as _check_choice, did_you_mean, quoted_choices, unknown_message
 from ..runtime.errors import InputError
 
 __all__ = [
@@ -120,24 +120,10 @@ def validate(model: type[M], data: Any, source: str) -> M:
 # --- choices from registries ------------------------------------------------------------------
 
 
-def quoted_choices(choices: Iterable[str]) -> str:
-    """``'a', 'b' or 'c'``."""
-    q = [f"'{c}'" for c in choices]
-    return q[0] if len(q) == 1 else ", ".join(q[:-1]) + " or " + q[-1]
-
-
-def _did_you_mean(name: str, choices: Iterable[str]) -> str:
-    """`` (did you mean 'x'?)`` for the closest of ``choices``, or ``""``."""
-    close = difflib.get_close_matches(name, list(choices), n=1)
-    return f" (did you mean '{close[0]}'?)" if close else ""
-
-
 def check_choice(what: str, value: str, choices: Iterable[str]) -> str:
-    """``value`` if it is one of ``choices`` (a config choice); else a ValueError quoting them."""
-    choices = list(choices)
-    if value not in choices:
-        raise ValueError(f"unknown {what} {value!r}{_did_you_mean(value, choices)}; expected {quoted_choices(choices)}")
-    return value
+    """``value`` if it is one of ``choices`` (a config choice); else a ValueError quoting them, with did-you-mean
+    (:func:`brdfjax.runtime.choices.check_choice`)."""
+    return _check_choice(what, value, choices, listing="expected")
 
 
 def unknown_key_message(key: str, known: Mapping[str, Any], what: str) -> str:
@@ -148,13 +134,13 @@ def unknown_key_message(key: str, known: Mapping[str, Any], what: str) -> str:
     if hint:
         msg += f" (did you mean '{hint[0]}'? angles are given in degrees as <name>_deg, lengths in metres as <name>_m)"
     else:
-        msg += _did_you_mean(key, known)
+        msg += did_you_mean(key, known)
     return msg + f"; known: {', '.join(known)}"
 
 
 def raise_unknown(what: str, name: str, table: Mapping[str, Any]) -> typing.NoReturn:
     """A ValueError for a name not in a registry table (sorted names listed, close match suggested)."""
-    raise ValueError(f"unknown {what} '{name}'{_did_you_mean(name, table)}; known: {', '.join(sorted(table))}")
+    raise ValueError(unknown_message(what, name, table, sort=True))
 
 
 # --- pydantic errors as (dotted key, message) -----------------------------------------------------
@@ -217,9 +203,7 @@ def describe_validation_error(
         allowed = list(owner.model_fields) if owner is not None else []
         key = str(loc[-1])
         msg = "unknown key"
-        close = difflib.get_close_matches(key, allowed, n=1)
-        if close:
-            msg += f" (did you mean '{close[0]}'?)"
+        msg += did_you_mean(key, allowed)
         if allowed:
             where = _dotted(full[:-1]) or "the top level"
             msg += f"; allowed keys in {where}: {', '.join(allowed)}"

@@ -95,16 +95,18 @@ class TermConfig(StrictModel):
         None, description="binomial only: the lowest Gaussian index l1 (an integer, default 0): d^(i + l1) in the i-th c term"
     )
     shadowing: str | None = Field(
-        None, description=f"microfacet kinds only: masking-shadowing, one of {', '.join(SHADOWING)} (default none)"
+        None, description=f"microfacet kinds only: masking-shadowing, one of {', '.join(SHADOWING)} (default smith: "
+        "height-correlated Smith G2; none: the seed's G = 1)"
     )
     normalisation: str | None = Field(
         None,
-        description=f"microfacet kinds only: one of {', '.join(NORMALISATIONS)} (default seed: the seed's Eq 70)",
+        description=f"microfacet kinds only: one of {', '.join(NORMALISATIONS)} (default torrance_sparrow: "
+        "1 / (4 cos ti cos ts), Walter et al. 2007; seed: the seed's Eq 70, 1 / (2 (cos ti + cos ts)^2))",
     )
     fresnel: str | None = Field(
         None,
-        description=f"microfacet kinds only: one of {', '.join(FRESNELS)} (default q_factor: the seed's Eq 69 Q at the "
-        "macro angles; microfacet: F_s + F_p at the microfacet angle, Cook-Torrance / Walter)",
+        description=f"microfacet kinds only: one of {', '.join(FRESNELS)} (default microfacet: F_s + F_p at the "
+        "microfacet angle, Cook-Torrance / Walter; q_factor: the seed's Eq 69 Q at the macro angles)",
     )
 
     @field_validator("params", mode="before")

@@ -25,8 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..runtime.choices import check_choices
 from .distributions import Beckmann, BeckmannAniso, GGXAniso
-from .terms import Lambertian, Model, Oriented, Specular
+from .terms import SEED_FORM, Lambertian, Model, Oriented, Specular
 
 __all__ = ["Oriented", "mirror", "polished_aluminium", "kapton", "MIRROR", "POLISHED_ALUMINIUM", "KAPTON"]
 
@@ -56,9 +57,7 @@ KAPTON: dict[str, float] = {
 
 
 def _check(name: str, defaults: dict[str, float], overrides: dict[str, float]) -> dict[str, float]:
-    unknown = set(overrides) - set(defaults)
-    if unknown:
-        raise KeyError(f"{name}: unknown parameter(s) {sorted(unknown)}; known: {', '.join(defaults)}")
+    check_choices("parameter", sorted(overrides), defaults, error=KeyError, prefix=f"{name}: ")
     return {**defaults, **overrides}
 
 
@@ -70,7 +69,7 @@ def mirror(**overrides: float) -> Model:
     """
     p = _check("mirror", MIRROR, overrides)
     return Model(
-        terms={"specular": Specular(Beckmann(p["m"]), rho_s=p["rho_s"], n=p["n"], k=p["k"])},
+        terms={"specular": Specular(Beckmann(p["m"]), rho_s=p["rho_s"], n=p["n"], k=p["k"], **SEED_FORM)},
         aliases=(("m", "specular.m"), ("rho_s", "specular.rho_s"), ("n", "specular.n"), ("k", "specular.k")),
     )
 
@@ -82,7 +81,7 @@ def polished_aluminium(**overrides: float) -> Model:
     (rad), ``rho_s, n, k``.
     """
     p = _check("polished_aluminium", POLISHED_ALUMINIUM, overrides)
-    spec = Specular(BeckmannAniso(p["mx"], p["my"]), rho_s=p["rho_s"], n=p["n"], k=p["k"])
+    spec = Specular(BeckmannAniso(p["mx"], p["my"]), rho_s=p["rho_s"], n=p["n"], k=p["k"], **SEED_FORM)
     return Model(
         terms={"specular": Oriented(spec, psi=p["psi"])},
         aliases=tuple((k, f"specular.{k}") for k in ("mx", "my", "psi", "rho_s", "n", "k")),
@@ -95,7 +94,7 @@ def kapton(**overrides: float) -> Model:
     Parameters ``alpha_x, alpha_y, psi, rho_s, n, rho_d``.
     """
     p = _check("kapton", KAPTON, overrides)
-    spec = Specular(GGXAniso(p["alpha_x"], p["alpha_y"]), rho_s=p["rho_s"], n=p["n"])
+    spec = Specular(GGXAniso(p["alpha_x"], p["alpha_y"]), rho_s=p["rho_s"], n=p["n"], **SEED_FORM)
     return Model(
         terms={"specular": Oriented(spec, psi=p["psi"]), "diffuse": Lambertian(p["rho_d"])},
         aliases=(

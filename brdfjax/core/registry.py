@@ -12,6 +12,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
+from ..runtime.choices import check_choice
 from . import distributions as _d, presets as _presets
 from .terms import (
     _BINOMIAL_KEY as BINOMIAL_KEY,
@@ -84,9 +85,7 @@ _REGISTRIES = {"distribution": DISTRIBUTIONS, "term": TERMS, "preset": PRESETS}
 def lookup(kind: str, name: str) -> Any:
     """The registered object ``name`` of ``kind`` ('distribution', 'term', 'preset')."""
     table = _REGISTRIES[kind]
-    if name not in table:
-        raise KeyError(f"unknown {kind} '{name}'; known: {', '.join(sorted(table))}")
-    return table[name]
+    return table[check_choice(kind, name, table, error=KeyError, sort=True)]
 
 
 def parameter_names(cls: type) -> dict[str, str]:
@@ -122,7 +121,8 @@ def term_from_params(
     Specular kinds take a distribution name; ``multi_lobe`` takes ``lobes``
     (lobe name -> distribution name) and parameters ``<lobe>.<name>`` plus the
     shared ``n``, ``k``; the microfacet kinds take the ``shadowing``,
-    ``normalisation`` and ``fresnel`` options (``None``: the seed's defaults); ``binomial``
+    ``normalisation`` and ``fresnel`` options (``None``: the term's default,
+    :data:`brdfjax.core.terms.STANDARD_FORM`); ``binomial``
     takes its coefficients ``b<k>_<i>``, ``c<k>_<i>``, ``d`` and the integer ``l1``
     (default 0).
     """

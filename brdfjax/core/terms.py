@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
+from ..runtime.choices import check_choice, check_choices
 from .distributions import AbstractDistribution, Beckmann
 from .fields import check_param, param
 from .fresnel import fresnel_microfacet, q_factor_parts
@@ -38,6 +39,8 @@ __all__ = [
     "Specular",
     "NORMALISATIONS",
     "FRESNELS",
+    "SEED_FORM",
+    "STANDARD_FORM",
     "Lambertian",
     "Lobe",
     "MultiLobeSpecular",
@@ -78,13 +81,21 @@ NORMALISATIONS = ("seed", "torrance_sparrow")
 FRESNELS = ("q_factor", "microfacet")
 
 
+#: The microfacet form of Mitsuba, pbrt and most of the literature, the default of :class:`Specular` and
+#: :class:`MultiLobeSpecular`: ``rho_s D G2 F / (4 cos ti cos ts)`` with the height-correlated Smith G2 and
+#: the unpolarised Fresnel reflectance ``F`` at the microfacet angle (Walter et al. 2007; Heitz 2014).
+STANDARD_FORM: dict[str, str] = {"shadowing": "smith", "normalisation": "torrance_sparrow", "fresnel": "microfacet"}
+
+#: The seed dissertation's Eq 70 form: ``rho_s D Q / (2 (cos ti + cos ts)^2)`` with the Q polarization factor
+#: of Eq 69 at the macro angles and no shadowing (G = 1).  The solar-cell preset, the seed's other materials
+#: and the seed configs state it explicitly: ``Specular(D, rho_s=..., n=..., **SEED_FORM)``.
+SEED_FORM: dict[str, str] = {"shadowing": "none", "normalisation": "seed", "fresnel": "q_factor"}
+
+
 def _check_options(owner: str, shadowing: str, normalisation: str, fresnel: str = "q_factor") -> None:
-    if fresnel not in FRESNELS:
-        raise ValueError(f"{owner}: unknown fresnel '{fresnel}'; known: {', '.join(FRESNELS)}")
-    if shadowing not in SHADOWING:
-        raise ValueError(f"{owner}: unknown shadowing '{shadowing}'; known: {', '.join(SHADOWING)}")
-    if normalisation not in NORMALISATIONS:
-        raise ValueError(f"{owner}: unknown normalisation '{normalisation}'; known: {', '.join(NORMALISATIONS)}")
+    check_choice("fresnel", fresnel, FRESNELS, prefix=f"{owner}: ")
+    check_choice("shadowing", shadowing, SHADOWING, prefix=f"{owner}: ")
+    check_choice("normalisation", normalisation, NORMALISATIONS, prefix=f"{owner}: ")
 
 
 def _specular_geometry(dirs: Directions, normalisation: str) -> Array:
@@ -119,27 +130,33 @@ def _q_times_geometry(n, k, dirs: Directions, normalisation: str, extra: tuple =
 
 
 class Specular(AbstractTerm):
-    """Microfacet specular term with any distribution D and the Q factor of Eq 69.
+    """Microfacet specular term with any distribution D.
 
-    ``normalisation="seed"`` (the default) is the seed's Eq 70,
-    ``f = rho_s D(w_h) G Q(n + i k, w_i, w_s) / (2 (cos theta_i + cos theta_s)^2)``;
-    ``normalisation="torrance_sparrow"`` is the microfacet form of Torrance and
-    Sparrow (1967) / Walter et al. (2007), ``f = rho_s D G (Q / 2) / (4 cos theta_i cos theta_s)``,
-    where ``Q / 2`` is the unpolarised Fresnel reflectance in the specular
-    direction (``Q = F_s + F_p`` there).  In the specular direction the two forms
-    agree; elsewhere ``(cos ti + cos ts)^2 >= 4 cos ti cos ts`` so the seed's
-    form is never larger.  ``G`` is the masking-shadowing factor
-    (:mod:`brdfjax.core.shadowing`): ``"none"`` (G = 1, the seed), ``"smith"``
-    (height-correlated Smith G2 with the distribution's Lambda) or
+    The default (:data:`STANDARD_FORM`) is the microfacet form of Torrance and
+    Sparrow (1967) / Walter et al. (2007), as Mitsuba and pbrt use it:
+    ``f = rho_s D G2 F / (4 cos theta_i cos theta_s)`` with the height-correlated
+    Smith masking-shadowing ``G2`` of the distribution's own Lambda (Heitz 2014)
+    and ``F = (F_s + F_p) / 2``, the unpolarised Fresnel reflectance at the
+    microfacet angle ``theta_d`` (``cos theta_d = w_i . w_h``;
+    :func:`brdfjax.core.fresnel.fresnel_microfacet`).
+
+    The seed dissertation's Eq 70 form (:data:`SEED_FORM`: ``shadowing="none"``,
+    ``normalisation="seed"``, ``fresnel="q_factor"``) is
+    ``f = rho_s D(w_h) Q(n + i k, w_i, w_s) / (2 (cos theta_i + cos theta_s)^2)``
+    with the polarization factor ``Q`` of Eq 69 at the macro angles and no
+    shadowing; the solar-cell preset and the seed's configs state it.
+
+    The three options combine freely.  ``normalisation``: ``"torrance_sparrow"``
+    (``1 / (4 cos ti cos ts)`` times ``Q / 2`` or ``F``) or ``"seed"``
+    (``1 / (2 (cos ti + cos ts)^2)`` times ``Q``); in the specular direction the
+    two agree, elsewhere ``(cos ti + cos ts)^2 >= 4 cos ti cos ts`` so the
+    seed's form is never larger.  ``shadowing`` (:mod:`brdfjax.core.shadowing`):
+    ``"smith"`` (height-correlated Smith G2), ``"none"`` (G = 1),
     ``"v_cavity"`` (Cook-Torrance); ``"smith_mixture"`` is ``"smith"`` for one
-    distribution (it differs for :class:`MultiLobeSpecular`).  ``fresnel="q_factor"`` (the default) is the
-    seed's polarization factor ``Q`` of Eq 69, evaluated at the macro angles
-    ``theta_i, theta_s``; ``fresnel="microfacet"`` replaces it with ``F_s + F_p``
-    at the microfacet angle ``theta_d`` (``cos theta_d = w_i . w_h``;
-    :func:`brdfjax.core.fresnel.fresnel_microfacet`), the Fresnel factor of
-    Cook-Torrance and Walter et al. (2007): the two agree in the specular
-    direction and differ off it, most for wide lobes of a conductor.  The
-    defaults reproduce the seed exactly.
+    distribution (it differs for :class:`MultiLobeSpecular`).  ``fresnel``:
+    ``"microfacet"`` (``F_s + F_p`` at ``theta_d``) or ``"q_factor"`` (the seed's
+    Q at the macro angles); the two agree in the specular direction and differ
+    off it, most for wide lobes of a conductor.
     """
 
     kind: ClassVar[str] = "specular"
@@ -148,9 +165,9 @@ class Specular(AbstractTerm):
     rho_s: Array = param("1", "specular weight")
     n: Array = param("1", "real part of the refractive index")
     k: Array = param("1", "imaginary part of the refractive index", default=0.0)
-    shadowing: str = eqx.field(static=True, default="none")
-    normalisation: str = eqx.field(static=True, default="seed")
-    fresnel: str = eqx.field(static=True, default="q_factor")
+    shadowing: str = eqx.field(static=True, default=STANDARD_FORM["shadowing"])
+    normalisation: str = eqx.field(static=True, default=STANDARD_FORM["normalisation"])
+    fresnel: str = eqx.field(static=True, default=STANDARD_FORM["fresnel"])
 
     def __check_init__(self):
         check_param("specular", "rho_s", self.rho_s, lambda v: v >= 0, "rho_s >= 0")
@@ -181,7 +198,7 @@ class MultiLobeSpecular(AbstractTerm):
 
     ``f = sum_l rho_l D_l(w_h) G_l Q(n + i k) N(theta_i, theta_s)`` with the
     normalisation ``N``, shadowing ``G`` and Fresnel factor (``fresnel``) of
-    :class:`Specular`.  With ``shadowing="smith"`` each lobe's G uses its own
+    :class:`Specular` (the same defaults, :data:`STANDARD_FORM`).  With ``shadowing="smith"`` each lobe's G uses its own
     distribution's Lambda; ``shadowing="smith_mixture"`` is Smith's G2 of the
     surface as a whole, whose slope distribution is the mixture of the lobes
     (``Lambda = sum_l w_l Lambda_l``, ``w_l = rho_l / sum rho``;
@@ -196,9 +213,9 @@ class MultiLobeSpecular(AbstractTerm):
     lobes: dict[str, Lobe]
     n: Array = param("1", "real part of the refractive index (shared by every lobe)")
     k: Array = param("1", "imaginary part of the refractive index", default=0.0)
-    shadowing: str = eqx.field(static=True, default="none")
-    normalisation: str = eqx.field(static=True, default="seed")
-    fresnel: str = eqx.field(static=True, default="q_factor")
+    shadowing: str = eqx.field(static=True, default=STANDARD_FORM["shadowing"])
+    normalisation: str = eqx.field(static=True, default=STANDARD_FORM["normalisation"])
+    fresnel: str = eqx.field(static=True, default=STANDARD_FORM["fresnel"])
 
     def __check_init__(self):
         if not self.lobes:
@@ -600,7 +617,7 @@ class Model(AbstractTerm):
         flat = alias.get(name, name)
         if flat not in paths:
             known = sorted(set(alias) | (set(paths) - set(alias.values())))
-            raise KeyError(f"unknown parameter '{name}'; known: {', '.join(known)}")
+            check_choice("parameter", name, known, error=KeyError)
         return flat
 
     def parameter_units(self) -> dict[str, str]:
@@ -668,23 +685,19 @@ _SOLAR_ALIASES = (
 def solar_cell(**overrides: float) -> Model:
     """The seed's three-term solar-cell model (Chapter VI) with the §6.4 parameters.
 
-    Terms: ``center`` (Beckmann specular, Eq 111), ``offset`` (offset-normal
+    Terms: ``center`` (Beckmann specular, Eq 111, in the seed's Eq 70 form: :data:`SEED_FORM`), ``offset`` (offset-normal
     Beckmann specular, Eq 112-113) and ``bars`` (diffraction, Eq 114-115).
     Parameters use the seed's names ``m1, rho_s1, n1, m2, rho_s2, n2, dtheta,
     dphi0, a, b, c, rho_s3`` (angles in radians); keyword overrides replace
     the seed values.  ``theta_i`` and ``phi_ref`` belong to the frame.
     """
-    unknown = set(overrides) - set(SOLAR_CELL_SEED)
-    if unknown:
-        raise KeyError(
-            f"solar_cell: unknown parameter(s) {sorted(unknown)}; known: {', '.join(SOLAR_CELL_SEED)}"
-        )
+    check_choices("parameter", sorted(overrides), SOLAR_CELL_SEED, error=KeyError, prefix="solar_cell: ")
     p = {**SOLAR_CELL_SEED, **overrides}
     return Model(
         terms={
-            "center": Specular(Beckmann(p["m1"]), rho_s=p["rho_s1"], n=p["n1"]),
+            "center": Specular(Beckmann(p["m1"]), rho_s=p["rho_s1"], n=p["n1"], **SEED_FORM),
             "offset": OffsetNormal(
-                Specular(Beckmann(p["m2"]), rho_s=p["rho_s2"], n=p["n2"]),
+                Specular(Beckmann(p["m2"]), rho_s=p["rho_s2"], n=p["n2"], **SEED_FORM),
                 dtheta=p["dtheta"],
                 dphi0=p["dphi0"],
             ),

@@ -819,12 +819,12 @@ def capture_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", metavar="CONFIG", help="capture config (TOML), e.g. configs/capture_simulated.toml")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder: the raw measurement set + manifest.toml")
     p.add_argument("--resume", action="store_true", help="continue an interrupted capture in DIR from its manifest")
-    p.add_argument("--seed", type=int, default=None, help="noise seed of the simulated instrument (overrides seed)")
+    p.add_argument("--seed", type=int, default=None, metavar="N", help="noise seed of the simulated instrument (overrides seed)")
     p.add_argument("--live", choices=("auto", "window", "png", "off"), default=None,
                    help="live view: a matplotlib window, a PNG + HTML page in DIR/live/, or none (overrides capture.live)")
     p.add_argument("--override-interlock", action="store_true",
                    help="allow direct-beam steps below the safe OD (logged in the manifest); only if the array can take it")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar or progress lines")
 
 
 def run_capture_command(args: argparse.Namespace) -> int:
@@ -837,6 +837,8 @@ def run_capture_command(args: argparse.Namespace) -> int:
     cap = {}
     if args.live is not None:
         cap["live"] = args.live
+    if getattr(args, "no_figures", False):  # the shared --no-figures: no live PNG preview either
+        cap["live"] = "off"
     if args.override_interlock:
         cap["override_interlock"] = True
     if cap:
@@ -845,7 +847,7 @@ def run_capture_command(args: argparse.Namespace) -> int:
         src = cfg.source
         cfg = cfg.model_copy(update=updates)
         cfg._source = src
-    console = make_console(args.quiet)
+    console = make_console(args.quiet, args.no_progress)
     log = lambda s: console.print(s, markup=False)  # noqa: E731
     live = None
     if cfg.capture.live != "off":

@@ -42,6 +42,8 @@ from ..config import ConfigError, ModelConfig, StrictModel, read_toml
 from ..fit.config import enable_config_precision, load_fit_config
 from ..fit.job import build_fit_job
 from ..io import check_output_dir
+from ..runtime.choices import check_choices
+from ..runtime.cli_args import CONFIG, DIR, add_no_figures
 from ..runtime.progress import make_console
 from .effects import EFFECT_LIBRARY
 from .engine import DiagnoseInputError, diagnose, final_model_config, truth_gap
@@ -68,10 +70,11 @@ class DiagnoseSection(StrictModel):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", help="fit config (TOML) with a [diagnose] table; the [model] is the base model")
-    p.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, report.html")
-    p.add_argument("--effects", default=None, help="comma-separated candidate effects (overrides [diagnose] effects)")
-    p.add_argument("--no-figures", action="store_true", help="report.html without figures (faster)")
+    p.add_argument("config", metavar=CONFIG, help="fit config (TOML) with a [diagnose] table; the [model] is the base model")
+    p.add_argument("--out", required=True, metavar=DIR, help="output folder: diagnosis.json, report.md, report.html")
+    p.add_argument("--effects", default=None, metavar="EFFECTS",
+                   help="comma-separated candidate effects (overrides [diagnose] effects)")
+    add_no_figures(p, "report.html without figures (faster)")
 
 
 def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | None = None, figures: bool | None = None, progress: Any = None):
@@ -86,9 +89,7 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
     out = Path(out)
     names_asked = effects if effects is not None else sec.effects
     if names_asked is not None:  # before generating or reducing any data
-        unknown = [n for n in names_asked if n not in EFFECT_LIBRARY]
-        if unknown:
-            raise DiagnoseInputError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECT_LIBRARY)}")
+        check_choices("effect", names_asked, EFFECT_LIBRARY, error=DiagnoseInputError)
     job, truth_model = (build_fit_job(cfg, work_dir=out), None) if sec.truth is None else _truth_job(cfg, sec.truth, out)
     names = [b.name for b in job.blocks]
     missing = [h for h in sec.heldout if h not in names]
@@ -193,7 +194,7 @@ class _CandidateProgress:
 
 
 def run(args: argparse.Namespace) -> int:
-    console = make_console(args.quiet)
+    console = make_console(args.quiet, args.no_progress)
     effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
     t0 = time.perf_counter()
     enable_config_precision(args.config)  # the command line, not the library, turns 64-bit JAX on

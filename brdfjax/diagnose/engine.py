@@ -63,6 +63,7 @@ from ..core import registry
 from ..core.terms import Model
 from ..fit import FitInputError, FitResult, FrameData, TableData, fit
 from ..fit.internal import as_param, natural_unit, to_natural
+from ..runtime.choices import check_choices
 from ..runtime.errors import InputError
 from .context import build_context, gap_measures, residual_maps
 from .effects import EFFECT_LIBRARY, camera_params, response_features
@@ -129,9 +130,7 @@ def _check_blocks(blocks: Sequence[Any], what: str) -> list[Any]:
 def _select_effects(library: Mapping[str, Any], names: Sequence[str] | None, base_model: Model) -> tuple[list[str], list[Candidate]]:
     explicit = names is not None
     names = list(library) if names is None else list(names)
-    unknown = [n for n in names if n not in library]
-    if unknown:
-        raise DiagnoseInputError(f"unknown effect(s) {unknown}; known: {', '.join(library)}")
+    check_choices("effect", names, library, error=DiagnoseInputError)
     chosen, skipped = [], []
     for n in names:
         eff = library[n]
@@ -1144,10 +1143,8 @@ def model_terms_config(model: Model) -> tuple[dict[str, Any], dict[str, tuple[st
         units = {flat.split(".", 1)[1]: unit for flat, (_, unit) in paths.items() if flat.split(".", 1)[0] == tname}
         keys = parameter_keys(units)
         entry["params"] = {key: values[f"{tname}.{field}"] / scale for key, (field, scale, _) in keys.items()}
-        for opt in ("shadowing", "normalisation", "fresnel"):  # the microfacet options (a shadowing step sets them)
+        for opt in ("shadowing", "normalisation", "fresnel"):  # the microfacet options, always written
             val = getattr(inner, opt, None)
-            if opt == "fresnel" and val == "q_factor":
-                continue  # the default, not written (configs written before the option existed read the same)
             if isinstance(val, str) and kind in registry.MICROFACET_KINDS:
                 entry[opt] = val
         if kind == "multi_lobe":

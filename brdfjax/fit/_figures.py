@@ -118,8 +118,9 @@ def plot_frame_fit(block: FrameData, model_img: np.ndarray, frame: Any, path: Pa
     for ax, ci in zip(axes[1, :2], cols):
         ok = u[:, ci]
         x = n_v
-        ax.fill_between(x, np.where(ok, d[:, ci] * np.exp(-sig[:, ci]), np.nan),
-                        np.where(ok, d[:, ci] * np.exp(sig[:, ci]), np.nan), color="C0", alpha=0.3, lw=0,
+        s_ok = np.where(ok, sig[:, ci], 0.0)  # unusable pixels may carry any sigma (inf, 1e300): not exponentiated
+        ax.fill_between(x, np.where(ok, d[:, ci] * np.exp(-s_ok), np.nan),
+                        np.where(ok, d[:, ci] * np.exp(s_ok), np.nan), color="C0", alpha=0.3, lw=0,
                         label=r"data $\pm 1\sigma$")
         ax.semilogy(x, np.where(ok, d[:, ci], np.nan), ".", color="C0", ms=3, label="data")
         ax.semilogy(x, np.where(model_img[:, ci] > 0, model_img[:, ci], np.nan), "-", color="C3", lw=1.0, label="model")

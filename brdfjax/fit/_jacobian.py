@@ -109,13 +109,15 @@ class _Plan(eqx.Module):
 def _turn_invariant(term: Any) -> bool:
     """Whether the term is unchanged when both directions turn about the normal (``phi_ref`` does not reach it).
 
-    A :class:`Specular` term without shadowing on an isotropic distribution (one with an anisotropic
-    partner: a function of ``tan^2 theta_h``) depends on the zenith angles, ``tan^2 theta_h`` and
-    ``cos^2 dphi`` only; a :class:`Lambertian` on nothing.
+    A :class:`Specular` term on an isotropic distribution (one with an anisotropic partner: a function of
+    ``tan^2 theta_h``) depends on the zenith angles, ``tan^2 theta_h``, ``cos^2 dphi`` and ``w_i . w_h``
+    only, whatever its options: Smith's Lambda of an isotropic distribution is a function of the zenith
+    angle, the V-cavity factor and the microfacet Fresnel factor of dot products; a :class:`Lambertian`
+    on nothing.
     """
     if type(term) is Lambertian:
         return True
-    return type(term) is Specular and term.shadowing == "none" and type(term.distribution).anisotropic is not None
+    return type(term) is Specular and type(term.distribution).anisotropic is not None
 
 
 def _plan(template: Model, names: tuple[tuple[str, str], ...]) -> _Plan:

@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.choices import check_choice
 from ._common import FRAME_PARAMETERS, FitInputError
 
 __all__ = [
@@ -395,8 +396,7 @@ def build_layout(
     n_blocks = len(block_names)
     known = list(model_units) + [k for k in FRAME_PARAMETERS if k not in model_units]
     for name in spec:
-        if name not in known:
-            raise FitInputError(f"unknown parameter '{name}'; known: {', '.join(sorted(known))}")
+        check_choice("parameter", name, known, error=FitInputError, sort=True)
     free: list[FreeEntry] = []
     fixed: list[FixedEntry] = []
     order: list[str] = []

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..io import atomic_output
+from ..runtime.choices import check_choice
 from ._common import natural_unit, to_natural
 
 __all__ = ["ParameterEstimate", "BlockSummary", "FitResult"]
@@ -185,7 +186,7 @@ class FitResult:
 
     def _get(self, name: str) -> ParameterEstimate:
         if name not in self.parameters:
-            raise KeyError(f"unknown parameter '{name}'; known: {', '.join(self.parameters)}")
+            check_choice("parameter", name, self.parameters, error=KeyError)
         return self.parameters[name]
 
     def to_dict(self) -> dict[str, Any]:

@@ -90,7 +90,6 @@ data (:func:`~brdfjax.fit.job.build_fit_job`) and run the fit
 
 from __future__ import annotations
 
-import difflib
 import math
 import os
 from collections.abc import Mapping
@@ -123,6 +122,7 @@ from ..core.render import Precision
 from ..core.terms import Model
 from ..instrument.reduce import MERGES
 from ..instrument.synthetic import EFFECTS
+from ..runtime.choices import check_choice as check_name
 from ._auto_init import INITIALIZERS
 from ._common import FRAME_PARAMETERS, FitInputError
 from ._fit import FIRST_STAGES
@@ -346,17 +346,12 @@ class FitSection(StrictModel):
     @field_validator("solver")
     @classmethod
     def _solver(cls, v: str) -> str:
-        if v not in SOLVERS:
-            close = difflib.get_close_matches(v, list(SOLVERS), n=1)
-            raise ValueError(f"unknown solver '{v}'" + (f" (did you mean '{close[0]}'?)" if close else "") + f"; known: {', '.join(SOLVERS)}")
-        return v
+        return check_name("solver", v, SOLVERS)
 
     @field_validator("initializer")
     @classmethod
     def _initializer(cls, v: str | None) -> str | None:
-        if v is not None and v not in INITIALIZERS:
-            raise ValueError(f"unknown initializer '{v}'; known: {', '.join(INITIALIZERS)}")
-        return v
+        return v if v is None else check_name("initializer", v, INITIALIZERS)
 
     @model_validator(mode="after")
     def _solver_options(self) -> "FitSection":
@@ -587,14 +582,19 @@ def _check_files(cfg: FitConfig) -> None:
     d = cfg.data
     problems = []
     for i, f in enumerate(d.frames):
-        if not cfg.resolve(f).is_file():
+        if cfg.resolve(f).is_dir():
+            problems.append((f"data.frames[{i}]", f"{cfg.resolve(f)} is a directory, not a frame file (.exr)"))
+        elif not cfg.resolve(f).is_file():
             problems.append((f"data.frames[{i}]", f"no such frame file: {cfg.resolve(f)}"))
     if d.manifest is not None:
         p = cfg.resolve(d.manifest)
         if not (p.is_file() or (p / "manifest.toml").is_file()):
             problems.append(("data.manifest", f"no such measurement set manifest: {p}"))
     for i, t in enumerate(d.tables):
-        if not cfg.resolve(t.path).is_file():
+        if cfg.resolve(t.path).is_dir():
+            problems.append((f"data.tables[{i}].path", f"{cfg.resolve(t.path)} is a directory, not a table file; "
+                             "name the file itself"))
+        elif not cfg.resolve(t.path).is_file():
             problems.append((f"data.tables[{i}].path", f"no such table file: {cfg.resolve(t.path)}"))
     if d.synthetic is not None and d.synthetic.instrument is not None and not cfg.resolve(d.synthetic.instrument).is_file():
         problems.append(("data.synthetic.instrument", f"no such instrument config: {cfg.resolve(d.synthetic.instrument)}"))

@@ -119,6 +119,7 @@ from ..io.raw import (
     write_manifest,
     write_raw_exr,
 )
+from ..runtime.choices import check_choices
 from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
 from .radiometry import flux_from_brdf
 
@@ -348,9 +349,7 @@ class InstrumentConfig(StrictModel):
         return float(2**self.adc_bits - 1)
 
     def _check_names(self, names: Sequence[str]) -> None:
-        unknown = [n for n in names if n not in EFFECTS]
-        if unknown:
-            raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(EFFECTS)}")
+        check_choices("effect", names, EFFECTS)
 
     def with_effects(self, **enabled: bool) -> "InstrumentConfig":
         """A copy with effects switched on or off by name: ``cfg.with_effects(shot_noise=False)``."""

@@ -60,6 +60,8 @@ _WAVELENGTH_UNITS = {"nm": 1e-9, "um": 1e-6, "µm": 1e-6, "m": 1.0}
 
 def _path(path: str | os.PathLike) -> Path:
     p = Path(path)
+    if p.is_dir():
+        raise FitInputError(f"{p}: is a directory, not a table file; name the file itself")
     if not p.is_file():
         raise FitInputError(f"{p}: no such file")
     return p

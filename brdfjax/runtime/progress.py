@@ -1,7 +1,7 @@
 """Progress of long work on stderr: a rich bar on a terminal, plain lines when not, nothing with ``--quiet``.
 
 Every ``brdfjax`` subcommand takes ``--quiet`` (no progress and no status
-lines; errors are still printed).  :func:`make_console` is the console a
+lines; errors are still printed) and ``--no-progress`` (no progress; status lines still print).  :func:`make_console` is the console a
 command prints through; :class:`ProgressLine` reports ``done / total`` of a
 long loop (the fit's solver steps with their chi^2, the diagnosis's
 candidates, synthesis, reduction) with the elapsed time and an estimate of
@@ -21,9 +21,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 __all__ = ["ProgressLine", "make_console"]
 
 
-def make_console(quiet: bool = False) -> Console:
-    """The stderr console of a command (``quiet``: prints nothing)."""
-    return Console(stderr=True, highlight=False, soft_wrap=True, quiet=bool(quiet))
+def make_console(quiet: bool = False, no_progress: bool = False) -> Console:
+    """The stderr console of a command (``quiet``: prints nothing; ``no_progress``: no :class:`ProgressLine`)."""
+    console = Console(stderr=True, highlight=False, soft_wrap=True, quiet=bool(quiet))
+    console.brdfjax_no_progress = bool(no_progress)  # read by ProgressLine (rich's Console takes attributes)
+    return console
 
 
 def _fmt_s(s: float) -> str:
@@ -46,7 +48,7 @@ class ProgressLine:
         self._last = -float("inf")
         self._bar = None
         self.lines: list[str] = []  # the plain lines printed (for tests and logs)
-        quiet = console is None or getattr(console, "quiet", False)
+        quiet = console is None or getattr(console, "quiet", False) or getattr(console, "brdfjax_no_progress", False)
         self.enabled = not quiet
         if self.enabled and getattr(console, "is_terminal", False):
             cols: list[Any] = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -41,6 +42,7 @@ import emcee
 import h5py
 import numpy as np
 
+from ..runtime.progress import ProgressLine, make_console
 from ._priors import SampleError
 from ._store import ChainStore
 
@@ -181,10 +183,16 @@ def run_chain(
         out.wall_s = time.perf_counter() - t0
         return out
     last_tau = None
+    # emcee's bar (tqdm) on a terminal; plain lines otherwise (a log file gets no carriage returns)
+    bar = progress and sys.stderr.isatty()
+    lines = ProgressLine(make_console(), "sampling (emcee)", remaining, unit="steps", min_interval_s=10.0) \
+        if progress and not bar else None
     try:
-        for i, _ in enumerate(sampler.sample(state, iterations=remaining, progress=progress), start=1):
+        for i, _ in enumerate(sampler.sample(state, iterations=remaining, progress=bar), start=1):
             it = done + i
             out.iterations, out.new_steps = it, i
+            if lines is not None:
+                lines.update(i)
             if on_step is not None:
                 on_step(it)
             if stop_when_converged and it % check_every == 0:

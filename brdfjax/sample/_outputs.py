@@ -7,6 +7,7 @@ stored), like the fit's result.  Files are written atomically
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -68,24 +69,59 @@ def _labels(names: Sequence[str], units: Sequence[str]) -> list[str]:
     return [f"{n} [{u}]" if u not in ("1", "") else n for n, u in zip(names, units)]
 
 
-def plot_corner(path: Path, flat_natural: np.ndarray, names, units, truths=None, title: str | None = None) -> Path:
+class _NoContourWarning(logging.Filter):
+    """Drops corner's "Too few points to create valid contours" (a parameter whose samples barely spread):
+    the panel is drawn without contours and the figure says so, instead of a stray log line."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.dropped = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "Too few points to create valid contours" in record.getMessage():
+            self.dropped += 1
+            return False
+        return True
+
+
+def plot_corner(path: Path, flat_natural: np.ndarray, names, units, truths=None, title: str | None = None,
+                truth_label: str = "least-squares fit (the chain's start)") -> Path:
+    """Marginals and pairwise densities; red lines: ``truths`` (here the least-squares fit), named in a legend."""
     plt = agg_pyplot()
     import corner  # imports pyplot at import time: only after agg_pyplot() has chosen the backend
 
-    fig = corner.corner(
-        flat_natural,
-        labels=_labels(names, units),
-        quantiles=[0.16, 0.5, 0.84],
-        show_titles=True,
-        title_fmt=".3g",
-        truths=None if truths is None else list(truths),
-        truth_color="tab:red",
-        label_kwargs={"fontsize": 9},
-        title_kwargs={"fontsize": 8},
-    )
+    k = flat_natural.shape[1]
+    fig = plt.figure(figsize=(max(2.3 * k, 5.0), max(2.3 * k, 5.0)))
+    quiet = _NoContourWarning()
+    logging.getLogger().addFilter(quiet)
+    try:
+        fig = corner.corner(
+            flat_natural,
+            fig=fig,
+            labels=_labels(names, units),
+            quantiles=[0.16, 0.5, 0.84],
+            show_titles=True,
+            title_fmt=".3g",
+            truths=None if truths is None else list(truths),
+            truth_color="tab:red",
+            max_n_ticks=3,
+            labelpad=0.12,
+            label_kwargs={"fontsize": 9},
+            title_kwargs={"fontsize": 8},
+        )
+    finally:
+        logging.getLogger().removeFilter(quiet)
+    for ax in fig.axes:
+        ax.tick_params(labelsize=7)
+    handles = [plt.Line2D([], [], color="k", ls="--", lw=1, label="16, 50, 84 % posterior quantiles")]
+    if truths is not None:
+        handles.insert(0, plt.Line2D([], [], color="tab:red", lw=1.5, label=f"red: {truth_label}"))
+    if quiet.dropped:
+        handles.append(plt.Line2D([], [], color="none", label=f"{quiet.dropped} panel(s) without contours: too few distinct samples"))
+    fig.legend(handles=handles, loc="upper right", fontsize=9, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10, y=1.01)
-    save_figure_atomic(fig, path, 80, bbox_inches="tight")
+    save_figure_atomic(fig, path, 90, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -136,7 +172,10 @@ def plot_predictive(
     path: Path, data: Any, f_points: np.ndarray, col_idx: Sequence[int], title: str, seed: int = 0
 ) -> Path:
     """Data (1-sigma bars) and, along grid columns, the model's 95 % credible band and the 95 % posterior-
-    predictive band (model draws times the data's log-normal noise), at the usable points."""
+    predictive band (model draws times the data's log-normal noise), at the usable points.
+
+    Top row: the BRDF on a log scale.  Bottom row: the same divided by the posterior median model, where
+    bands a few per cent wide are visible (on the log scale they are thinner than the line)."""
     plt = agg_pyplot()
     brdf = np.asarray(data.brdf, np.float64)
     sigma = np.broadcast_to(np.asarray(data.sigma_rel, np.float64), brdf.shape)
@@ -146,26 +185,37 @@ def plot_predictive(
     n_h = np.asarray(data.grid.n_h)
     rng = np.random.default_rng(seed)
     noisy = f_points * np.exp(sigma[rows, cols][None, :] * rng.standard_normal(f_points.shape))
-    fig, axes = plt.subplots(1, len(col_idx), figsize=(5.5 * len(col_idx), 3.8), squeeze=False)
-    for j, (ax, c) in enumerate(zip(axes[0], col_idx)):
+    n = len(col_idx)
+    fig, axes = plt.subplots(2, n, figsize=(7.5 * n, 7.0), squeeze=False, sharex="col",
+                             gridspec_kw={"height_ratios": [3, 2]})
+    for j, c in enumerate(col_idx):
+        ax, rax = axes[0, j], axes[1, j]
         sel = np.flatnonzero(cols == c)
         r = rows[sel]
         q = np.percentile(f_points[:, sel], [2.5, 50, 97.5], axis=0)
         qn = np.percentile(noisy[:, sel], [2.5, 97.5], axis=0)
         x = n_v[r]
-        ax.fill_between(x, qn[0], qn[1], color="tab:orange", alpha=0.25, step="mid", label="95 % posterior predictive")
-        ax.fill_between(x, q[0], q[2], color="tab:blue", alpha=0.5, step="mid", label="95 % model band")
-        ax.plot(x, q[1], color="tab:blue", lw=0.8, label="posterior median model")
         d = brdf[r, c]
-        ax.errorbar(x, d, yerr=d * sigma[r, c], fmt=".", ms=3, color="k", lw=0.6, label="data (usable)")
+        for a, scale in ((ax, 1.0), (rax, q[1])):
+            a.fill_between(x, qn[0] / scale, qn[1] / scale, color="tab:orange", alpha=0.35, step="mid",
+                           label="95 % posterior predictive (model x noise)")
+            a.fill_between(x, q[0] / scale, q[2] / scale, color="tab:blue", alpha=0.6, step="mid",
+                           label="95 % credible band of the model")
+            a.plot(x, q[1] / scale, color="tab:blue", lw=1.0, label="posterior median model")
+            a.errorbar(x, d / scale, yerr=d * sigma[r, c] / scale, fmt=".", ms=4, color="k", lw=0.7,
+                       label="data (usable pixels, 1 sigma)")
         ax.set_yscale("log")
-        ax.set_xlabel("pixel row n_v")
         ax.set_ylabel("BRDF (sr$^{-1}$)")
-        ax.set_title(f"{title}: column n_h = {int(n_h[c])}", fontsize=9)
+        ax.set_title(f"{title}: column n_h = {int(n_h[c])}", fontsize=11)
+        rax.set_ylabel("ratio to the posterior median")
+        rax.set_xlabel("pixel row n_v")
+        rax.axhline(1.0, color="0.5", lw=0.6)
+        for a in (ax, rax):
+            a.tick_params(labelsize=9)
         if j == 0:
-            ax.legend(fontsize=7)
+            ax.legend(fontsize=9, loc="best")
     fig.tight_layout()
-    save_figure_atomic(fig, path, 80)
+    save_figure_atomic(fig, path, 100)
     plt.close(fig)
     return path
 

@@ -68,6 +68,7 @@ from ..fit.internal import FRAME_PARAMETERS
 from ..fit.job import build_fit_job
 from ..io import check_output_dir
 from ..io.fingerprint import file_digest, value_digest
+from ..runtime.cli_args import CONFIG, DIR, add_no_figures, positive_int
 from ..runtime.progress import make_console
 from ._api import SAMPLERS, check_sampling, sample
 from ._posterior import check_walkers
@@ -172,14 +173,17 @@ def priors_from_config(source: str, sec: SampleSection, model: Any) -> dict[str,
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", metavar="CONFIG", help="a fit config with an optional [sample] table (configs/sample_*.toml)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder: chain.h5, posterior.json, figures")
+    p.add_argument("config", metavar=CONFIG, help="a fit config with an optional [sample] table (configs/sample_*.toml); "
+                   "its sample.sampler picks emcee (affine-invariant ensemble) or nuts (blackjax's No-U-Turn sampler)")
+    p.add_argument("--out", required=True, metavar=DIR, help="output folder: chain.h5, posterior.json, figures")
     p.add_argument("--resume", action="store_true", help="continue the chain in DIR/chain.h5")
-    p.add_argument("--steps", type=int, default=None, metavar="N", help="total chain length (overrides sample.n_steps)")
-    p.add_argument("--walkers", type=int, default=None, metavar="N", help="number of walkers (overrides sample.n_walkers)")
+    p.add_argument("--steps", type=positive_int, default=None, metavar="N",
+                   help="total chain length: steps per walker (emcee) or draws per chain (NUTS) (overrides sample.n_steps)")
+    p.add_argument("--walkers", type=positive_int, default=None, metavar="N",
+                   help="number of emcee walkers (overrides sample.n_walkers; NUTS runs sample.n_chains chains)")
     p.add_argument("--fit-result", default=None, metavar="JSON", help="least-squares result to start from (brdfjax fit's result.json)")
-    p.add_argument("--no-figures", action="store_true", help="write chain.h5 and posterior.json only")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_no_figures(p, "write chain.h5 and posterior.json only")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar or progress lines")
 
 
 def _print_summary(console: Any, s: dict[str, Any]) -> None:
@@ -228,7 +232,7 @@ def config_fingerprint(cfg: Any) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    console = make_console(args.quiet)
+    console = make_console(args.quiet, args.no_progress)
     prog = "brdfjax sample"
     enable_config_precision(args.config)
     out = Path(args.out)

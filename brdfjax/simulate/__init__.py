@@ -22,7 +22,7 @@ import numpy as np
 from .. import __version__
 from ..core.render import render_frame
 from ..io import frame_attrs, write_frame_exr, write_json_atomic
-from ..plotting import plot_frame
+from ..plotting import plot_frame, term_labels
 
 __all__ = ["FrameResult", "run_simulate", "simulate_frame"]
 
@@ -39,7 +39,9 @@ class FrameResult:
     geometry: dict[str, np.ndarray]  # theta_s, phi_s (rad), omega (sr)
     render_s: float
     files: dict[str, str] = field(default_factory=dict)
-    write_s: float = 0.0
+    write_s: float = 0.0  # wall time from the files' start to the last one written (they are written in parallel)
+    wall_s: float = 0.0  # wall time from the render's start to the frame's last file
+    file_s: dict[str, float] = field(default_factory=dict)  # each file's own writing time
 
     def argmax(self, image: np.ndarray | None = None) -> tuple[int, int]:
         """``(n_h, n_v)`` pixel indices of the maximum of ``image`` (default: the BRDF)."""
@@ -104,7 +106,8 @@ def _frame_summary(cfg, res: FrameResult, fcfg) -> dict[str, Any]:
         "config": cfg.source,
         "render_s": round(res.render_s, 4),
         "write_s": round(res.write_s, 4),
-        "wall_s": round(res.render_s + res.write_s, 4),
+        "file_s": {k: round(v, 4) for k, v in res.file_s.items()},
+        "wall_s": round(res.wall_s if res.wall_s else res.render_s + res.write_s, 4),
         "files": res.files,
     }
 
@@ -133,10 +136,11 @@ def run_simulate(
     model = cfg.build_model()
     frames = cfg.build_frames()
 
+    labels = term_labels(model)
     t_start = time.perf_counter()
     entries = []
 
-    def write_exr(res: FrameResult) -> tuple[str, float]:
+    def write_exr(res: FrameResult) -> tuple[str, float, float]:
         t0 = time.perf_counter()
         path = write_frame_exr(
             out / f"{res.stem}.exr",
@@ -146,17 +150,23 @@ def run_simulate(
             res.geometry["omega"],
             _frame_attrs(cfg, detector, res.frame, res.stem),
         )
-        return path.name, time.perf_counter() - t0
+        return path.name, t0, time.perf_counter()
 
-    def write_png(res: FrameResult) -> tuple[str, float]:
+    def write_png(res: FrameResult) -> tuple[str, float, float]:
         t0 = time.perf_counter()
-        return plot_frame(res.brdf, grid, detector, res.frame, out / f"{res.stem}.png").name, time.perf_counter() - t0
+        png = plot_frame(res.brdf, grid, detector, res.frame, out / f"{res.stem}.png",
+                         terms=res.terms if len(res.terms) > 1 else None, labels=labels)
+        return png.name, t0, time.perf_counter()
 
-    def finish(res: FrameResult, futures: dict[str, Any], fcfg) -> None:
-        # Wait for this frame's files (an exception in a writer is raised here), then report it.
+    def finish(res: FrameResult, futures: dict[str, Any], fcfg, t_frame: float, t_submit: float) -> None:
+        # Wait for this frame's files (an exception in a writer is raised here), then report it.  The EXR and
+        # PNG writers run in parallel threads (and beside the next frame's render): the frame's times are wall
+        # spans (render start -> last file, first file start -> last file), never sums of overlapping spans.
         done = {kind: fut.result() for kind, fut in futures.items()}
-        files = {kind: name for kind, (name, _) in done.items()}
-        res = dataclasses.replace(res, files=files, write_s=sum(dt for _, dt in done.values()))
+        files = {kind: name for kind, (name, _, _) in done.items()}
+        t_end = max(end for _, _, end in done.values())
+        res = dataclasses.replace(res, files=files, write_s=t_end - t_submit, wall_s=t_end - t_frame,
+                                  file_s={kind: end - start for kind, (_, start, end) in done.items()})
         entry = _frame_summary(cfg, res, fcfg)
         entries.append(entry)
         if console is not None:
@@ -177,6 +187,7 @@ def run_simulate(
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="brdfjax-write") as pool:
         try:
             for (stem, frame), fcfg in zip(frames, cfg.frames, strict=True):
+                t_frame = time.perf_counter()
                 status = console.status(f"rendering {stem} ({grid.shape[0]} x {grid.shape[1]} pixels)") if console else None
                 if status:
                     status.start()
@@ -185,17 +196,18 @@ def run_simulate(
                 finally:
                     if status:
                         status.stop()
+                t_submit = time.perf_counter()
                 futures = {"exr": pool.submit(write_exr, res)}
                 if plot:
                     futures["png"] = pool.submit(write_png, res)
-                pending.append((res, futures, fcfg))
+                pending.append((res, futures, fcfg, t_frame, t_submit))
                 del res
                 while len(pending) > 1:
                     finish(*pending.popleft())
             while pending:
                 finish(*pending.popleft())
         except BaseException:
-            for _, futures, _ in pending:
+            for _, futures, *_ in pending:
                 for fut in futures.values():
                     fut.cancel()
             raise

@@ -46,7 +46,7 @@ from ...core.detector import Detector
 from ...core.distributions import Beckmann, BeckmannAniso
 from ...core.geometry import Directions
 from ...core.render import Frame, render
-from ...core.terms import Diffraction, Lambertian, Model, OffsetNormal, Specular
+from ...core.terms import SEED_FORM, Diffraction, Lambertian, Model, OffsetNormal, Specular
 from ...fit import FrameData, Param, TableData, read_frame_data
 from ...instrument import SyntheticInstrument, reduce_measurement_set
 from ...instrument.synthetic import (
@@ -58,6 +58,7 @@ from ...instrument.synthetic import (
     shift_add,
 )
 from ...io import write_frame_exr
+from ...runtime.choices import check_choice
 from .base import weight_names
 from .model import (
     inner_specular,
@@ -127,7 +128,7 @@ def base_scenario(
     det = Detector.seed() if detector is None else detector
     m = float(rng.uniform(1.5e-4, 3e-4))
     rho = float(rng.uniform(0.01, 0.03))
-    model = Model(terms={"center": Specular(Beckmann(m), rho_s=rho, n=3.6)})
+    model = Model(terms={"center": Specular(Beckmann(m), rho_s=rho, n=3.6, **SEED_FORM)})
     tis = rng.uniform(*np.deg2rad(theta_i_range_deg), size=n_frames)
     phis = rng.uniform(*np.deg2rad(phi_ref_range_deg), size=n_frames)
     frames = [(float(t), float(p), wavelength_nm * 1e-9) for t, p in zip(tis, phis)]
@@ -158,7 +159,7 @@ def table_scenario(
     m = float(rng.uniform(0.001, 0.002))
     rho = float(rng.uniform(0.3, 0.8))
     rd = float(rng.uniform(0.02, 0.1))
-    model = Model(terms={"center": Specular(Beckmann(m), rho_s=rho, n=1.5), "floor": Lambertian(rd)})
+    model = Model(terms={"center": Specular(Beckmann(m), rho_s=rho, n=1.5, **SEED_FORM), "floor": Lambertian(rd)})
     det = Detector.seed()
     return Scenario(
         truth_model=model, base_model=model, instrument=InstrumentConfig().ideal().without("footprint"), detector=det,
@@ -193,7 +194,7 @@ def wide_table_scenario(
     rd = float(rng.uniform(0.005, 0.02))
     sc = table_scenario(rng, theta_i_deg=theta_i_deg, half_range_deg=half_range_deg, step_deg=step_deg,
                         wavelength_nm=wavelength_nm, noise_rel=noise_rel)
-    model = Model(terms={"center": Specular(Beckmann(m), rho_s=rho, n=1.5), "floor": Lambertian(rd)})
+    model = Model(terms={"center": Specular(Beckmann(m), rho_s=rho, n=1.5, **SEED_FORM), "floor": Lambertian(rd)})
     return sc.replace(truth_model=model, base_model=model,
                       truth={**sc.truth, "center.m": m, "center.rho_s": rho, "floor.rho_d": rd})
 
@@ -217,7 +218,7 @@ def _inj_offset(rng, sc: Scenario) -> Scenario:
     dphi0 = float(rng.uniform(0, 2 * np.pi))
     m2 = float(rng.uniform(1.5e-4, 3e-4))
     rho2 = float(rng.uniform(0.05, 0.7))
-    term = OffsetNormal(Specular(Beckmann(m2), rho_s=rho2, n=1.4), dtheta=dtheta, dphi0=dphi0)
+    term = OffsetNormal(Specular(Beckmann(m2), rho_s=rho2, n=1.4, **SEED_FORM), dtheta=dtheta, dphi0=dphi0)
     return sc.replace(truth_model=_add_term(sc.truth_model, "offset", term),
                       truth={**sc.truth, "offset.m": m2, "offset.rho_s": rho2, "offset.dtheta": dtheta, "offset.dphi0": dphi0})
 
@@ -390,7 +391,7 @@ EXCLUSIVE = {
 def inject(name: str, rng: np.random.Generator, scenario: Scenario) -> Scenario:
     """``scenario`` with the effect ``name`` added to its truth (random plausible parameters; see each generator)."""
     if name not in GENERATORS:
-        raise KeyError(f"unknown effect '{name}'; known: {', '.join(GENERATORS)}")
+        check_choice("effect", name, GENERATORS, error=KeyError)
     if name in scenario.effects:
         raise ValueError(f"inject: the scenario already has the effect '{name}'")
     for other in scenario.effects:

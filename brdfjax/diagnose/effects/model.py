@@ -21,6 +21,7 @@ import numpy as np
 
 from ...core.distributions import GGX, AbstractDistribution, Beckmann, HyperCauchy, StudentT
 from ...core.terms import (
+    SEED_FORM,
     AbstractTerm,
     Diffraction,
     Lambertian,
@@ -340,11 +341,11 @@ class OffsetNormalPeakEffect(Effect):
                         ctx.sigma(k)[ok]))
         return out
 
-    def _profile(self, ctx, frames, dist, dtheta, dphi0) -> tuple[float, float]:
+    def _profile(self, ctx, frames, dist, dtheta, dphi0, form) -> tuple[float, float]:
         """``(chi2, rho)``: the chi^2 of ln(f + rho p) over ``frames``, minimised over ln rho (golden section)."""
         if not frames:
             return math.inf, 0.1
-        probe = Model(terms={"p": OffsetNormal(Specular(dist, rho_s=1.0, n=1.5), dtheta=dtheta, dphi0=dphi0)})
+        probe = Model(terms={"p": OffsetNormal(Specular(dist, rho_s=1.0, n=1.5, **form), dtheta=dtheta, dphi0=dphi0)})
         parts = [(ld, f, block_values(ctx.blocks[k], probe, ctx.block_frame(k))[ok], sg) for k, ok, ld, f, sg in frames]
 
         def chi2(lnrho):
@@ -361,6 +362,8 @@ class OffsetNormalPeakEffect(Effect):
             raise ValueError("offset_normal_peak: no secondary residual maximum to start from")
         main = main_specular(ctx.model)
         dist0 = main[1].distribution if main else Beckmann(2e-4)
+        # The new peak takes the main lobe's microfacet form (the seed's Eq 70 form when there is none).
+        form = ({k: getattr(main[1], k) for k in SEED_FORM} if main else dict(SEED_FORM))
         wfield = dist0.width_field
         frames = self._frame_data(ctx)
         trials = []
@@ -368,11 +371,11 @@ class OffsetNormalPeakEffect(Effect):
             dtheta, dphi0 = self._tilt(ctx, k, row, col)
             for wf in (1.0, 0.6):
                 dist = eqx.tree_at(lambda d: getattr(d, wfield), dist0, getattr(dist0, wfield) * wf)
-                c, rho = self._profile(ctx, frames, dist, dtheta, dphi0)
+                c, rho = self._profile(ctx, frames, dist, dtheta, dphi0, form)
                 trials.append((c, dtheta, dphi0, dist, rho, (k, row, col)))
         c, dtheta, dphi0, dist, rho, (k, row, col) = min(trials, key=lambda t: t[0])
         name = unique_name(ctx.model, "offset")
-        term = OffsetNormal(Specular(dist, rho_s=rho, n=1.5), dtheta=dtheta, dphi0=dphi0)
+        term = OffsetNormal(Specular(dist, rho_s=rho, n=1.5, **form), dtheta=dtheta, dphi0=dphi0)
         model = with_terms(ctx.model, {**ctx.model.terms, name: term})
         wname = f"{name}.{wfield}"
         width = float(np.asarray(getattr(dist, wfield)))
