@@ -56,12 +56,13 @@ def _fails(tmp_path: Path, cfg: Path, capsys) -> str:
     return capsys.readouterr().err
 
 
-def test_merl_layout_with_other_column_names_through_a_mapping(tmp_path):
+def test_merl_layout_with_lumos_sat_names_and_through_a_mapping(tmp_path):
     f = _lumos(tmp_path / "scan.csv")
-    with pytest.raises(FitInputError, match=r"scan.csv: no column 'phi_in' for 'theta_i'; the header has: phi_i, theta_i"):
-        read_merl_inplane(f)
+    direct = read_merl_inplane(f, wavelength=532.0)  # lumos-sat's own header: recognised
     t = read_merl_inplane(f, columns={"theta_i": "phi_i", "phi_i": "theta_i", "theta_s": "phi_o", "phi_s": "theta_o"},
                           wavelength=532.0)
+    np.testing.assert_array_equal(direct.brdf, t.brdf)
+    np.testing.assert_array_equal(direct.phi_s, t.phi_s)
     assert len(t) == 70 and float(t.wavelength) == pytest.approx(532e-9)
     k = int(np.argmax(t.brdf[:35]))  # the 20-deg slice peaks at the mirror direction, brdfjax's phi_s = 180 deg
     assert np.degrees(t.theta_s[k]) == pytest.approx(20.0) and np.degrees(t.phi_s[k]) == pytest.approx(180.0)

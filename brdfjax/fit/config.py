@@ -232,12 +232,14 @@ class TableConfig(StrictModel):
 
     path: str = Field(description="the table file, relative to the config")
     format: Literal["table", "merl", "lumos-sat", "cornell", "astm"] = Field(
-        "table", description="'table' (columns mapping), 'merl' (= 'lumos-sat'), 'cornell' or 'astm'"
+        "table", description="'table' (columns mapping), 'merl' (= 'lumos-sat': MERL's or lumos-sat's header), "
+        "'cornell' or 'astm'"
     )
     name: str | None = Field(None, description="a name for messages and the result (default: the file stem)")
     columns: dict[str, str | int] | None = Field(
         None, description="role -> column name or 0-based index (theta_i, phi_i, theta_s, phi_s, brdf, sigma_rel, "
-        "sigma, wavelength); format 'table': required; 'merl': renames MERL's phi_in/theta_in/phi_out/theta_out/brdf"
+        "sigma, wavelength); format 'table': required; 'merl'/'lumos-sat': renames the columns of the recognised "
+        "header (MERL's phi_in/theta_in/phi_out/theta_out/brdf or lumos-sat's phi_i/theta_i/phi_o/theta_o/brdf)"
     )
     angle_unit: Literal["deg", "rad"] = Field("deg", description="'deg' or 'rad' (format 'table')")
     signed_inplane: bool | None = Field(
@@ -256,11 +258,17 @@ class TableConfig(StrictModel):
     )
     theta_i_deg: list[float] | None = Field(None, description="keep these incident angles only (deg)")
     max_theta_s_deg: float | None = Field(None, gt=0, description="drop rows with theta_s beyond this (deg)")
-    min_brdf: float | None = Field(None, ge=0, description="drop rows with BRDF below this (sr^-1)")
+    min_brdf: float | None = Field(
+        None, ge=0, description="drop rows with BRDF below this (sr^-1; counted under the result's screening)"
+    )
     on_bad_rows: Literal["drop", "error"] = Field(
-        "drop", description="rows with NaN, theta = 90 deg, BRDF <= 0 or placeholder runs: 'drop' (counted) or 'error'"
+        "drop", description="rows with NaN, theta = 90 deg, BRDF <= 0 or placeholder values: 'drop' (counted) or 'error'"
     )
     placeholder_run: int = Field(10, ge=2, description="this many identical consecutive BRDF values in a slice: placeholder rows")
+    floor_repeats: int = Field(
+        3, ge=0, description="one BRDF value in this many rows, the lowest of its slices and rounder than the values "
+        "around it: floor placeholder rows, isolated or not (0: off)"
+    )
     check_mirror: bool = Field(True, description="check that each slice's peak sits near the mirror direction")
     mirror_tolerance_deg: float = Field(10.0, gt=0, description="how far from the mirror direction a peak may sit (deg)")
 
@@ -777,7 +785,8 @@ def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
     name = t.name or path.stem
     wl = None if t.wavelength_nm in (None, "mean") else float(t.wavelength_nm)
     screen = Screen(
-        on_bad_rows=t.on_bad_rows, placeholder_run=t.placeholder_run, check_mirror=t.check_mirror,
+        on_bad_rows=t.on_bad_rows, placeholder_run=t.placeholder_run, floor_repeats=t.floor_repeats,
+        check_mirror=t.check_mirror,
         mirror_tolerance_deg=t.mirror_tolerance_deg,
     )
     conv = []
@@ -821,7 +830,9 @@ def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
         keep &= np.degrees(np.asarray(table.theta_s, float)) <= t.max_theta_s_deg
     if t.min_brdf is not None:
         with np.errstate(invalid="ignore"):
-            keep &= np.asarray(table.brdf, float) >= t.min_brdf
+            low = keep & ~(np.asarray(table.brdf, float) >= t.min_brdf)  # among the rows still selected
+        keep &= ~low
+        table = replace(table, screening=_with_min_brdf(table, low, t.min_brdf))
     sigma = table.sigma_rel
     if t.sigma_rel is not None:
         if sigma is not None:
@@ -834,6 +845,21 @@ def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
         except FitInputError as e:
             raise ConfigError(str(cfg.source), [(key, f"empty mask: {e}")]) from None
     return table
+
+
+def _with_min_brdf(table: TableData, low: np.ndarray, min_brdf: float) -> dict[str, Any]:
+    """The table's screening record with the rows below ``min_brdf`` counted as dropped (with their lines)."""
+    rec = dict(table.screening or {"n_rows": len(table), "n_kept": len(table), "dropped": {}})
+    dropped = dict(rec.get("dropped") or {})
+    n = int(low.sum())
+    if n:
+        entry: dict[str, Any] = {"count": n, "min_brdf": float(min_brdf)}
+        if table.lines is not None:
+            entry["lines"] = np.asarray(table.lines)[low][:50].tolist()
+        dropped["min_brdf"] = entry
+    rec["dropped"] = dropped
+    rec["n_kept"] = int(rec.get("n_kept", len(table))) - n
+    return rec
 
 
 def build_fit_job(cfg: FitConfig, *, work_dir: str | os.PathLike | None = None) -> FitJob:
