@@ -27,12 +27,12 @@ file::
     allow_different_detectors = false
     # [[data.tables]]                       # goniometer tables (beside or instead of frames)
     # path = "../shared/data/real/merl_aluminium_inplane.txt"
-    # format = "merl"                       # merl | cornell | astm | table
+    # format = "merl"                       # merl (= lumos-sat) | cornell | astm | table
     # columns = { theta_i = "ti", theta_s = "ts", phi_s = "ps", brdf = "f" }   # format "table"
     # angle_unit = "deg"; signed_inplane = false; azimuth_offset = 0.0
     # theta_i_deg = [20, 40]                # keep these incident angles only
     # wavelength_nm = 532.0; sigma_rel = 0.05 (replaces the estimated noise)
-    # on_bad_rows = "drop"; placeholder_run = 10; check_mirror = true; mirror_tolerance_deg = 10.0
+    # on_bad_rows = "drop"; placeholder_run = 10; floor_repeats = 3; check_mirror = true; mirror_tolerance_deg = 10.0
     # (every key: the README's "Goniometer tables")
     # [data.synthetic]                      # generate the frames with the synthetic instrument
     # theta_i_deg = [20, 40, 60]; phi_ref_deg = 0.0; seed = 2026; bin = 8
