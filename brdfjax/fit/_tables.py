@@ -446,8 +446,9 @@ class Screen:
     consecutive rows of one slice with the identical BRDF value (a slice made
     only of them is always an error), and floor placeholders, isolated or not:
     one exact BRDF value in ``floor_repeats`` or more rows (0: no such check)
-    that is the lowest value of every slice it occurs in and is rounder than
-    the values around it, by two or more decimal places (a provider's
+    that is the lowest value of every slice it occurs in and is written more
+    coarsely than the next larger values, by two or more decimal places or
+    significant digits (a provider's
     ``1e-4`` written where a measurement fell below its detection limit, among
     values such as ``0.000113``); see :func:`_floor_rows` for why real noise
     floors, quantised or printed to fixed decimals, are not taken.
@@ -511,21 +512,29 @@ def _last_decimal(v: float) -> int:
     return int(exponent) if isinstance(exponent, int) else 0
 
 
+def _digits(v: float) -> int:
+    """The number of significant digits of ``v`` as written (12 at most): 0.000113 -> 3, 0.0001 -> 1, 1040 -> 3."""
+    return int(math.floor(math.log10(abs(v)))) - _last_decimal(v) + 1 if v else 1
+
+
 def _floor_rows(b: np.ndarray, ok: np.ndarray, slices: list[np.ndarray], min_count: int, k: int = 6) -> np.ndarray:
     """Rows holding a floor placeholder: a value written in place of a measurement (see :class:`Screen`).
 
     A value ``v`` is one when (1) it occurs in ``min_count`` or more usable
     rows (``ok``), (2) it is the lowest usable value of every slice it occurs
     in (nothing lies below a floor that replaced what fell below it), and (3)
-    its last significant digit lies two or more decimal places above the
-    median last digit of the ``k`` next larger usable values of the table
-    (``1e-4`` below ``0.000113, 0.000117, ...``): the table's values of that
-    magnitude are written more finely than the placeholder.  (3) keeps real
-    noise floors: a table printed to 3 significant digits repeats its lowest
-    values (the V2 Mini mirror film's 0.000113, four times) and one printed
-    to fixed decimals repeats them more (Cornell Cayman at 550 nm: 1e-06,
-    sixteen times), but the values just above them are written to the same
-    last digit.
+    it is written more coarsely than the ``k`` next larger usable values of
+    the table: its last significant digit lies two or more decimal places
+    above their median last digit (``1e-4`` below ``0.000113, 0.000117``), or
+    it has two or more significant digits fewer than their median (``1e-4``
+    below ``0.00101, 0.00102``).  (3) keeps real noise floors: a table printed
+    to 3 significant digits repeats its lowest values (the V2 Mini mirror
+    film's 0.000113, four times) and one printed to fixed decimals repeats
+    them more (Cornell Cayman at 550 nm: 1e-06, sixteen times), but the values
+    just above them are written to the same last digit.  A margin of one
+    decimal place would drop real rows (measured in
+    ``experiments/table_floor_screening.py``: Cornell Cayman, tables printed to
+    2 significant digits or 5 fixed decimals).
     """
     out = np.zeros(b.shape, bool)
     if min_count < 1 or not ok.any():
@@ -539,7 +548,11 @@ def _floor_rows(b: np.ndarray, ok: np.ndarray, slices: list[np.ndarray], min_cou
         if any(np.any(b[r] == v) and m < v for r, m in lowest):
             continue  # below it elsewhere in one of its slices: not a floor
         above = usable[np.searchsorted(usable, v, side="right") :][:k]
-        if above.size and _last_decimal(v) - float(np.median([_last_decimal(x) for x in above])) >= 2:
+        if not above.size:
+            continue
+        coarser = _last_decimal(v) - float(np.median([_last_decimal(x) for x in above]))
+        fewer = float(np.median([_digits(x) for x in above])) - _digits(v)
+        if coarser >= 2 or fewer >= 2:
             out[hits] = True
     return out
 
@@ -687,8 +700,8 @@ def make_table(
         "theta_90deg": "at theta = 90 deg (the model is 0 there)",
         "non_positive": "BRDF <= 0",
         "placeholder": f"constant placeholder runs (>= {screen.placeholder_run} identical values)",
-        "placeholder_floor": f"floor placeholder value(s) {floor_values} (the lowest of their slices, rounder than "
-        f"the values around them, >= {screen.floor_repeats} rows)",
+        "placeholder_floor": f"floor placeholder value(s) {floor_values} (the lowest of their slices, written more "
+        f"coarsely than the next larger values, >= {screen.floor_repeats} rows)",
     }
     dropped = {k: {"count": int(m.sum()), f"{label}s": where[m][:50].tolist()} for k, m in reasons.items() if m.any()}
     if floor.any():

@@ -266,8 +266,8 @@ class TableConfig(StrictModel):
     )
     placeholder_run: int = Field(10, ge=2, description="this many identical consecutive BRDF values in a slice: placeholder rows")
     floor_repeats: int = Field(
-        3, ge=0, description="one BRDF value in this many rows, the lowest of its slices and rounder than the values "
-        "around it: floor placeholder rows, isolated or not (0: off)"
+        3, ge=0, description="one BRDF value in this many rows, the lowest of its slices and written more coarsely than the "
+        "next larger values: floor placeholder rows, isolated or not (0: off)"
     )
     check_mirror: bool = Field(True, description="check that each slice's peak sits near the mirror direction")
     mirror_tolerance_deg: float = Field(10.0, gt=0, description="how far from the mirror direction a peak may sit (deg)")
