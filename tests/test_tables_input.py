@@ -200,3 +200,23 @@ def test_dropped_rows_are_printed_and_recorded_for_result_json(tmp_path):
     assert any("dropped 2 of 46 rows: 1 non_finite, 1 theta_90deg" in n for n in job.notes), job.notes
     doc = _describe_block(job.blocks[0])
     assert doc["screening"]["dropped"]["non_finite"] == {"count": 1, "lines": [5]} and doc["n_rows"] == 44
+
+
+def test_rows_below_min_brdf_are_recorded_under_screening(tmp_path):
+    from brdfjax.fit.config import _describe_block, build_fit_job, load_fit_config
+
+    ts = np.arange(0.0, 89.0, 2.0)
+    rows = [[30.0, t, _lobe(30.0, t)] for t in ts] + [[50.0, t, _lobe(50.0, t)] for t in ts]
+    rows[3][2] = float("nan")
+    _csv(tmp_path / "t.csv", "ti,ts,f", rows)
+    cfg = _config(tmp_path, 'path = "t.csv"\ncolumns = { theta_i = "ti", theta_s = "ts", brdf = "f" }\n'
+                            'signed_inplane = true\nmin_brdf = 0.02\ntheta_i_deg = [30]')
+    job = build_fit_job(load_fit_config(cfg))
+    b = np.array([r[2] for r in rows])
+    low = np.flatnonzero((np.arange(len(rows)) < 45) & (b < 0.02))  # the 30-deg slice only (theta_i_deg)
+    assert low.size > 3
+    rec = _describe_block(job.blocks[0])["screening"]
+    assert rec["dropped"]["min_brdf"] == {"count": low.size, "min_brdf": 0.02, "lines": (low + 2).tolist()}
+    assert rec["dropped"]["non_finite"] == {"count": 1, "lines": [5]}
+    assert rec["n_rows"] == 90 and rec["n_kept"] == 90 - 1 - low.size
+    assert any(f"{low.size} min_brdf" in n for n in job.notes), job.notes
