@@ -27,6 +27,7 @@ MOVED = {
     "brdfjax.cli_run": "brdfjax.cli.instrument",
     "brdfjax.fit.cli_fit": "brdfjax.cli.fit",
     "brdfjax.lightcurve.cli": "brdfjax.cli.lightcurve",
+    "brdfjax.instrument.raw": "brdfjax.io.raw",
 }
 
 __all__ = ["MOVED", "install"]

@@ -55,7 +55,8 @@ def _job(data: Path):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from brdfjax.fit.config import build_fit_job, load_fit_config
+    from brdfjax.fit.config import load_fit_config
+    from brdfjax.fit.job import build_fit_job
 
     return build_fit_job(load_fit_config(CONFIG), work_dir=data)
 
@@ -65,9 +66,10 @@ def _brdfjax(data: Path, start_out: Path, first_stage: str, with_jacfwd: bool = 
     import jax.numpy as jnp
     import numpy as np
 
-    from brdfjax.fit import fit, prepare
+    from brdfjax.fit import fit
     from brdfjax.fit._problem import jacobian, jacobian_jacfwd, residuals
     from brdfjax.fit._solvers import get_solver
+    from brdfjax.fit.internal import prepare_problem
 
     job = _job(data)
     t_loaded = time.perf_counter()
@@ -85,7 +87,7 @@ def _brdfjax(data: Path, start_out: Path, first_stage: str, with_jacfwd: bool = 
                          chi2=res.chi2, steps=res.n_iterations, converged=res.converged, message=res.message,
                          timings=dict(res.timings)))
     # the start (automatic initialisation) and the layout, for the scipy side
-    prep = prepare(job.model, job.blocks, job.params, solver=get_solver(kw["solver"]), loss=kw["loss"],
+    prep = prepare_problem(job.model, job.blocks, job.params, solver=get_solver(kw["solver"]), loss=kw["loss"],
                    initializer=kw["initializer"], precision=kw["precision"], use_footprint=kw["use_footprint"])
     lay = prep.layout
     free = [dict(name=e.name, base=e.base, kind=e.kind, blocks=list(e.blocks), x0=float(e.x0), lower=float(e.lower),

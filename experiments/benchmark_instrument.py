@@ -94,9 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     import brdfjax as bj
-    from brdfjax.instrument.raw import Calibration, read_raw_exr, write_raw_exr
     from brdfjax.instrument.reduce import read_reduced_frame, reduce_measurement_set
     from brdfjax.instrument.synthetic import InstrumentConfig, SyntheticInstrument
+    from brdfjax.io.raw import Calibration, read_raw_exr, write_raw_exr
 
     k = args.bin
     shape = (2472 // k, 3296 // k)
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         brdf = ins.render_brdf(model, frame)
         brdf.sum()
     # One stack at a time, as SyntheticInstrument.write_set does: synthesise, write, drop.
-    from brdfjax.instrument.raw import write_manifest
+    from brdfjax.io.raw import write_manifest
 
     def synth_and_write(name, make):
         with Stage("synthesise", name):

@@ -33,7 +33,8 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from brdfjax.fit.config import build_fit_job, load_fit_config  # noqa: E402
+from brdfjax.fit.config import load_fit_config  # noqa: E402
+from brdfjax.fit.job import build_fit_job  # noqa: E402
 from brdfjax.io import write_json_atomic  # noqa: E402
 from brdfjax.sample import sample  # noqa: E402
 from brdfjax.sample.cli import SampleSection, priors_from_config  # noqa: E402
@@ -70,7 +71,8 @@ def evaluation_costs(job, priors, start, n_walkers: int, repeats: int = 5) -> di
     of NUTS's whitened log-density (one point), medians of ``repeats`` after a compiling call."""
     import jax.numpy as jnp
 
-    from brdfjax.fit import get_solver, prepare
+    from brdfjax.fit import get_solver
+    from brdfjax.fit.internal import prepare_problem
     from brdfjax.sample._api import _PREPARE_KEYS, _spec_from_result, weight_mask
     from brdfjax.sample._nuts import _logdensity
     from brdfjax.sample._posterior import build_log_posterior
@@ -78,7 +80,7 @@ def evaluation_costs(job, priors, start, n_walkers: int, repeats: int = 5) -> di
     fk = job.fit_kwargs
     values = {k: p["value"] * (np.pi / 180 if p.get("unit") == "deg" else 1.0)
               for k, p in start["parameters"].items() if p.get("free")}
-    prep = prepare(job.model, job.blocks, _spec_from_result(job.params, values, [b.name for b in job.blocks]),
+    prep = prepare_problem(job.model, job.blocks, _spec_from_result(job.params, values, [b.name for b in job.blocks]),
                    solver=get_solver(fk.get("solver", "levenberg_marquardt")),
                    **{k: fk[k] for k in _PREPARE_KEYS if k in fk and k not in ("initializer", "init_options")})
     post = build_log_posterior(prep, priors)

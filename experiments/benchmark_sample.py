@@ -33,7 +33,8 @@ import emcee  # noqa: E402
 import numpy as np  # noqa: E402
 
 import brdfjax as bj  # noqa: E402
-from brdfjax.fit import Param, get_solver, prepare, render_noisy_frames  # noqa: E402
+from brdfjax.fit import Param, get_solver, render_noisy_frames  # noqa: E402
+from brdfjax.fit.internal import prepare_problem  # noqa: E402
 from brdfjax.sample import build_log_posterior  # noqa: E402
 
 FREE = ["m1", "rho_s1", "n1", "m2", "rho_s2", "n2", "dtheta", "dphi0", "a", "b", "c", "rho_s3"]
@@ -48,7 +49,7 @@ def build(step: int, roi: int | None, device) -> tuple:
     spec["n2"] = Param(1.4, lower=1.0, upper=6.0)
     spec["b"] = Param(1e-5, lower=1e-6, upper=4e-5)
     with jax.default_device(device):
-        prep = prepare(model, frames, spec, solver=get_solver("levenberg_marquardt"))
+        prep = prepare_problem(model, frames, spec, solver=get_solver("levenberg_marquardt"))
         post = build_log_posterior(prep)
         post.problem = jax.device_put(post.problem, device)
         post.priors = jax.device_put(post.priors, device)

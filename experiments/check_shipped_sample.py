@@ -21,9 +21,9 @@ from pathlib import Path
 
 import brdfjax as bj
 from brdfjax.fit._nuisance import default_nd_tolerances
-from brdfjax.instrument.raw import read_manifest
 from brdfjax.instrument.reduce import read_reduced_frame
 from brdfjax.instrument.uncertainty import optical_density_uncertainty
+from brdfjax.io.raw import read_manifest
 
 WEIGHTS = ("rho_s1", "rho_s2", "rho_s3")
 

@@ -22,7 +22,8 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from brdfjax.fit import fit  # noqa: E402
-from brdfjax.fit.config import build_fit_job, load_fit_config  # noqa: E402
+from brdfjax.fit.config import load_fit_config  # noqa: E402
+from brdfjax.fit.job import build_fit_job  # noqa: E402
 from brdfjax.runtime.atomic import write_json_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -31,7 +31,8 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 from brdfjax.fit import fit  # noqa: E402
-from brdfjax.fit.config import build_fit_job, load_fit_config  # noqa: E402
+from brdfjax.fit.config import load_fit_config  # noqa: E402
+from brdfjax.fit.job import build_fit_job  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "fit_synthetic_solar_cell.toml"
 PARTS = {"tracing": "trace_to_jaxpr", "cache loads": "get_executable_and_time", "lowering": "jaxpr_subcomp"}

@@ -242,8 +242,8 @@ theta_i_deg = 40.0
 
 def test_synthesize_then_reduce_round_trip(tmp_path, capsys):
     from brdfjax.cli import main
-    from brdfjax.instrument.raw import read_manifest, read_raw_exr
     from brdfjax.instrument.reduce import read_reduced_frame
+    from brdfjax.io.raw import read_manifest, read_raw_exr
 
     cfg = tmp_path / "small.toml"
     cfg.write_text(SMALL_CONFIG)
@@ -304,8 +304,8 @@ def test_synthesize_instrument_config(tmp_path, capsys):
     """Every effect's switch and parameters come from an instrument TOML; bad keys are named."""
     from brdfjax.cli import main
     from brdfjax.config import ConfigError
-    from brdfjax.instrument.raw import read_raw_exr
     from brdfjax.instrument.synthetic import InstrumentConfig, load_instrument_config
+    from brdfjax.io.raw import read_raw_exr
 
     shipped = load_instrument_config(Path(__file__).parents[1] / "configs" / "instrument_seed.toml")
 

@@ -27,8 +27,8 @@ from brdfjax.devices.alignment import run_alignment, solve_alignment, spot_pixel
 from brdfjax.devices.capture import CaptureError, load_capture_config, run_capture
 from brdfjax.devices.liveview import LiveView
 from brdfjax.devices.plans import Interlock, InterlockError, select_stack
-from brdfjax.instrument.raw import read_manifest, read_raw_exr
 from brdfjax.instrument.synthetic import InstrumentConfig
+from brdfjax.io.raw import read_manifest, read_raw_exr
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -170,7 +170,7 @@ def test_live_view_renders_headless_and_updates(captured, tmp_path):
     for t in m.exposures_s:
         sim.camera.set_exposure(t)
         f = sim.camera.read_frame()
-        from brdfjax.instrument.raw import Exposure
+        from brdfjax.io.raw import Exposure
 
         assert view.update_exposure(m, "3.0", Exposure(t, f.n_frames, f.counts), f.black_level, f.full_scale,
                                     6.6e13, {}, bench)

@@ -80,8 +80,8 @@ live = "off"
 @pytest.fixture(scope="module")
 def w(tmp_path_factory):
     """A workspace: a plain file, the example set and variants of it, a reduced frame, fit/capture configs."""
-    from brdfjax.instrument.raw import read_raw_exr, write_raw_exr
     from brdfjax.instrument.reduce import reduce_measurement_set
+    from brdfjax.io.raw import read_raw_exr, write_raw_exr
 
     root = tmp_path_factory.mktemp("exit")
     (root / "a_file.txt").write_text("not a folder")

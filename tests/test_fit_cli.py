@@ -13,7 +13,8 @@ import pytest
 
 import brdfjax as bj
 from brdfjax.cli import main
-from brdfjax.fit.config import build_fit_job, load_fit_config, run_fit
+from brdfjax.fit.config import load_fit_config
+from brdfjax.fit.job import build_fit_job, run_fit
 from brdfjax.instrument.reduce import reduce_measurement_set
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -91,7 +91,8 @@ from pydantic import BaseModel, ConfigDict  # noqa: E402
 
 from brdfjax.config import ConfigError  # noqa: E402
 from brdfjax.fit import Param  # noqa: E402
-from brdfjax.fit.config import build_fit_job, load_fit_config  # noqa: E402
+from brdfjax.fit.config import load_fit_config  # noqa: E402
+from brdfjax.fit.job import build_fit_job  # noqa: E402
 from brdfjax.instrument.reduce import write_reduced_frame  # noqa: E402
 
 HEAD = """

@@ -4,7 +4,8 @@ import numpy as np
 
 import brdfjax as bj
 from brdfjax.core.presets import mirror
-from brdfjax.fit import FrameData, LevenbergMarquardt, _fit as fitmod, prepare
+from brdfjax.fit import FrameData, LevenbergMarquardt, _fit as fitmod
+from brdfjax.fit.internal import prepare_problem
 from brdfjax.instrument.synthetic import footprint_kernel
 
 MODEL = mirror(m=1e-4)
@@ -31,12 +32,12 @@ def test_stacked_footprint_frames_give_the_same_residuals_and_jacobian(monkeypat
     spec = {"m": 1.2e-4, "rho_s": 0.7, "phi_ref": 0.001}
     solver = LevenbergMarquardt()
     monkeypatch.setattr(fitmod, "SUPPORT_FRACTION", 1.01)  # always restrict to the kernel's reach
-    stacked = prepare(MODEL, frames, spec, solver=solver).problem
+    stacked = prepare_problem(MODEL, frames, spec, solver=solver).problem
     assert stacked.stack is not None and stacked.stack.blocks.support_index is not None
     # the reference: the whole grid evaluated, blocks one by one
     monkeypatch.setattr(fitmod, "SUPPORT_FRACTION", 0.0)
     monkeypatch.setattr(fitmod, "can_stack", lambda blocks: False)
-    plain = prepare(MODEL, frames, spec, solver=solver).problem
+    plain = prepare_problem(MODEL, frames, spec, solver=solver).problem
     assert plain.stack is None and plain.blocks[0].support_index is None
     v = np.array([0.3, -0.2, 0.1, 0.05])
     r1 = np.asarray(evaluate(v, stacked)[0])

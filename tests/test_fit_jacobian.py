@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax.fit import FrameData, LevenbergMarquardt, TableData, _fit as fitmod, _problem as problem_mod, fit, prepare
+from brdfjax.fit import FrameData, LevenbergMarquardt, TableData, _fit as fitmod, _problem as problem_mod, fit
 from brdfjax.fit._jacobian import supports
 from brdfjax.fit._problem import evaluate
+from brdfjax.fit.internal import prepare_problem
 from brdfjax.instrument.synthetic import convolve_footprint, footprint_kernel
 
 # three kinds of term: a nonlinear one with a scale (rho_s), a pure scale (rho_d), and one only phi_ref turns
@@ -49,7 +50,7 @@ V = np.array([0.3, -0.2, 0.1, 0.05, -0.1, 0.2, 0.02, -0.03])  # 7 model entries 
 
 def test_structured_jacobian_equals_jacfwd_with_a_separable_footprint(assert_jacobian_matches_jacfwd):
     """Stacked frames, the direct separable convolution (the Gaussian footprint)."""
-    prep = prepare(MODEL, _frames(footprint_kernel(25.0 / 8, tail=1e-6)), SPEC, solver=LevenbergMarquardt())
+    prep = prepare_problem(MODEL, _frames(footprint_kernel(25.0 / 8, tail=1e-6)), SPEC, solver=LevenbergMarquardt())
     p = prep.problem
     assert p.stack is not None and p.stack.blocks.sep_rows is not None and p.stack.blocks.dirs is not None
     assert_jacobian_matches_jacfwd(p, np.resize(V, p.u0.shape[0]))
@@ -59,14 +60,14 @@ def test_structured_jacobian_equals_jacfwd_with_a_general_footprint_and_a_table(
     """A kernel that is not separable (the FFT box) and a goniometer table: blocks one by one."""
     k = footprint_kernel(25.0 / 8, tail=1e-6)
     k = k + 0.2 * np.roll(k, 1, axis=0) * np.roll(k, -1, axis=1) / k.max()  # rank > 1, asymmetric
-    prep = prepare(MODEL, _frames(k) + [_table()], SPEC, solver=LevenbergMarquardt())
+    prep = prepare_problem(MODEL, _frames(k) + [_table()], SPEC, solver=LevenbergMarquardt())
     p = prep.problem
     assert p.stack is None and p.blocks[0].box_shape is not None and p.blocks[0].sep_rows is None
     assert_jacobian_matches_jacfwd(p, np.resize(V, p.u0.shape[0]))
 
 
 def test_structured_jacobian_equals_jacfwd_without_a_footprint(assert_jacobian_matches_jacfwd):
-    prep = prepare(MODEL, _frames(None), SPEC, solver=LevenbergMarquardt())
+    prep = prepare_problem(MODEL, _frames(None), SPEC, solver=LevenbergMarquardt())
     assert_jacobian_matches_jacfwd(prep.problem, np.resize(V, prep.problem.u0.shape[0]))
 
 
@@ -75,9 +76,9 @@ def test_box_convolution_equals_the_whole_grid_one(monkeypatch):
     k = footprint_kernel(25.0 / 8, tail=1e-6)
     k = k + 0.2 * np.roll(k, 1, axis=0) / k.max() * k
     frames = _frames(k)
-    box = prepare(MODEL, frames, SPEC, solver=LevenbergMarquardt()).problem
+    box = prepare_problem(MODEL, frames, SPEC, solver=LevenbergMarquardt()).problem
     monkeypatch.setattr(fitmod, "SUPPORT_FRACTION", 0.0)  # the whole grid, no box
-    whole = prepare(MODEL, frames, SPEC, solver=LevenbergMarquardt()).problem
+    whole = prepare_problem(MODEL, frames, SPEC, solver=LevenbergMarquardt()).problem
     assert whole.stack.blocks.box_shape is None and box.stack.blocks.box_shape is not None
     v = np.resize(V, box.u0.shape[0])
     np.testing.assert_allclose(np.asarray(evaluate(v, box)[0]), np.asarray(evaluate(v, whole)[0]), rtol=1e-9, atol=1e-9)
@@ -85,7 +86,7 @@ def test_box_convolution_equals_the_whole_grid_one(monkeypatch):
 
 def test_theta_i_free_falls_back_to_jacfwd():
     spec = {**SPEC, "theta_i": {"value": None, "lower": 0.3, "upper": 0.8}}
-    prep = prepare(MODEL, _frames(None)[:1], spec, solver=LevenbergMarquardt())
+    prep = prepare_problem(MODEL, _frames(None)[:1], spec, solver=LevenbergMarquardt())
     assert not supports(prep.problem) and prep.problem.blocks[0].dirs is None
 
 

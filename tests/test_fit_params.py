@@ -269,8 +269,8 @@ def test_covariance_oracle_linear_model():
 
 def test_residual_jacobian_matches_finite_differences():
     """The solvers' residual function carries a custom JVP (one materialised Jacobian); check it."""
-    from brdfjax.fit._fit import prepare
     from brdfjax.fit._problem import residuals, with_scale
+    from brdfjax.fit.internal import prepare_problem as prepare
 
     model = bj.Model(terms={"s": bj.Specular(bj.GGX(0.2), rho_s=0.5, n=1.5), "d": bj.Lambertian(0.05)})
     rng = np.random.default_rng(1)

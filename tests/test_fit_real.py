@@ -17,7 +17,8 @@ import pytest
 import brdfjax as bj
 from brdfjax.core.terms import ABg, Binomial, MultiLobeSpecular, Specular
 from brdfjax.fit import fit, read_cornell_brdf, read_merl_inplane
-from brdfjax.fit.config import build_fit_job, load_fit_config
+from brdfjax.fit.config import load_fit_config
+from brdfjax.fit.job import build_fit_job
 
 REAL = Path(__file__).resolve().parent / "data" / "real"
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

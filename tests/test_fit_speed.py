@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax.fit import FrameData, LevenbergMarquardt, TableData, fit, prepare
+from brdfjax.fit import FrameData, LevenbergMarquardt, TableData, fit
 from brdfjax.fit._jacobian import _local, _plan, supports
+from brdfjax.fit.internal import prepare_problem
 from brdfjax.instrument.synthetic import convolve_footprint, footprint_kernel
 
 # a tilted specular peak (turned by dtheta, dphi0 + phi_ref) beside an untilted one (phi_ref cannot reach it)
@@ -40,7 +41,7 @@ def _frame(kernel):
 def test_turn_shortcuts_equal_jacfwd(kernel, assert_jacobian_matches_jacfwd):
     """phi_ref skipped for the untilted peak and taken from dphi0 for the tilted one, the hand-written columns
     (specular widths and indices one pass each, diffraction a, b, c, phi_ref): == jacfwd to 1e-10."""
-    prep = prepare(MODEL, [_frame(kernel)], SPEC, solver=LevenbergMarquardt())
+    prep = prepare_problem(MODEL, [_frame(kernel)], SPEC, solver=LevenbergMarquardt())
     problem = prep.problem
     assert supports(problem)
     names = tuple((b, kd) for _, b, kd in _local(problem, 0))

@@ -91,7 +91,7 @@ def test_bad_nuisance_input_names_the_key():
 
 
 def test_negative_calibration_tolerance_in_a_manifest_names_file_and_key(tmp_path):
-    from brdfjax.instrument.raw import ManifestError, read_manifest
+    from brdfjax.io.raw import ManifestError, read_manifest
 
     p = tmp_path / "manifest.toml"
     p.write_text('[beam]\nfile = "b.exr"\nbackground = "bb.exr"\n[[sample]]\nname = "s"\nfile = "s.exr"\nbackground = "sb.exr"\n[calibration.nd_tolerances]\n"1.0" = -0.06\n')

@@ -1,4 +1,4 @@
-"""Raw exposure-stack format (brdfjax.instrument.raw): round trip, every validation error, manifests."""
+"""Raw exposure-stack format (brdfjax.io.raw): round trip, every validation error, manifests."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from brdfjax.instrument.raw import (
+from brdfjax.io.raw import (
     FILE_ATTRS,
     Calibration,
     Exposure,

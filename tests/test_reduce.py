@@ -12,7 +12,6 @@ import OpenEXR
 import pytest
 
 import brdfjax as bj
-from brdfjax.instrument.raw import Calibration, read_raw_exr, write_manifest, write_raw_exr
 from brdfjax.instrument.reduce import (
     FLAG_SATURATED,
     SYNTHETIC_NONLINEARITY_CURVE,
@@ -30,6 +29,7 @@ from brdfjax.instrument.reduce import (
     stitch_weighted,
 )
 from brdfjax.io.exr import read_frame_exr
+from brdfjax.io.raw import Calibration, read_raw_exr, write_manifest, write_raw_exr
 
 DATA = Path(__file__).parent / "data"
 _spec = importlib.util.spec_from_file_location("make_example_set", DATA / "make_example_set.py")

@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 
 import brdfjax as bj
-from brdfjax.fit import fit, get_solver, prepare, render_noisy_frames
+from brdfjax.fit import fit, get_solver, render_noisy_frames
+from brdfjax.fit.internal import prepare_problem
 from brdfjax.sample import Prior, SampleError, build_log_posterior, sample
 from brdfjax.sample._chain import diagnose, run_chain
 from brdfjax.sample._posterior import start_ball
@@ -47,7 +48,7 @@ def fitted(frames):
 
 @pytest.fixture(scope="module")
 def prepared(frames):
-    return prepare(MODEL, frames, SPEC, solver=get_solver("levenberg_marquardt"))
+    return prepare_problem(MODEL, frames, SPEC, solver=get_solver("levenberg_marquardt"))
 
 
 @pytest.fixture(scope="module")
@@ -229,7 +230,7 @@ def test_decimated_sampling_grid_is_recorded(frames):
     assert rec["blocks"][0]["grid_step_px"] == 12 and rec["blocks"][0]["grid_shape"] == [6, 6]
     assert rec["blocks"][0]["extent"] == [-30, 30, -30, 30]
     np.testing.assert_array_equal(small[0].brdf, np.asarray(frames[0].brdf)[5:16:2, 5:16:2])
-    prep = prepare(MODEL, small, SPEC, solver=get_solver("levenberg_marquardt"))
+    prep = prepare_problem(MODEL, small, SPEC, solver=get_solver("levenberg_marquardt"))
     assert sum(prep.problem.counts) == rec["n_points"] == int(small[0].usable().sum())
     with pytest.raises(SampleError, match=r"roi \(500, 600, 0, 10\) contains no pixel of its grid"):
         decimate_frame(frames[0], 1, (500, 600, 0, 10))

@@ -19,7 +19,8 @@ SCRIPT = textwrap.dedent('''
     jax.config.update("jax_enable_x64", True)
     import numpy as np
     import brdfjax as bj
-    from brdfjax.fit import Param, prepare, get_solver, render_noisy_frames, shard_problem
+    from brdfjax.fit import Param, get_solver, render_noisy_frames, shard_problem
+    from brdfjax.fit.internal import prepare_problem
     from brdfjax.fit._problem import jacobian, residuals
     assert len(jax.devices()) == 2, jax.devices()
     model, frame = bj.solar_cell(), bj.Frame.from_degrees(20.0)
@@ -35,7 +36,7 @@ SCRIPT = textwrap.dedent('''
         print(precision, "max relative difference", rel)
     frames = render_noisy_frames(model, [20.0, 40.0], step=16, noise_rel=0.03, floor=0.1, seed=1)
     spec = {k: Param(float(np.asarray(v)) * 1.05) for k, v in model.params().items() if k in ("m1", "rho_s1", "a", "c")}
-    prep = prepare(model, frames, spec, solver=get_solver("lm"))
+    prep = prepare_problem(model, frames, spec, solver=get_solver("lm"))
     sharded = shard_problem(prep.problem)
     assert len(sharded.stack.blocks.data.sharding.device_set) == 2
     v = jax.numpy.asarray([0.1, -0.2, 0.05, 0.3])

@@ -189,7 +189,8 @@ def test_bad_rows_are_reported_with_lines_and_dropped_or_refused(tmp_path):
 
 
 def test_dropped_rows_are_printed_and_recorded_for_result_json(tmp_path):
-    from brdfjax.fit.config import _describe_block, build_fit_job, load_fit_config
+    from brdfjax.fit.config import load_fit_config
+    from brdfjax.fit.job import _describe_block, build_fit_job
 
     ts = np.arange(0.0, 91.0, 2.0)
     rows = [[30.0, t, _lobe(30.0, t)] for t in ts]

@@ -16,7 +16,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..fit.config import enable_config_precision, run_fit
+from ..fit.config import enable_config_precision
+from ..fit.job import run_fit
 from ..io import check_output_dir
 from ..runtime.progress import make_console
 

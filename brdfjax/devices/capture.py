@@ -53,7 +53,7 @@ The config (TOML, validated strictly; errors name the file and the key)::
 Durability (see the README): every exposure, once read, is written
 atomically as a one-part raw file under ``DIR/.parts/``; a finished
 measurement and its background are assembled into the raw format of
-:mod:`brdfjax.instrument.raw` (written atomically), their parts removed, and
+:mod:`brdfjax.io.raw` (written atomically), their parts removed, and
 ``manifest.toml`` rewritten (atomically) after every measurement with a
 ``[capture]`` table (status, config digest, the finished measurements, the
 interlock's safe OD, the alignment).  ``--resume`` continues from it: finished
@@ -87,10 +87,10 @@ from ..config import ConfigError, ModelConfig, StrictModel, build_model, read_to
 from ..core.detector import Detector
 from ..core.render import Frame
 from ..instrument.nd import stack_od
-from ..instrument.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
 from ..instrument.synthetic import EFFECTS, load_instrument_config
 from ..io import atomic_output, check_output_dir, geometry_attrs
 from ..io.fingerprint import check_resume, value_digest
+from ..io.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
 from ..runtime.errors import InputError
 from ..runtime.progress import make_console
 from .alignment import AlignmentResult, run_alignment

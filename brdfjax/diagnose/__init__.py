@@ -1,6 +1,7 @@
 """Sim-to-real gap diagnosis: where a model misses the data, which unmodelled effect causes it, how far it shrinks.
 
-``diagnose(base_model, blocks, params)`` fits the base model, finds the
+``diagnose(likelihood, effects=...)`` (the likelihood from
+:func:`brdfjax.fit.prepare`, the one a fit and a posterior use) fits the base model, finds the
 significant residual structures and their zones, refits with every candidate
 effect of the library, ranks them by BIC and builds the explanation path by
 greedy forward selection; :meth:`Diagnosis.write` writes ``diagnosis.json``,
@@ -30,6 +31,7 @@ Where to find what (each module imports only those above it):
 
 from __future__ import annotations
 
+from .api import diagnose as diagnose
 from .context import (
     Context as Context,
     build_context as build_context,
@@ -47,6 +49,6 @@ from .effects import (
     inject as inject,
     synthesize as synthesize,
 )
-from .engine import DiagnoseInputError as DiagnoseInputError, diagnose as diagnose
+from .engine import DiagnoseInputError as DiagnoseInputError
 from .results import Candidate as Candidate, Diagnosis as Diagnosis, Step as Step
 from .zones import Region as Region, find_regions as find_regions, specular_coordinates as specular_coordinates

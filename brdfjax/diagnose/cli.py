@@ -39,7 +39,8 @@ from typing import Any
 from pydantic import Field
 
 from ..config import ConfigError, ModelConfig, StrictModel, read_toml
-from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
+from ..fit.config import enable_config_precision, load_fit_config
+from ..fit.job import build_fit_job
 from ..io import check_output_dir
 from ..runtime.progress import make_console
 from .effects import EFFECT_LIBRARY

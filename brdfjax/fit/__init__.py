@@ -1,5 +1,8 @@
 """Inverse fitting: brdfjax models fitted to detector frames and goniometer tables.
 
+``lik = prepare(model, data, params, **options)`` is the likelihood that
+:func:`fit`, :func:`brdfjax.sample.sample` and :func:`brdfjax.diagnose.diagnose`
+share (:class:`Likelihood`); ``fit(lik, solver=...)`` or
 ``fit(model, data, params)`` fits any :class:`~brdfjax.Model` to one or many
 :class:`FrameData` (BRDF frames on a pixel grid with ``sigma_rel`` and a
 mask) and :class:`TableData` (goniometer samples), jointly, with parameters
@@ -15,6 +18,18 @@ is the TOML fit config behind ``brdfjax fit CONFIG --out DIR``
 (``load_fit_config``, ``build_fit_job``, ``run_fit``).
 """
 
+from ..io.blocks import FrameData as FrameData, TableData as TableData
+from ..io.tables import (
+    CANONICAL_COLUMNS as CANONICAL_COLUMNS,
+    Screen as Screen,
+    check_mirror as check_mirror,
+    export_table as export_table,
+    make_table as make_table,
+    read_astm_e1392 as read_astm_e1392,
+    read_cornell_brdf as read_cornell_brdf,
+    read_merl_inplane as read_merl_inplane,
+    read_table as read_table,
+)
 from ._auto_init import (
     INITIALIZERS as INITIALIZERS,
     fit_amplitudes as fit_amplitudes,
@@ -24,13 +39,13 @@ from ._auto_init import (
 )
 from ._common import FitInputError as FitInputError
 from ._covariance import Covariance as Covariance, covariance as covariance
-from ._data import FrameData as FrameData, TableData as TableData
-from ._fit import FIRST_STAGES as FIRST_STAGES, fit as fit, prepare as prepare, versions as versions
+from ._fit import FIRST_STAGES as FIRST_STAGES, fit as fit, versions as versions
 from ._frames_io import (
     detector_from_attrs as detector_from_attrs,
     frame_data_from_reduced as frame_data_from_reduced,
     read_frame_data as read_frame_data,
 )
+from ._likelihood import LIKELIHOOD_OPTIONS as LIKELIHOOD_OPTIONS, Likelihood as Likelihood, prepare as prepare
 from ._params import TRANSFORMS as TRANSFORMS, Param as Param
 from ._residuals import (
     LOSSES as LOSSES,
@@ -49,14 +64,3 @@ from ._solvers import (
     get_solver as get_solver,
 )
 from ._synthetic import render_noisy_frames as render_noisy_frames
-from ._tables import (
-    CANONICAL_COLUMNS as CANONICAL_COLUMNS,
-    Screen as Screen,
-    check_mirror as check_mirror,
-    export_table as export_table,
-    make_table as make_table,
-    read_astm_e1392 as read_astm_e1392,
-    read_cornell_brdf as read_cornell_brdf,
-    read_merl_inplane as read_merl_inplane,
-    read_table as read_table,
-)

@@ -63,8 +63,8 @@ from ..core.geometry import Directions
 from ..core.render import Frame, sample_directions
 from ..core.terms import Diffraction, Lambertian, Model, OffsetNormal, Oriented, Specular
 from ..instrument.synthetic import convolve_footprint
+from ..io.blocks import FrameData, TableData
 from ._common import FitInputError
-from ._data import FrameData, TableData
 
 __all__ = [
     "INITIALIZERS", "get_initializer", "init_solar_cell", "init_specular_lambertian", "init_specular_peak",

@@ -4,16 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..runtime.errors import InputError
+from ..runtime.errors import FitInputError
 
 __all__ = ["FitInputError", "natural_unit", "to_natural", "FRAME_PARAMETERS"]
 
 #: Frame parameters that a fit may free, with their units (per frame by default).
 FRAME_PARAMETERS: dict[str, str] = {"theta_i": "rad", "phi_ref": "rad"}
-
-
-class FitInputError(InputError):
-    """Bad fit input (parameter specification, data, solver settings); the message says what to change."""
 
 
 def natural_unit(unit: str) -> str:

@@ -26,8 +26,8 @@ import numpy as np
 from ..core.geometry import Directions, direction
 from ..core.render import render
 from ..instrument.synthetic import convolve_footprint
+from ..io.blocks import FrameData, TableData
 from ..plotting import colormap, log10_floor, new_figure, save_figure_atomic, visible_contours
-from ._data import FrameData, TableData
 
 __all__ = ["write_figures", "frame_model_image", "plot_frame_fit", "plot_table_fit"]
 

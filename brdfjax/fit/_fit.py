@@ -25,10 +25,11 @@ from numpy.lib.stride_tricks import sliding_window_view
 from ..core.geometry import Directions
 from ..core.render import Frame, cast, resolve_dtype
 from ..core.terms import Model
+from ..io.blocks import FrameData, TableData
 from ._auto_init import get_initializer
 from ._common import FRAME_PARAMETERS, FitInputError, natural_unit, to_natural
 from ._covariance import covariance
-from ._data import FrameData, TableData
+from ._likelihood import LIKELIHOOD_OPTIONS, Likelihood
 from ._nuisance import NuisanceOptions, NuisanceSpec, NuisanceTerms, build_nuisance, conditional_sigma
 from ._params import FreeEntry, Layout, as_param, build_layout
 from ._problem import (
@@ -577,9 +578,13 @@ def _group_stats(b: TableData, usable: np.ndarray, r: np.ndarray, log_res: np.nd
     return tuple(out)
 
 
+def _is_default(value: Any, default: Any) -> bool:
+    return value is default or (type(value) is type(default) and value == default)
+
+
 def fit(
-    model: Model,
-    data: Data | Sequence[Data],
+    model: Model | Likelihood,
+    data: Data | Sequence[Data] | None = None,
     params: Mapping[str, Any] | None = None,
     *,
     solver: str | AbstractSolver = "levenberg_marquardt",
@@ -599,6 +604,10 @@ def fit(
     nuisance: NuisanceOptions | Mapping[str, Any] | bool | None = None,
 ) -> FitResult:
     """Fit ``model`` to one or several data blocks (detector frames and/or goniometer tables).
+
+    ``fit(likelihood, solver=...)`` fits a :class:`~brdfjax.fit.Likelihood` built by
+    :func:`brdfjax.fit.prepare` (the data, params and likelihood options are then the likelihood's);
+    ``fit(model, data, params, **options)`` builds it in place.
 
     ``params`` maps parameter names (the model's public names, ``theta_i``,
     ``phi_ref``) to a :class:`~brdfjax.fit.Param`, a start value (free),
@@ -632,6 +641,23 @@ def fit(
     and a message that says why; bad inputs raise
     :class:`~brdfjax.fit.FitInputError`.
     """
+    call = {
+        "loss": loss, "loss_scale": loss_scale, "floor": floor, "precision": precision, "absolute_sigma": absolute_sigma,
+        "use_footprint": use_footprint, "nuisance": nuisance, "initializer": initializer, "init_options": init_options,
+        "allow_different_detectors": allow_different_detectors, "resolution_check": resolution_check,
+    }
+    if isinstance(model, Likelihood):
+        clash = [k for k, v in call.items() if not _is_default(v, LIKELIHOOD_OPTIONS[k])]
+        clash += [k for k, v in (("data", data), ("params", params)) if v is not None]
+        if clash:
+            raise FitInputError(
+                f"fit(likelihood) takes {', '.join(clash)} from the likelihood; set them with "
+                "brdfjax.fit.prepare(...) or likelihood.replace(...)"
+            )
+        return fit(model.model, model.blocks, model.params, solver=solver, solver_options=solver_options,
+                   first_stage=first_stage, progress=progress, **model.options())
+    if data is None:
+        raise FitInputError("fit(model, data, params): data is missing (a FrameData, a TableData or a list of them)")
     t_start = time.perf_counter()
     opts = dict(solver_options or {})
     solver_obj = get_solver(solver, **opts)

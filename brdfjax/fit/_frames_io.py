@@ -59,8 +59,8 @@ from ..core.detector import Detector, PixelGrid
 from ..instrument.reduce import read_reduced_frame
 from ..instrument.synthetic import footprint_kernel
 from ..io import ExrError, header
+from ..io.blocks import FrameData
 from ._common import FitInputError
-from ._data import FrameData
 from ._nuisance import systematics_from_attrs
 
 __all__ = ["frame_data_from_reduced", "read_frame_data", "detector_from_attrs", "SIGMA_CHOICES"]

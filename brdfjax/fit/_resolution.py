@@ -26,7 +26,7 @@ import numpy as np
 
 from ..core.geometry import Directions
 from ..core.terms import MultiLobeSpecular
-from ._data import TableData
+from ..io.blocks import TableData
 from ._params import Param, as_param
 
 __all__ = ["lobe_parameters", "lobe_term", "table_step", "lobe_fwhm", "check_resolution"]

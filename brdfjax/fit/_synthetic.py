@@ -17,7 +17,7 @@ import numpy as np
 from ..core.detector import Detector
 from ..core.render import Frame, render
 from ..core.terms import AbstractTerm
-from ._data import FrameData
+from ..io.blocks import FrameData
 
 __all__ = ["render_noisy_frames"]
 

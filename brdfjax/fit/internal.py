@@ -11,6 +11,8 @@ is documented and stable within brdfjax; the modules it comes from
 - :func:`as_param`: a parameter specification (dict, tuple or :class:`~brdfjax.fit.Param`) as a ``Param``;
 - :func:`param_problems`, :func:`check_param`, :data:`SPEC_KEYS`: the data-independent rules of a
   specification, written once for the Python API and the TOML config;
+- :func:`prepare_problem`: the traced :class:`Problem` of a model, data and spec with a solver (what
+  :func:`brdfjax.fit.fit` solves; the public likelihood object is :func:`brdfjax.fit.prepare`);
 - :func:`block_names`: the unique names of a list of data blocks, as the fit reports them;
 - :func:`get_solver`, :data:`LOSSES`: the solver and robust-loss registries;
 - :func:`natural_unit`, :func:`to_natural`: the reported unit of a stored one (rad -> deg) and its factor;
@@ -20,7 +22,7 @@ is documented and stable within brdfjax; the modules it comes from
 """
 
 from ._common import FRAME_PARAMETERS as FRAME_PARAMETERS, natural_unit as natural_unit, to_natural as to_natural
-from ._fit import block_names as block_names
+from ._fit import block_names as block_names, prepare as prepare_problem
 from ._params import SPEC_KEYS as SPEC_KEYS, as_param as as_param, check_param as check_param, param_problems as param_problems
 from ._problem import Problem as Problem
 from ._residuals import LOSSES as LOSSES
@@ -46,6 +48,7 @@ __all__ = [
     "lobe_term",
     "natural_unit",
     "param_problems",
+    "prepare_problem",
     "table_step",
     "to_natural",
 ]

@@ -1,6 +1,6 @@
 """Instrument layer: raw exposure stacks, synthetic CCD frames, reduction and uncertainty (seed Ch. III-IV)."""
 
-from .raw import (
+from ..io.raw import (
     Exposure as Exposure,
     Manifest as Manifest,
     RawAttrs as RawAttrs,

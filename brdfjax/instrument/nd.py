@@ -13,13 +13,13 @@ generators of the diagnosis, the experiments):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
+from ..io.raw import NDSpec, parse_nd_filters
 from ..runtime.errors import InputError
 
 __all__ = [
@@ -33,7 +33,6 @@ __all__ = [
     "choose_nd_filters",
 ]
 
-NDSpec = str | Sequence[float] | None
 
 #: ND filter stacks tried, in order of increasing OD, when a stack is picked by the seed's rule (seed §3.3 filters).
 ND_STACKS: tuple[str, ...] = (
@@ -45,46 +44,6 @@ ND_STACKS: tuple[str, ...] = (
 SEED_ND_TOLERANCES: Mapping[float, float] = MappingProxyType({0.1: 0.01, 0.2: 0.01, 0.3: 0.01, 1.0: 0.06, 4.0: 0.2})
 #: ND tolerance of the 3.0 filter (+-OD) inferred from the seed's 59.3 % (its tolerance table lacks it).
 ND_3_TOLERANCE = 0.15
-
-
-def parse_nd_filters(spec: NDSpec) -> tuple[float, ...]:
-    """The nominal ODs of a stack of ND filters.
-
-    ``"4.0+1.0+0.2"`` -> ``(4.0, 1.0, 0.2)``; ``""``, ``"0"``, ``"none"`` or
-    ``None`` -> ``()`` (no filter); a sequence of numbers is taken as the ODs.
-    Each OD must be a finite positive number.
-    """
-    if spec is None:
-        return ()
-    if isinstance(spec, str):
-        text = spec.strip()
-        if text.lower() in ("", "0", "0.0", "none"):
-            return ()
-        tokens = [t.strip() for t in text.split("+")]
-        values = []
-        for t in tokens:
-            try:
-                values.append(float(t))
-            except ValueError:
-                raise ValueError(
-                    f"ND filter stack {spec!r}: {t!r} is not an optical density; "
-                    "expected ODs joined by '+', e.g. '4.0+1.0+0.2'"
-                ) from None
-    elif isinstance(spec, Sequence) and not isinstance(spec, bytes):
-        values = []
-        for v in spec:
-            try:
-                values.append(float(v))
-            except (TypeError, ValueError):
-                raise ValueError(f"ND filter stack {spec!r}: {v!r} is not an optical density (a number)") from None
-    else:
-        raise ValueError(
-            f"ND filter stack {spec!r}: expected a string like '4.0+1.0+0.2', a sequence of ODs, or None"
-        )
-    for v in values:
-        if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"ND filter stack {spec!r}: OD {v!r} must be a finite positive number")
-    return tuple(values)
 
 
 def stack_od(stack: str) -> float:

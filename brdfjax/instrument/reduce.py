@@ -95,10 +95,7 @@ from .. import __version__
 from ..core.detector import Detector, PixelGrid
 from ..core.render import render_geometry
 from ..io import ExrFrame, atomic_output, frame_attrs, read_frame_exr, write_frame_exr
-from ..plotting import agg_pyplot
-from ..runtime.errors import InputError
-from .nd import SEED_ND_TOLERANCES
-from .raw import (
+from ..io.raw import (
     Manifest,
     RawAttrs,
     RawFormatError,
@@ -106,6 +103,9 @@ from .raw import (
     read_manifest,
     read_raw_exr,
 )
+from ..plotting import agg_pyplot
+from ..runtime.errors import InputError
+from .nd import SEED_ND_TOLERANCES
 from .uncertainty import (
     SEED_ARM_ANGLE_UNCERTAINTY,
     SEED_DISTANCE_UNCERTAINTY,
@@ -183,7 +183,7 @@ class NonlinearityCurve:
     per-pixel gain differences are the separate ``scatter_nonlinearity``
     dNL_s of Eq 92).  Linear interpolation between the points, constant
     beyond the ends.  In a manifest: ``[calibration] nonlinearity_curve =
-    [[0.0, -0.0172], [1.0, 0.0172]]`` (:mod:`brdfjax.instrument.raw`).
+    [[0.0, -0.0172], [1.0, 0.0172]]`` (:mod:`brdfjax.io.raw`).
     """
 
     points: tuple[tuple[float, float], ...]

@@ -4,7 +4,7 @@ It plays the seed's instrument (Chapter III: the Thorlabs 8051 CCD on the
 CASI arm, a 15 mW HeNe focused by the CASI optics) so that the reduction, the
 fits and the sim-to-real diagnosis can be tested on data with known truth.
 The output is exactly what the camera software writes: raw stacks in the
-format of :mod:`brdfjax.instrument.raw`.
+format of :mod:`brdfjax.io.raw`.
 
 Signal chain, per measurement (units: counts are the camera's digital counts,
 "counts/s" a rate of them; rates are per pixel):
@@ -110,8 +110,7 @@ from ..core.detector import Detector
 from ..core.render import Frame, render, render_geometry
 from ..core.terms import AbstractTerm
 from ..io.header import geometry_attrs
-from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
-from .raw import (
+from ..io.raw import (
     Calibration,
     Exposure,
     RawAttrs,
@@ -119,6 +118,7 @@ from .raw import (
     write_manifest,
     write_raw_exr,
 )
+from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
 
 __all__ = [
     "EFFECTS",

@@ -1,4 +1,13 @@
-"""File formats at the edge of brdfjax (the core never does I/O).
+"""Every file format of brdfjax, and the data blocks files are read into (the core never does I/O).
+
+:mod:`brdfjax.io.blocks`: :class:`~brdfjax.io.blocks.FrameData` and
+:class:`~brdfjax.io.blocks.TableData`, the data blocks a fit, a posterior and a
+diagnosis take (re-exported by :mod:`brdfjax.fit`).
+:mod:`brdfjax.io.tables`: goniometer tables (every reader: CSV/whitespace with
+column mapping, MERL in-plane, Cornell ``.brdf``, ASTM E1392, lumos-sat), their
+row screening and the export of a table.
+:mod:`brdfjax.io.raw`: raw exposure stacks (one OpenEXR file per exposure) and
+the measurement-set manifest, with the format's specification.
 
 :mod:`brdfjax.io.header`: the frame header -- the one mapping of a Detector
 and a Frame to file attributes and back (simulated, reduced and raw frames).

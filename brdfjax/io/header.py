@@ -8,7 +8,7 @@ reader through :func:`detector_from_attrs` / :func:`frame_from_attrs` (the
 fit's frame reader, the raw stack reader, the CLI's figures).
 
 The attributes (SI units, radians; stored as doubles by :mod:`brdfjax.io.exr`
-and :mod:`brdfjax.instrument.raw`), in the order they are written:
+and :mod:`brdfjax.io.raw`), in the order they are written:
 
 ================= ====== ==============================================================
 ``theta_i``       rad    incidence angle (:class:`Frame`)

@@ -37,6 +37,7 @@ __all__ = [
     "EXIT_OK",
     "EXIT_REFUSED",
     "REPORT_TO",
+    "FitInputError",
     "InputError",
     "run_command",
 ]
@@ -56,6 +57,10 @@ class InputError(ValueError):
     """
 
     exit_code: int = EXIT_REFUSED
+
+
+class FitInputError(InputError):
+    """Bad fit input (parameter specification, data, solver settings); the message says what to change."""
 
 
 def run_command(prog: str, run: Callable[[], int | None], *, stderr=None) -> int:

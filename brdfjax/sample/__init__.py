@@ -1,6 +1,7 @@
 """Parameter posteriors with emcee: the fit's likelihood, priors, resumable HDF5 chains, diagnostics.
 
-``sample(model, data, params, priors=..., out_dir=...)`` (and ``brdfjax sample
+``sample(likelihood, priors, sampler=Emcee(...) | NUTS(...), out_dir=...)``, the
+likelihood from :func:`brdfjax.fit.prepare` (and ``brdfjax sample
 CONFIG --out DIR``) runs an emcee ``EnsembleSampler`` over the same weighted
 log-space likelihood as :func:`brdfjax.fit.fit`, with per-parameter priors
 (:class:`Prior`: uniform, log-uniform, normal, truncated normal; physical
@@ -16,3 +17,4 @@ from ._api import PosteriorResult as PosteriorResult, decimate_frame as decimate
 from ._chain import Diagnostics as Diagnostics, diagnose as diagnose, read_chain as read_chain
 from ._posterior import LogPosterior as LogPosterior, build_log_posterior as build_log_posterior
 from ._priors import PRIOR_KINDS as PRIOR_KINDS, Prior as Prior, SampleError as SampleError
+from ._samplers import NUTS as NUTS, Emcee as Emcee

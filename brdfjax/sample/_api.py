@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.metadata
 import math
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -13,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from ..core.detector import PixelGrid
-from ..fit import FitResult, FrameData, TableData, fit, prepare, versions
-from ..fit.internal import as_param, block_names, get_solver, to_natural
+from ..fit import FitResult, FrameData, Likelihood, TableData, fit, versions
+from ..fit.internal import as_param, block_names, get_solver, prepare_problem, to_natural
 from ..io import write_json_atomic
 from ..io.fingerprint import array_digest, value_digest
 from ._chain import Diagnostics, RunOutcome, diagnose, open_chain, run_chain
@@ -29,6 +30,7 @@ from ._outputs import (
 )
 from ._posterior import LogPosterior, build_log_posterior, check_walkers, default_walkers, start_ball
 from ._priors import Prior, SampleError
+from ._samplers import NUTS, Emcee, sampler_options
 
 __all__ = [
     "sample",
@@ -203,7 +205,7 @@ def check_sampling(
     prep_kw = {k: fit_kwargs[k] for k in _PREPARE_KEYS if k in fit_kwargs and k not in ("initializer", "init_options")}
     # No auto-initialisation here (it can cost a fit's worth of model evaluations): 'auto' starts stand in as 1.
     spec = {k: (replace(as_param(k, v), value=None) if _is_auto(k, v) else v) for k, v in dict(params or {}).items()}
-    prep = prepare(model, blocks, spec, solver=solver, **prep_kw)
+    prep = prepare_problem(model, blocks, spec, solver=solver, **prep_kw)
     post = build_log_posterior(prep, priors, loss=fit_kwargs.get("loss", "linear"))
     nw = default_walkers(post.ndim) if n_walkers is None else n_walkers
     check_walkers(nw, post.ndim)
@@ -310,10 +312,23 @@ class PosteriorResult:
     def correlation(self) -> np.ndarray:
         return np.corrcoef(self.flat().T) if len(self.names) > 1 else np.ones((1, 1))
 
+    def write(self, out_dir: str | Path, figures: bool = True) -> dict[str, str]:
+        """Write ``posterior.json`` (the summary) and, with ``figures``, ``corner.png`` into ``out_dir``
+        (atomically; a run with ``sample(..., out_dir=...)`` has written these already, with its chain)."""
+        out = Path(out_dir)
+        files = {}
+        if figures:
+            files["corner"] = str(plot_corner(out / "corner.png", self.flat(natural=True), self.names,
+                                              self.posterior.natural_units, None))
+        write_json_atomic(out / "posterior.json", self.summary, allow_nan=False)
+        files["summary"] = str(out / "posterior.json")
+        self.files.update(files)
+        return files
+
 
 def sample(
     model: Any,
-    data: FrameData | TableData | Sequence[FrameData | TableData],
+    data: FrameData | TableData | Sequence[FrameData | TableData] | Mapping[str, Prior] | None = None,
     params: Mapping[str, Any] | None = None,
     *,
     priors: Mapping[str, Prior] | None = None,
@@ -338,13 +353,19 @@ def sample(
     log: Any = None,
     extra_record: Mapping[str, Any] | None = None,
     extra_fingerprint: Mapping[str, Any] | None = None,
-    sampler: str = "emcee",
+    sampler: str | Emcee | NUTS = "emcee",
     n_chains: int = 4,
     n_warmup: int = 500,
     log_weights: bool | None = None,
     start_covariance: bool | None = None,
 ) -> PosteriorResult:
     """Sample the posterior of ``params`` (as for :func:`brdfjax.fit.fit`) given ``data`` with emcee.
+
+    ``sample(likelihood, priors, sampler=Emcee(...) | NUTS(...), out_dir=...)`` samples a
+    :class:`~brdfjax.fit.Likelihood` built by :func:`brdfjax.fit.prepare` (the data, params and the
+    likelihood's options are then the likelihood's; the sampler's options are on the sampler object).
+    ``sample(model, data, params, priors=..., fit_kwargs=...)`` is the older spelling (``fit_kwargs``
+    is deprecated: build the likelihood instead).
 
     The likelihood is the fit's (same residuals, weights and loss, from
     ``fit_kwargs``: loss, loss_scale, floor, precision, use_footprint, ...);
@@ -378,6 +399,36 @@ def sample(
     (``None``) to on when the likelihood has nuisance parameters.  Outputs
     are in stored units either way.
     """
+    if isinstance(model, Likelihood):
+        if params is not None or fit_kwargs is not None:
+            raise SampleError("sample(likelihood, priors): params and fit_kwargs are the likelihood's; "
+                              "set them with brdfjax.fit.prepare(...) or likelihood.replace(...)")
+        if data is not None:
+            if priors is not None:
+                raise SampleError("sample(likelihood, priors) got priors twice (positionally and as priors=)")
+            priors = data
+        model, data, params, fit_kwargs = model.model, model.blocks, model.params, model.options()
+    elif data is None:
+        raise SampleError("sample(model, data, params): data is missing (or pass a Likelihood from brdfjax.fit.prepare)")
+    elif fit_kwargs is not None:
+        warnings.warn("sample(..., fit_kwargs=...) is deprecated: build the likelihood with brdfjax.fit.prepare(model, "
+                      "data, params, **options) and call sample(likelihood, priors)", DeprecationWarning, stacklevel=2)
+    if not isinstance(sampler, str):
+        opts = sampler_options(sampler)
+        given = {"n_walkers": (n_walkers, None), "n_steps": (n_steps, 1000), "ball": (ball, 0.1), "burn": (burn, "auto"),
+                 "thin": (thin, 1), "stop_when_converged": (stop_when_converged, False), "check_every": (check_every, 100),
+                 "vectorize": (vectorize, True), "n_chains": (n_chains, 4), "n_warmup": (n_warmup, 500)}
+        clash = [k for k, (v, d) in given.items() if v != d]
+        if clash:
+            raise SampleError(f"{', '.join(clash)} belong on the sampler object ({type(sampler).__name__}(...)), "
+                              "not on sample()")
+        sampler = opts.pop("sampler")
+        n_steps, ball, burn, thin = opts["n_steps"], opts["ball"], opts["burn"], opts["thin"]
+        if sampler == "emcee":
+            n_walkers, stop_when_converged = opts["n_walkers"], opts["stop_when_converged"]
+            check_every, vectorize = opts["check_every"], opts["vectorize"]
+        else:
+            n_chains, n_warmup = opts["n_chains"], opts["n_warmup"]
     t_start = time.perf_counter()
     say = log or (lambda msg: None)
     fit_kwargs = dict(fit_kwargs or {})
@@ -429,7 +480,7 @@ def sample(
     spec_start = _spec_from_result(spec, values, names_b)
 
     solver = get_solver(fit_kwargs.get("solver", "levenberg_marquardt"), **dict(fit_kwargs.get("solver_options") or {}))
-    prep = prepare(model, blocks, spec_start, solver=solver, **{k: fit_kwargs[k] for k in _PREPARE_KEYS if k in fit_kwargs})
+    prep = prepare_problem(model, blocks, spec_start, solver=solver, **{k: fit_kwargs[k] for k in _PREPARE_KEYS if k in fit_kwargs})
     post = build_log_posterior(prep, priors, loss=fit_kwargs.get("loss", "linear"))
     has_nuisance = prep.nuisance is not None
     use_log = has_nuisance if log_weights is None else bool(log_weights)

@@ -63,8 +63,9 @@ from ..config import (
     quoted_choices,
     unknown_key_message,
 )
-from ..fit.config import build_fit_job, enable_config_precision, load_fit_config
+from ..fit.config import enable_config_precision, load_fit_config
 from ..fit.internal import FRAME_PARAMETERS
+from ..fit.job import build_fit_job
 from ..io import check_output_dir
 from ..io.fingerprint import file_digest, value_digest
 from ..runtime.progress import make_console

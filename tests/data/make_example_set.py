@@ -1,7 +1,7 @@
 """Write the example measurement set ``tests/data/example_set/`` with the synthetic instrument.
 
 The set is a complete, valid instance of the raw format of
-:mod:`brdfjax.instrument.raw`: a beam signature and its background, the seed's
+:mod:`brdfjax.io.raw`: a beam signature and its background, the seed's
 solar-cell model at theta_i = 20 deg and its background, and a
 ``manifest.toml``.  To stay small enough for git it uses a coarse camera: 64 x
 48 pixels of 44 um (the seed's 5.5 um pixels binned 8 x 8, 0.43 x 0.32 deg
@@ -30,8 +30,8 @@ import argparse
 from pathlib import Path
 
 import brdfjax as bj
-from brdfjax.instrument.raw import Calibration
 from brdfjax.instrument.synthetic import InstrumentConfig, StrayLight, SyntheticInstrument
+from brdfjax.io.raw import Calibration
 
 #: Binning factor of the coarse example camera relative to the seed's pixels.
 BIN = 8

@@ -4,7 +4,7 @@
 relative uncertainty and mask, as the instrument reduction produces it (a
 later step reads them from frame EXRs).  :class:`TableData` is a list of
 goniometer samples ``(theta_i, phi_i, theta_s, phi_s[, wavelength], brdf[,
-sigma_rel])``; :mod:`brdfjax.fit._tables` reads them from files.
+sigma_rel])``; :mod:`brdfjax.io.tables` reads them from files.
 
 Both are frozen and validated on construction (shapes, finiteness, units);
 validation never changes the values.  :meth:`usable` is the boolean selection
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..core.detector import Detector, PixelGrid
-from ._common import FitInputError
+from ..runtime.errors import FitInputError
 
 __all__ = ["FrameData", "TableData"]
 

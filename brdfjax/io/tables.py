@@ -38,9 +38,9 @@ import numpy as np
 
 from ..core.geometry import Directions
 from ..core.terms import AbstractTerm
-from ..io import atomic_output
-from ._common import FitInputError
-from ._data import TableData
+from ..runtime.errors import FitInputError
+from . import atomic_output
+from .blocks import TableData
 
 __all__ = [
     "Screen",

@@ -142,10 +142,53 @@ import OpenEXR  # the official bindings (3.x API)
 
 from ..core.detector import Detector
 from ..core.render import Frame
-from ..io import atomic_output
-from ..io.header import GEOMETRY_ATTRS, detector_from_attrs, frame_from_attrs
 from ..runtime.errors import InputError
-from .nd import parse_nd_filters
+from . import atomic_output
+from .header import GEOMETRY_ATTRS, detector_from_attrs, frame_from_attrs
+
+#: An ND filter stack: ``"4.0+1.0+0.2"``, a sequence of ODs, or None (no filter).
+NDSpec = str | Sequence[float] | None
+
+
+def parse_nd_filters(spec: NDSpec) -> tuple[float, ...]:
+    """The nominal ODs of a stack of ND filters.
+
+    ``"4.0+1.0+0.2"`` -> ``(4.0, 1.0, 0.2)``; ``""``, ``"0"``, ``"none"`` or
+    ``None`` -> ``()`` (no filter); a sequence of numbers is taken as the ODs.
+    Each OD must be a finite positive number.
+    """
+    if spec is None:
+        return ()
+    if isinstance(spec, str):
+        text = spec.strip()
+        if text.lower() in ("", "0", "0.0", "none"):
+            return ()
+        tokens = [t.strip() for t in text.split("+")]
+        values = []
+        for t in tokens:
+            try:
+                values.append(float(t))
+            except ValueError:
+                raise ValueError(
+                    f"ND filter stack {spec!r}: {t!r} is not an optical density; "
+                    "expected ODs joined by '+', e.g. '4.0+1.0+0.2'"
+                ) from None
+    elif isinstance(spec, Sequence) and not isinstance(spec, bytes):
+        values = []
+        for v in spec:
+            try:
+                values.append(float(v))
+            except (TypeError, ValueError):
+                raise ValueError(f"ND filter stack {spec!r}: {v!r} is not an optical density (a number)") from None
+    else:
+        raise ValueError(
+            f"ND filter stack {spec!r}: expected a string like '4.0+1.0+0.2', a sequence of ODs, or None"
+        )
+    for v in values:
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"ND filter stack {spec!r}: OD {v!r} must be a finite positive number")
+    return tuple(values)
+
 
 __all__ = [
     "KINDS",
