@@ -215,10 +215,10 @@ def test_model_parameter_names_and_replacement():
 
 def test_models_are_sums_of_any_terms():
     """'Beckmann peak + offset GGX peak + diffraction + Lambertian' without new code."""
-    from brdfjax.core.registry import build_model, build_term
+    from brdfjax.core.registry import term_from_params as build_term
 
-    model = build_model(
-        {
+    model = bj.Model(
+        terms={
             "peak": build_term("specular", {"m": 2e-4, "rho_s": 0.02, "n": 3.6}, "beckmann"),
             "glint": build_term(
                 "offset_specular", {"alpha": 3e-4, "rho_s": 0.5, "n": 1.4, "dtheta": 0.01, "dphi0": 0.5}, "ggx"
@@ -246,7 +246,7 @@ def test_bad_parameters_raise_clear_errors():
         bj.Diffraction(rho=1.0, a=1e-3, b=-1e-5, c=1e-5)
     with pytest.raises(ValueError, match="rho_s >= 0"):
         bj.Specular(D.Beckmann(0.1), rho_s=-1.0, n=1.5)
-    from brdfjax.core.registry import build_term, lookup
+    from brdfjax.core.registry import lookup, term_from_params as build_term
 
     with pytest.raises(KeyError, match="unknown distribution 'ggxx'; known: .*ggx"):
         lookup("distribution", "ggxx")

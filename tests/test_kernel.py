@@ -35,7 +35,7 @@ def test_directions_accept_arrays_or_components_and_keep_a_per_frame_incident_di
 
 def test_rotated_z_equals_the_matrix_rotation():
     d = bj.Directions.from_angles(0.4, 0.1, np.linspace(0.1, 1.2, 5), np.linspace(0.0, 6.0, 5))
-    a, b = d.rotated_z(0.7), d.rotated(bj.geometry.Rz(0.7))
+    a, b = d.rotated_z(0.7), d.rotated(bj.core.geometry.Rz(0.7))
     np.testing.assert_allclose(np.asarray(a.w_s), np.asarray(b.w_s), atol=1e-15)
     np.testing.assert_allclose(np.asarray(a.w_sum), np.asarray(b.w_sum), atol=1e-15)
 
@@ -43,15 +43,15 @@ def test_rotated_z_equals_the_matrix_rotation():
 def test_render_frame_is_render_per_term_and_geometry_in_one_program():
     model, frame = bj.solar_cell(), bj.Frame.from_degrees(20.0)
     kw = dict(step=64)
-    out = bj.render_frame(model, frame, **kw)
+    out = bj.render(model, frame, outputs="all", **kw)
     terms = bj.render(model, frame, per_term=True, **kw)
-    geo = bj.render_geometry(frame, **kw)
+    geo = bj.render(None, frame, outputs=("theta_s", "phi_s", "omega"), **kw)
     np.testing.assert_array_equal(np.asarray(out["brdf"]), np.asarray(bj.render(model, frame, **kw)))
     for k in terms:
         np.testing.assert_array_equal(np.asarray(out["terms"][k]), np.asarray(terms[k]))
     for k in geo:
         np.testing.assert_array_equal(np.asarray(out[k]), np.asarray(geo[k]))
-    single = bj.render_frame(bj.Lambertian(0.3), frame, **kw)  # a bare term is a one-term model
+    single = bj.render(bj.Lambertian(0.3), frame, outputs="all", **kw)  # a bare term is a one-term model
     assert list(single["terms"]) == ["model"]
     np.testing.assert_allclose(np.asarray(single["brdf"]), 0.3 / np.pi, rtol=1e-6)
 

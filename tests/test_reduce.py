@@ -317,7 +317,7 @@ def test_output_frame_format(measured, reduced):
     assert r.attrs["theta_i"] == pytest.approx(np.deg2rad(20.0), abs=0)
     # The core pixel mapping supplies theta_s and Omega_d.
     det = example.example_detector(theta_c=np.deg2rad(20.0))
-    geom = bj.render_geometry(bj.Frame.from_degrees(20.0), det)
+    geom = bj.render(None, bj.Frame.from_degrees(20.0), det, outputs=("theta_s", "phi_s", "omega"))
     np.testing.assert_allclose(r.omega, geom["omega"], rtol=1e-6)
     np.testing.assert_allclose(r.theta_s, geom["theta_s"], rtol=1e-6)
 

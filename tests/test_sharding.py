@@ -26,7 +26,7 @@ SCRIPT = textwrap.dedent('''
     model, frame = bj.solar_cell(), bj.Frame.from_degrees(20.0)
     for precision in ("float32", "float64"):
         one = np.asarray(bj.render(model, frame, step=32, precision=precision))
-        two = bj.render_sharded(model, frame, step=32, precision=precision)
+        two = bj.render(model, frame, step=32, precision=precision, devices="all")
         assert len(two.sharding.device_set) == 2, two.sharding
         two = np.asarray(two)
         assert two.shape == one.shape, (two.shape, one.shape)

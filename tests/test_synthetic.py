@@ -142,7 +142,7 @@ def test_ideal_instrument_is_exact():
     for e in st.exposures:
         np.testing.assert_allclose(e.counts, flux * e.exposure_s, rtol=1e-6)
     # Eq 45 inverted on the convolved BRDF: f_r = Phi_s / (Phi_i cos(theta_s) Omega_d)
-    geom = bj.render_geometry(frame, ins.detector)
+    geom = bj.render(None, frame, ins.detector, outputs=("theta_s", "phi_s", "omega"))
     f = flux / (ins.incident_flux("3.0") * np.cos(geom["theta_s"]) * geom["omega"])
     np.testing.assert_allclose(f, ins.expected_brdf(brdf), rtol=1e-5, atol=1e-6 * float(brdf.max()))
     assert ins.incident_flux("3.0") == pytest.approx(SEED_BEAM_FLUX * 10**5.2 / 64 * 1e-3)

@@ -52,9 +52,9 @@ from .model import (
     TermConfig as TermConfig,
     build_model as build_model,
     build_preset as build_preset,
-    build_term as build_term,
     describe_model as describe_model,
     parameter_keys as parameter_keys,
+    term_from_config as term_from_config,
 )
 from .simulate import (
     DETECTOR_PRESETS as DETECTOR_PRESETS,
@@ -85,7 +85,7 @@ __all__ = [
     "DETECTOR_PRESETS",
     "build_model",
     "build_preset",
-    "build_term",
+    "term_from_config",
     "describe_model",
     "load_simulate_config",
     "parse_simulate_config",

@@ -42,7 +42,7 @@ __all__ = [
     "ModelConfig",
     "build_model",
     "build_preset",
-    "build_term",
+    "term_from_config",
     "describe_model",
     "parameter_keys",
 ]
@@ -333,7 +333,7 @@ def _term_units(
     return units, required
 
 
-def build_term(source: str, loc: str, t: TermConfig) -> AbstractTerm:
+def term_from_config(source: str, loc: str, t: TermConfig) -> AbstractTerm:
     units, required = _term_units(t.kind, t.distribution, t.lobes, t.params)
     keys = parameter_keys(units)
     what = f"a '{t.kind}' term" + (f" with distribution '{t.distribution}'" if t.distribution else "")
@@ -349,7 +349,7 @@ def build_term(source: str, loc: str, t: TermConfig) -> AbstractTerm:
         raise ConfigError(source, problems)
     stored = {keys[k][0]: v * keys[k][1] for k, v in t.params.items()}
     try:
-        term = registry.build_term(
+        term = registry.term_from_params(
             t.kind, stored, t.distribution, owner=loc, lobes=t.lobes, shadowing=t.shadowing, normalisation=t.normalisation,
             l1=t.l1, fresnel=t.fresnel,
         )
@@ -380,8 +380,8 @@ def build_model(source: str, m: ModelConfig) -> Model:
     """
     if m.preset is not None:
         return build_preset(source, m.preset, m.params)
-    terms = {name: build_term(source, f"model.terms.{name}", t) for name, t in (m.terms or {}).items()}
-    return registry.build_model(terms)
+    terms = {name: term_from_config(source, f"model.terms.{name}", t) for name, t in (m.terms or {}).items()}
+    return Model(terms=terms)
 
 
 def describe_model(m: ModelConfig) -> str:

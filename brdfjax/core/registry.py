@@ -2,7 +2,7 @@
 
 ``lookup("distribution", "ggxx")`` raises ``unknown distribution 'ggxx'; known:
 ashikhmin_shirley, beard_maxwell, beckmann, ...``.  Terms are built from
-plain dictionaries with :func:`build_term` (what a TOML config holds), with
+plain dictionaries with :func:`term_from_params` (what a TOML config holds), with
 parameter values in the units the term stores (radians, metres).
 """
 
@@ -21,7 +21,6 @@ from .terms import (
     Diffraction,
     Lambertian,
     Lobe,
-    Model,
     MultiLobeSpecular,
     OffsetNormal,
     Phong,
@@ -29,7 +28,7 @@ from .terms import (
     solar_cell,
 )
 
-__all__ = ["DISTRIBUTIONS", "TERMS", "MICROFACET_KINDS", "PRESETS", "lookup", "parameter_names", "build_term", "build_model"]
+__all__ = ["DISTRIBUTIONS", "TERMS", "MICROFACET_KINDS", "PRESETS", "lookup", "parameter_names", "term_from_params"]
 
 DISTRIBUTIONS: dict[str, type[_d.AbstractDistribution]] = {
     cls.name: cls
@@ -106,7 +105,7 @@ def _take(owner: str, cls: type, params: dict[str, Any], required: bool = True) 
     return out
 
 
-def build_term(
+def term_from_params(
     kind: str,
     params: Mapping[str, Any],
     distribution: str | None = None,
@@ -180,7 +179,3 @@ def build_term(
     if p:
         raise KeyError(f"{owner}: unknown parameter(s) {sorted(p)} for a '{kind}' term")
     return term
-
-
-def build_model(terms: Mapping[str, AbstractTerm], aliases: Mapping[str, str] | None = None) -> Model:
-    return Model(terms=dict(terms), aliases=tuple((aliases or {}).items()))

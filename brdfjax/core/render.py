@@ -1,13 +1,16 @@
 """Evaluate models over detector frames: vmapped over pixels, jit-compiled, chunked.
 
-A :class:`Frame` holds what belongs to one measurement rather than to the
-material: the incidence angle ``theta_i``, the sample's rotation about its
-normal ``phi_ref`` and the wavelength.  :func:`render` evaluates a model on
+The measurement conditions (:class:`~brdfjax.core.conditions.Frame`: incidence,
+the sample's rotation, wavelength) come from :mod:`brdfjax.core.conditions`.
+:func:`render` is the one entry: it evaluates a model on
 every pixel of a :class:`~brdfjax.core.detector.PixelGrid` (the full array, every
 k-th pixel, or a region of interest) and returns BRDF in sr^-1 shaped
 ``(n_v rows, n_h columns)``.  Rows are processed in chunks with
 ``jax.lax.map`` so that a full 8.1-million-pixel frame runs in bounded memory;
-the same compiled program runs on CPU or GPU.
+the same compiled program runs on CPU or GPU.  ``outputs`` asks for more than the
+BRDF (each term, the pixel geometry), ``devices`` splits the rows over several
+devices; :func:`evaluate_pixels` is the differentiable evaluation at arbitrary
+pixel indices (for losses and gradients).
 """
 
 from __future__ import annotations
@@ -21,13 +24,15 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ..runtime.export_cache import exportable
+from .conditions import Frame
 from .detector import Detector, PixelGrid
-from .fields import check_param, param
 from .geometry import Directions
 from .terms import AbstractTerm, Model
 
 __all__ = [
     "Frame",
+    "OUTPUTS",
+    "pixel_directions",
     "sample_directions",
     "evaluate_pixels",
     "render",
@@ -39,37 +44,25 @@ __all__ = [
 
 Precision = Literal["float32", "float64"]
 
-
-class Frame(eqx.Module):
-    """Measurement conditions of one frame: theta_i (rad), phi_ref (rad), wavelength (m)."""
-
-    theta_i: Array = param("rad", "incidence zenith angle")
-    phi_ref: Array = param("rad", "sample rotation about its normal (bar orientation)", default=0.0)
-    wavelength: Array = param("m", "wavelength", default=632.8e-9)
-
-    def __check_init__(self):
-        check_param(
-            "Frame", "theta_i", self.theta_i, lambda v: (v >= 0) & (v < np.pi / 2), "0 <= theta_i < 90 deg (radians)"
-        )
-        check_param("Frame", "phi_ref", self.phi_ref, lambda v: np.isfinite(v), "a finite angle in radians")
-        check_param("Frame", "wavelength", self.wavelength, lambda v: v > 0, "a positive wavelength in metres")
-
-    @classmethod
-    def from_degrees(cls, theta_i_deg: float, phi_ref_deg: float = 0.0, wavelength_nm: float = 632.8) -> "Frame":
-        return cls(np.deg2rad(theta_i_deg), np.deg2rad(phi_ref_deg), wavelength_nm * 1e-9)
+#: What :func:`render` can return besides the BRDF: each term, and the pixel geometry.
+OUTPUTS: tuple[str, ...] = ("brdf", "terms", "theta_s", "phi_s", "omega")
 
 
-def sample_directions(detector: Detector, frame: Frame, n_h: ArrayLike, n_v: ArrayLike) -> Directions:
+def pixel_directions(detector: Detector, frame: Frame, n_h: ArrayLike, n_v: ArrayLike) -> Directions:
     """Pixel directions in the sample frame (scatter frame rotated by ``-phi_ref`` about z)."""
     dirs = detector.directions(n_h, n_v, frame.theta_i)
     return dirs.rotated_z(-frame.phi_ref)
+
+
+#: The older name of :func:`pixel_directions` ("sample" is the posterior package).
+sample_directions = pixel_directions
 
 
 def evaluate_pixels(
     model: AbstractTerm, frame: Frame, detector: Detector, n_h: ArrayLike, n_v: ArrayLike
 ) -> Array:
     """BRDF (sr^-1) at pixel indices ``n_h, n_v`` (any broadcastable shapes); differentiable."""
-    return model(sample_directions(detector, frame, n_h, n_v), frame.wavelength)
+    return model(pixel_directions(detector, frame, n_h, n_v), frame.wavelength)
 
 
 def cast(tree: Any, dtype: Any) -> Any:
@@ -140,7 +133,7 @@ def _pixel_values(args, n_h_row, n_v):
     model, frame, detector, per_term = args
     # vmap over the columns of one row: one pixel at a time from the model's point of view.
     def one(h):
-        dirs = sample_directions(detector, frame, h, n_v)
+        dirs = pixel_directions(detector, frame, h, n_v)
         if per_term:
             return model.term_values(dirs, frame.wavelength)
         return model(dirs, frame.wavelength)
@@ -166,6 +159,8 @@ def render(
     precision: Precision = "float32",
     chunk_pixels: int = 1 << 20,
     per_term: bool = False,
+    outputs: str | tuple[str, ...] | None = None,
+    devices: Any = None,
 ) -> Array | dict[str, Array]:
     """Evaluate ``model`` on a frame: BRDF in sr^-1, shape ``(rows, cols)`` of the pixel grid.
 
@@ -173,7 +168,34 @@ def render(
     is the full seed array.  ``chunk_pixels`` bounds the pixels evaluated at
     once (memory grows linearly with it).  ``per_term=True`` returns a dict of
     each term of a :class:`~brdfjax.core.terms.Model` instead of the sum.
+
+    ``outputs``: ``None`` (the BRDF array), ``"all"`` or names from :data:`OUTPUTS`
+    (``"brdf"``, ``"terms"``: ``{name: image}``, ``"theta_s"``, ``"phi_s"`` (rad),
+    ``"omega"`` (sr)): a dict of those, from one compiled program (``model`` may be
+    ``None`` for the geometry alone).  ``devices``: ``"all"`` or a list of devices
+    splits the frame's rows over them (a one-axis mesh and ``jax.shard_map``; the
+    same values, sharded by rows; the BRDF output only).
     """
+    if outputs is not None:
+        names = OUTPUTS if outputs == "all" else ((outputs,) if isinstance(outputs, str) else tuple(outputs))
+        bad = [n for n in names if n not in OUTPUTS]
+        if bad or not names:
+            raise ValueError(f"render: unknown output(s) {bad or names!r}; known: {', '.join(OUTPUTS)} or 'all'")
+        if devices is not None or per_term:
+            raise ValueError("render: outputs= goes with neither devices= nor per_term= (ask for 'terms' instead)")
+        kw = dict(step=step, roi=roi, grid=grid, precision=precision, chunk_pixels=chunk_pixels)
+        if model is None or set(names) <= {"theta_s", "phi_s", "omega"}:
+            if model is None and not set(names) <= {"theta_s", "phi_s", "omega"}:
+                raise ValueError(f"render: outputs {names!r} need a model (model=None gives the geometry alone)")
+            values = render_geometry(frame, detector, **kw)
+        else:
+            values = render_frame(model, frame, detector, **kw)
+        return {n: values[n] for n in names}
+    if devices is not None:
+        if per_term:
+            raise ValueError("render: devices= renders the BRDF only (per_term=False)")
+        return render_sharded(model, frame, detector, step=step, roi=roi, grid=grid, precision=precision,
+                              chunk_pixels=chunk_pixels, devices=None if devices == "all" else devices)
     detector, grid, dtype = _prepare(detector, grid, step, roi, precision)
     if per_term and not hasattr(model, "term_values"):
         raise TypeError("render(per_term=True) needs a brdfjax Model (a named sum of terms)")
@@ -255,7 +277,7 @@ def _frame_values(args, n_h_row, n_v):
     model, frame, detector = args
 
     def one(h):
-        dirs = sample_directions(detector, frame, h, n_v)
+        dirs = pixel_directions(detector, frame, h, n_v)
         terms = model.term_values(dirs, frame.wavelength)
         values = list(terms.values())
         theta_s, phi_s = detector.angles(h, n_v, detector.arm_angle(frame.theta_i))

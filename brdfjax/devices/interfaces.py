@@ -18,7 +18,7 @@ interface           role on the seed's bench (seed Chapter III)
                     alignment, seed §3.4) and across it (centring)
 :class:`FilterChanger`  the ND filter stack in front of the camera (or a prompt)
 :class:`Shutter`    the beam block: closed = laser blocked (background frames)
-:class:`SampleMount` the sample in or out of the beam (out: beam signature)
+:class:`SpecimenMount` the sample in or out of the beam (out: beam signature)
 :class:`PowerMeter` optical power, W (source monitoring)
 =================== ================================================================
 
@@ -45,7 +45,7 @@ __all__ = [
     "TranslationStage",
     "FilterChanger",
     "Shutter",
-    "SampleMount",
+    "SpecimenMount",
     "PowerMeter",
     "Bench",
     "DeviceError",
@@ -161,12 +161,16 @@ class Shutter(Protocol):
 
 
 @runtime_checkable
-class SampleMount(Protocol):
+class SpecimenMount(Protocol):
     """Whether the sample is in the beam (out: the beam goes straight to the arm, beam signature)."""
 
     def set_in_beam(self, in_beam: bool) -> None: ...
 
     def in_beam(self) -> bool: ...
+
+
+#: The older name of :class:`SpecimenMount` ("sample" is also the posterior package).
+SampleMount = SpecimenMount
 
 
 @runtime_checkable
@@ -188,7 +192,7 @@ SLOTS: dict[str, type] = {
     "camera_vertical": TranslationStage,
     "filters": FilterChanger,
     "shutter": Shutter,
-    "sample_mount": SampleMount,
+    "sample_mount": SpecimenMount,
     "power_meter": PowerMeter,
 }
 
@@ -205,7 +209,7 @@ class Bench:
     camera_axial: TranslationStage
     filters: FilterChanger
     shutter: Shutter
-    sample_mount: SampleMount
+    sample_mount: SpecimenMount
     pixel_pitch: tuple[float, float]
     distance: float
     wavelength: float = 632.8e-9

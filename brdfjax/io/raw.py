@@ -205,7 +205,7 @@ __all__ = [
     "Manifest",
     "Calibration",
     "BeamEntry",
-    "SampleEntry",
+    "SpecimenEntry",
     "read_manifest",
     "write_manifest",
 ]
@@ -667,12 +667,16 @@ class BeamEntry:
 
 
 @dataclass(frozen=True)
-class SampleEntry:
+class SpecimenEntry:
     """One sample measurement: ``name`` (output stem), its file and its background (absolute paths)."""
 
     name: str
     file: Path
     background: Path
+
+
+#: The older name of :class:`SpecimenEntry` ("sample" is also the posterior package).
+SampleEntry = SpecimenEntry
 
 
 @dataclass(frozen=True)
@@ -691,7 +695,7 @@ class Manifest:
 
     path: Path
     beam: BeamEntry
-    samples: tuple[SampleEntry, ...]
+    samples: tuple[SpecimenEntry, ...]
     calibration: Calibration = Calibration()
     extra: Mapping[str, Any] = field(default_factory=dict)
 
@@ -757,7 +761,7 @@ def read_manifest(path: str | os.PathLike, *, check_files: bool = True) -> Manif
             raise ManifestError(f"{path}: {key}.name: duplicate sample name {name!r}; names must be unique")
         seen.add(name)
         entries.append(
-            SampleEntry(
+            SpecimenEntry(
                 name,
                 _entry_path(path, key, s, "file", check_files),
                 _entry_path(path, key, s, "background", check_files),
