@@ -204,7 +204,8 @@ def test_dropped_rows_are_printed_and_recorded_for_result_json(tmp_path):
 
 
 def test_rows_below_min_brdf_are_recorded_under_screening(tmp_path):
-    from brdfjax.fit.config import _describe_block, build_fit_job, load_fit_config
+    from brdfjax.fit.config import load_fit_config
+    from brdfjax.fit.job import _describe_block, build_fit_job
 
     ts = np.arange(0.0, 89.0, 2.0)
     rows = [[30.0, t, _lobe(30.0, t)] for t in ts] + [[50.0, t, _lobe(50.0, t)] for t in ts]
