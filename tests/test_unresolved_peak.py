@@ -116,3 +116,17 @@ def test_multi_lobe_spike_on_a_1deg_table_is_not_determined():
     assert math.isnan(res.sigma("ml.spike.m")) and "ml.spike.m is NOT determined" in res.summary()
     # the resolved halo keeps its covariance, and its width is found
     assert math.isfinite(res.sigma("ml.halo.m")) and res.value("ml.halo.m") == pytest.approx(0.03, rel=0.05)
+
+
+def test_aliased_lobe_of_a_preset_is_checked(table):
+    """A preset's lobe under its public name (the mirror preset's ``m`` for ``specular.m``) is checked too."""
+    from brdfjax.core.presets import mirror
+    from brdfjax.fit.internal import lobe_parameters
+
+    model = bj.Model({**mirror(m=0.02, rho_s=RHO_TRUE, n=1.5).terms, "d": bj.Lambertian(0.05)}, mirror().aliases)
+    assert lobe_parameters(model) == [("specular", "m", "rho_s")]
+    res = fit(model, table, {"m": Param(0.02, lower=1e-5, upper=1.0), "rho_s": "free", "d.rho_d": "free"})
+    assert res.converged, res.message
+    assert set(res.undetermined) == {"m", "rho_s"} and res.undetermined["m"]["open_below"]
+    lo, hi = res.undetermined["m"]["range"]
+    assert lo <= M_TRUE <= hi and math.isnan(res.sigma("m"))

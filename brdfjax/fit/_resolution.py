@@ -37,23 +37,29 @@ def _width_field(dist: Any) -> str | None:
 
 
 def lobe_parameters(model: Any) -> list[tuple[str, str, str]]:
-    """``(term, width parameter, weight parameter)`` of every microfacet lobe of a model (full names).
+    """``(term, width parameter, weight parameter)`` of every microfacet lobe of a model.
 
-    A :class:`~brdfjax.core.terms.MultiLobeSpecular` term gives one entry per
+    Parameter names are the model's public ones, as a fit reports them: an
+    alias where the model declares one (a preset's ``m`` for
+    ``specular.m``), else the full name.  A
+    :class:`~brdfjax.core.terms.MultiLobeSpecular` term gives one entry per
     lobe (``<term>.<lobe>.<width>``, ``<term>.<lobe>.rho_s``): a narrow spike
     beside a wide halo is checked on its own (:func:`lobe_term`).
     """
+    public = {flat: alias for alias, flat in getattr(model, "aliases", ())}
     out = []
     for name, term in getattr(model, "terms", {}).items():
         if isinstance(term, MultiLobeSpecular):
             for key, lobe in term.lobes.items():
                 field = _width_field(lobe.distribution)
                 if field is not None:
-                    out.append((name, f"{name}.{key}.{field}", f"{name}.{key}.rho_s"))
+                    w, a = f"{name}.{key}.{field}", f"{name}.{key}.rho_s"
+                    out.append((name, public.get(w, w), public.get(a, a)))
             continue
         field = _width_field(getattr(term, "distribution", None))
         if field is not None and hasattr(term, "rho_s"):
-            out.append((name, f"{name}.{field}", f"{name}.rho_s"))
+            w, a = f"{name}.{field}", f"{name}.rho_s"
+            out.append((name, public.get(w, w), public.get(a, a)))
     return out
 
 
@@ -63,7 +69,8 @@ def lobe_term(model: Any, term_name: str, width_name: str) -> Any:
     lobes would hide a narrow spike's width under a halo's)."""
     term = model.terms[term_name]
     if isinstance(term, MultiLobeSpecular):
-        key = width_name[len(term_name) + 1 :].split(".")[0]
+        flat = dict(getattr(model, "aliases", ())).get(width_name, width_name)
+        key = flat[len(term_name) + 1 :].split(".")[0]
         return dataclasses.replace(term, lobes={key: term.lobes[key]})
     return term
 
