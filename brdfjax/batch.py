@@ -93,8 +93,8 @@ class BatchSection(StrictModel):
 
 
 class Study(StrictModel):
-    batch: BatchSection = Field(default_factory=BatchSection)
-    jobs: list[Job]
+    batch: BatchSection = Field(default_factory=BatchSection, description="the [batch] table: where and how many jobs run")
+    jobs: list[Job] = Field(description="one [[jobs]] table per job")
 
 
 def load_study(path: str | os.PathLike) -> tuple[Study, Path]:

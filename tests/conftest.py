@@ -1,6 +1,10 @@
-"""Test configuration: 64-bit JAX for oracles and finite differences.
+"""Test configuration: 64-bit JAX for oracles and finite differences; the one slow switch.
 
 Float32 behaviour is tested explicitly through ``precision="float32"``.
+
+Long checks (full-resolution runs, statistical studies, long compilations) carry the registered ``slow``
+marker (``@pytest.mark.slow``) and run only with ``pytest --slow``; ``BRDFJAX_SLOW=1`` in the environment is
+the same switch.  A test that needs to know at run time takes the ``run_slow`` fixture.
 """
 
 import os
@@ -15,6 +19,31 @@ os.environ.setdefault("BRDFJAX_NO_CACHE", "1")
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+
+
+def pytest_addoption(parser):
+    parser.addoption("--slow", action="store_true", default=False,
+                     help="also run the tests marked slow (full-resolution and long runs); BRDFJAX_SLOW=1 is the same")
+
+
+def slow_enabled(config) -> bool:
+    """``--slow`` given, or ``BRDFJAX_SLOW`` set to anything but empty or ``0``."""
+    return bool(config.getoption("--slow")) or os.environ.get("BRDFJAX_SLOW", "") not in ("", "0")
+
+
+def pytest_collection_modifyitems(config, items):
+    if slow_enabled(config):
+        return
+    skip = pytest.mark.skip(reason="slow: run with --slow (or BRDFJAX_SLOW=1)")
+    for item in items:
+        if item.get_closest_marker("slow") is not None:
+            item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def run_slow(request) -> bool:
+    """Whether the slow tests run (``--slow`` or ``BRDFJAX_SLOW=1``)."""
+    return slow_enabled(request.config)
 
 
 @pytest.fixture

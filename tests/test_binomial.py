@@ -2,13 +2,12 @@
 reciprocity, gradients, parameter names, the registry/config round trip and a fit."""
 
 import math
-import textwrap
-import tomllib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import model_config
 
 import brdfjax as bj
 from brdfjax.config import ConfigError
@@ -76,12 +75,8 @@ def test_gradients_finite_at_the_mirror_direction_and_equal_to_finite_difference
         assert g[i] == pytest.approx(fd, rel=1e-5, abs=1e-8)
 
 
-def _config(text: str) -> ModelConfig:
-    return ModelConfig.model_validate(tomllib.loads(textwrap.dedent(text))["model"])
-
-
 def test_config_round_trip_and_the_diagnosis_config_writer():
-    cfg = _config("""
+    cfg = model_config("""
         [model.terms.bn]
         kind = "binomial"
         l1 = -1
@@ -111,7 +106,7 @@ def test_config_round_trip_and_the_diagnosis_config_writer():
 ], ids=["missing-coefficient", "missing-d", "bad-d", "unknown-key", "l1-on-abg"])
 def test_config_errors_name_the_key(body, where, message):
     with pytest.raises((ConfigError, ValueError)) as e:
-        build_model("job.toml", _config("[model.terms.x]\n" + body))
+        build_model("job.toml", model_config("[model.terms.x]\n" + body))
     msg = str(e.value)
     assert where.removeprefix("model.") in msg and message in msg, msg
 

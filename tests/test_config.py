@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pydantic
 import pytest
+from helpers import write_config
 
 import brdfjax as bj
 from brdfjax.config import ConfigError, default_config_path, load_simulate_config
@@ -35,9 +36,7 @@ name = "green"
 
 
 def write(tmp_path: Path, text: str, name: str = "job.toml") -> Path:
-    p = tmp_path / name
-    p.write_text(textwrap.dedent(text))
-    return p
+    return write_config(tmp_path, text, name)
 
 
 def error_of(tmp_path: Path, text: str) -> str:

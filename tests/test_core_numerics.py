@@ -61,7 +61,10 @@ def test_figure_33_diffraction_maxima_along_centre_column(theta_i, grating_facto
 def test_float32_matches_float64_where_it_matters(theta_i, phi_ref):
     model = bj.solar_cell()
     frame = bj.Frame.from_degrees(theta_i, phi_ref)
-    f32 = np.asarray(bj.render(model, frame, DET, step=4, precision="float32"), dtype=np.float64)
+    with jax.numpy_dtype_promotion("strict"):  # no silent float64 inside the float32 program
+        f32 = bj.render(model, frame, DET, step=4, precision="float32")
+    assert f32.dtype == jnp.float32
+    f32 = np.asarray(f32, dtype=np.float64)
     f64 = np.asarray(bj.render(model, frame, DET, step=4, precision="float64"))
     assert f32.dtype == np.float64 and f64.max() > 1e4
     keep = f64 > 1e-3 * f64.max()

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_config
 
 import brdfjax as bj
 from brdfjax.devices import Bench, SimulatedBench, check_bench, interfaces as itf
@@ -66,9 +67,7 @@ retries = 2
 
 
 def _config(tmp_path: Path, name: str = "cap.toml", *, beam_nd: str = "auto", instrument_extra: str = "") -> Path:
-    p = tmp_path / name
-    p.write_text(SMALL.format(beam_nd=beam_nd, instrument_extra=instrument_extra))
-    return p
+    return write_config(tmp_path, SMALL, name, beam_nd=beam_nd, instrument_extra=instrument_extra)
 
 
 def _sim(shape=(48, 64), **det_kw) -> SimulatedBench:

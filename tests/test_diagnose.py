@@ -10,18 +10,17 @@ own compilation); the full library and the benchmark live in
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_config
 
 import brdfjax as bj
 from brdfjax.diagnose import DiagnoseInputError, diagnose
 from brdfjax.diagnose.zones import find_regions, label, smoothed_z, specular_coordinates
 from brdfjax.fit import FrameData, render_noisy_frames
 
-SLOW = os.environ.get("BRDFJAX_SLOW") == "1"
 ROI = (-320, 320, -320, 320)
 
 
@@ -191,9 +190,7 @@ preset = "solar_cell"
 
 
 def _write_config(tmp_path: Path, effects: str = '["diffraction"]') -> Path:
-    p = tmp_path / "diag.toml"
-    p.write_text(CONFIG.replace("EFFECTS", effects))
-    return p
+    return write_config(tmp_path, CONFIG.replace("EFFECTS", effects), "diag.toml")
 
 
 def test_cli_withheld_diffraction_from_disk(tmp_path, capsys):
@@ -211,7 +208,7 @@ def test_cli_withheld_diffraction_from_disk(tmp_path, capsys):
     assert {"effect", "delta_chi2", "delta_bic", "signature", "chi2_reduced_after"} <= set(doc["ranking"][0])
     assert {"effect", "chi2_reduced", "rms_log10", "heldout_rms_log10"} <= set(doc["path"][0])
     # through the full synthetic CCD the frames also hold ambient light, stray light and the footprint: a
-    # diffuse floor competes with the bars there (see the README), so this test names one candidate
+    # diffuse floor competes with the bars there (see docs/guides/gap-diagnosis.md), so this test names one candidate
     assert doc["ranking"][0]["effect"] == "diffraction" and doc["significant"] is True
     assert [s["effect"] for s in doc["path"]] == ["base", "diffraction"]
     assert doc["path"][1]["chi2_reduced"] < 0.8 * doc["path"][0]["chi2_reduced"]

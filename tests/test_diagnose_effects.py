@@ -6,12 +6,10 @@ around the peak, 3 % log-normal noise), the base model fitted without it, the
 effect's refit-independent signature (score > 3), and the refit with the
 extension (at least 80 % of the excess chi^2 over its degrees of freedom explained, reduced chi^2 < 1.5); on null data
 (nothing withheld) every signature stays below 3.  The round trips beyond
-the three that matter most for the shipped case run with BRDFJAX_SLOW=1.
+the three that matter most for the shipped case run with --slow.
 """
 
 from __future__ import annotations
-
-import os
 
 import numpy as np
 import pytest
@@ -25,10 +23,8 @@ from brdfjax.diagnose.effects.terms import (
 )
 from brdfjax.fit import Param, fit
 
-SLOW = os.environ.get("BRDFJAX_SLOW") == "1"
-
 #: Effects whose round trip runs by default (the shipped case's two withheld terms and a diffuse floor);
-#: every other effect's round trip (signature and refit) runs with BRDFJAX_SLOW=1 (about 80 s each on a
+#: every other effect's round trip (signature and refit) runs with --slow (about 80 s each on a
 #: loaded 2-core box: two fits, each compiled for its own model structure).
 QUICK = ("diffraction", "offset_normal_peak", "lambertian")
 FRAME_EFFECTS = [n for n in E.EFFECT_LIBRARY if n != "angular_sampling"]
@@ -128,7 +124,7 @@ NO_ROUND_TRIP = ("second_lobe", "shadowing")
 
 @pytest.mark.parametrize(
     "name",
-    [n if n in QUICK else pytest.param(n, marks=pytest.mark.skipif(not SLOW, reason="BRDFJAX_SLOW=1"))
+    [n if n in QUICK else pytest.param(n, marks=pytest.mark.slow)
      for n in E.EFFECT_LIBRARY if n not in NO_ROUND_TRIP],
 )
 def test_round_trip(name):
@@ -200,7 +196,7 @@ def test_synthetic_instrument_source_and_nominal_detector():
         SyntheticInstrument(true, nominal_detector=bj.Detector.seed(shape=(8, 8)))
 
 
-@pytest.mark.skipif(not SLOW, reason="BRDFJAX_SLOW=1 (the full synthetic CCD and reduction, ~20 s)")
+@pytest.mark.slow  # the full synthetic CCD and reduction, ~20 s
 def test_synthesize_through_the_instrument(tmp_path):
     import brdfjax as bj
     from brdfjax.instrument import InstrumentConfig

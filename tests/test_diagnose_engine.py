@@ -1,10 +1,10 @@
 """The diagnosis engine's selection (issue 18) and its reports (issue 14): failed refits are never ranked,
 inadmissible effects are flagged and kept off the path, backward elimination takes a redundant effect out,
 the final model is written as a config that ``brdfjax fit`` reruns to the same chi^2, and frames written by
-another program (the README's writer) are read with the one ``sigma`` default.
+another program (the file-format page's writer) are read with the one ``sigma`` default.
 
 Budget: measured 300 s at load average 9-12 on the shared 2-core box (not measured idle; goniometer tables of
-100 rows: every refit is small, the time is compilation); the reference trial is behind BRDFJAX_SLOW=1.
+100 rows: every refit is small, the time is compilation); the reference trial is behind --slow.
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ from brdfjax.diagnose.effects import EFFECT_LIBRARY, Extension
 from brdfjax.fit import Param, TableData
 
 README = Path(__file__).resolve().parents[1] / "README.md"
+#: the file-format reference page, whose example writes a frame from another program
+FORMATS = README.parent / "docs" / "reference" / "formats.md"
 
 
 def _withheld_module():
@@ -286,11 +288,11 @@ def test_readme_external_frame_writer(tmp_path, monkeypatch):
     from brdfjax.fit import FitInputError, read_frame_data
     from brdfjax.io import read_frame_exr
 
-    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+    blocks = re.findall(r"```python\n(.*?)```", FORMATS.read_text(), re.S)
     (block,) = [b for b in blocks if "external_frame.exr" in b]
     monkeypatch.chdir(tmp_path)
     ns: dict = {}
-    exec(compile(block, str(README), "exec"), ns)
+    exec(compile(block, str(FORMATS), "exec"), ns)
     f = read_frame_exr(tmp_path / "external_frame.exr")  # the checksum is verified on read
     assert f.attrs["checksum"].startswith("crc32:") and f.brdf.shape == (16, 21)
     data = read_frame_data(tmp_path / "external_frame.exr")  # sigma "auto": sigma_rel, the only weights there
@@ -317,7 +319,7 @@ def test_reference_frames_read_back_with_the_truths_noise(tmp_path):
     assert float(np.degrees(b.phi_ref)) == pytest.approx(30.0) and float(np.degrees(b.theta_i)) == pytest.approx(25.0)
 
 
-@pytest.mark.skipif(not __import__("os").environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1 (a few minutes)")
+@pytest.mark.slow  # a few minutes
 def test_reference_withheld_diffraction_quick(tmp_path):
     """One small reference trial: diffraction withheld from the two-peak base, no floor in the truth."""
     import types

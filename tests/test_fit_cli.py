@@ -4,7 +4,6 @@ the shipped configs (synthetic solar cell: slow-gated; a cheaper variant of it r
 from __future__ import annotations
 
 import json
-import os
 import textwrap
 from pathlib import Path
 
@@ -22,7 +21,7 @@ DATA = Path(__file__).parent / "data"
 CONFIGS = ROOT / "configs"
 REAL = ROOT / "tests" / "data" / "real"
 TRUTH = dict(bj.SOLAR_CELL_SEED)
-slow = [pytest.mark.slow, pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1")]
+slow = pytest.mark.slow
 CONTRACT = ("parameters", "chi2", "chi2_reduced", "dof", "converged", "message", "n_iterations", "wall_s")
 
 
@@ -202,7 +201,7 @@ def test_shipped_synthetic_config_recovers_the_seed_parameters(tmp_path, n):
 
 #: The shipped real-data configs (the best physically based model per material of
 #: experiments/real_data_fits.py, started from its fitted values) through the CLI; the Cornell Krylon fit
-#: runs by default, MERL and Cayman with BRDFJAX_SLOW=1.  Bounds: today's log-RMS of the single
+#: runs by default, MERL and Cayman with --slow.  Bounds: today's log-RMS of the single
 #: microfacet lobe + Lambertian (1.17, 0.48, 1.32) overall, and per incident angle.
 REAL_CASES = [
     pytest.param("fit_merl_aluminium.toml", 1.17, 2.0, marks=slow, id="merl_aluminium"),

@@ -87,6 +87,7 @@ def test_frame_data_errors_name_the_file(reduced_example, tmp_path):
 
 import textwrap  # noqa: E402
 
+from helpers import write_config  # noqa: E402
 from pydantic import BaseModel, ConfigDict  # noqa: E402
 
 from brdfjax.config import ConfigError  # noqa: E402
@@ -107,9 +108,7 @@ preset = "solar_cell"
 
 
 def _config(tmp_path, body, frame, name="fit.toml"):
-    p = tmp_path / name
-    p.write_text(HEAD.format(frame=Path(frame).as_posix()) + textwrap.dedent(body))
-    return p
+    return write_config(tmp_path, HEAD.format(frame=Path(frame).as_posix()) + textwrap.dedent(body), name)
 
 
 def _error(path, **kw) -> str:

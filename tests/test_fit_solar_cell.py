@@ -8,7 +8,6 @@ pixels, so one compiled solver serves the whole module.
 """
 
 import json
-import os
 
 import numpy as np
 import pytest
@@ -24,8 +23,8 @@ ANGLES = ("dtheta", "dphi0")
 INDEX = dict(lower=1.0, upper=6.0)
 B_BOUNDS = dict(lower=1e-6, upper=4e-5)
 MODEL = bj.solar_cell()
-#: Long statistical runs (issue 4's full 20-start and 30-dataset studies): run with BRDFJAX_SLOW=1.
-slow = [pytest.mark.slow, pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1")]
+#: Long statistical runs (issue 4's full 20-start and 30-dataset studies): run with --slow.
+slow = pytest.mark.slow
 
 
 def _spec(values=None, phi_ref=None):
@@ -154,7 +153,6 @@ def test_robust_loss_resists_stray_light(reference, frames):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1")
 def test_uncertainties_are_honest_across_noise_seeds():
     """30 noise realisations: the truth lies within 1 sigma for 55-80 % of (dataset, parameter) pairs."""
     inside = total = 0

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import sys
 import types
 from pathlib import Path
@@ -151,7 +150,7 @@ def test_albedo_of_lambertian():
     assert directional_albedo(lam, 0.5, n_theta=400, n_phi=256) == pytest.approx(0.3, rel=3e-4)
 
 
-@pytest.mark.skipif(os.environ.get("BRDFJAX_SLOW") != "1", reason="the full 5-million-point grid: BRDFJAX_SLOW=1")
+@pytest.mark.slow  # the full 5-million-point grid
 def test_albedo_of_seed_cell():
     # seed cell at normal incidence: centre rho_s1 (F_s+F_p)/2 + offset + bars (0.0278 at 550 nm)
     a = directional_albedo(bj.solar_cell(), 0.0, 550e-9)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 
 import numpy as np
 import pytest
@@ -161,7 +160,6 @@ def test_nuts_killed_mid_write_resumes_bit_identically(tmp_path):
 
 # Two NUTS programs (warm-up and steps) compile for about a minute on the loaded 2-core box: slow-gated.
 @pytest.mark.slow
-@pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="set BRDFJAX_SLOW=1 (NUTS compiles for ~1 min)")
 def test_nuts_resumes_bit_identically_with_diagnostics(frames, tmp_path):
     opts = NuisanceOptions(nonlinearity=False, flux=False)
     start = fit(MODEL, frames, SPEC, nuisance=opts)

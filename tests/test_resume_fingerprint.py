@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import json
 import shutil
-import textwrap
 import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_config
 
 from brdfjax.cli import main
 from brdfjax.io.fingerprint import FingerprintMismatch, array_digest, check_resume, compare, file_digest
@@ -86,9 +86,7 @@ def frame_file(tmp_path_factory):
 def _cfg(folder: Path, frame: Path, *, prior=UNIFORM, floor=0.0068, step=1) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "start.json").write_text(json.dumps(START))
-    p = folder / "tiny.toml"
-    p.write_text(textwrap.dedent(TINY.format(frame=frame.as_posix(), prior=prior, floor=floor, step=step)))
-    return p
+    return write_config(folder, TINY, "tiny.toml", frame=frame.as_posix(), prior=prior, floor=floor, step=step)
 
 
 def _chain(out: Path) -> np.ndarray:

@@ -243,7 +243,7 @@ import textwrap  # noqa: E402
 from brdfjax.cli import main  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
-slow = [pytest.mark.slow, pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="slow: set BRDFJAX_SLOW=1")]
+slow = pytest.mark.slow
 
 TINY = """
 precision = "float64"

@@ -7,7 +7,6 @@ gradients against finite differences, and the options' error messages.
 """
 
 import functools
-import os
 
 import jax
 import jax.numpy as jnp
@@ -81,7 +80,7 @@ def test_tabulated_lambda_matches_the_projected_area_integral(d, oracle):
     np.testing.assert_allclose(got, want, rtol=2e-3, atol=2e-6)
 
 
-@pytest.mark.skipif(not os.environ.get("BRDFJAX_SLOW"), reason="the 2-D (Ashikhmin-Shirley) table compiles in ~20 s; BRDFJAX_SLOW=1")
+@pytest.mark.slow  # the 2-D (Ashikhmin-Shirley) table compiles in ~20 s
 def test_tabulated_lambda_anisotropic_non_stretch():
     d = dist.AshikhminShirley(10.0, 40.0)
     for phi in (np.pi, np.pi + 0.6, 1.5 * np.pi):  # azimuths from -x, as the oracle's D takes them

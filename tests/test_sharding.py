@@ -25,8 +25,9 @@ SCRIPT = textwrap.dedent('''
     assert len(jax.devices()) == 2, jax.devices()
     model, frame = bj.solar_cell(), bj.Frame.from_degrees(20.0)
     for precision in ("float32", "float64"):
-        one = np.asarray(bj.render(model, frame, step=32, precision=precision))
-        two = bj.render(model, frame, step=32, precision=precision, devices="all")
+        with jax.numpy_dtype_promotion("strict" if precision == "float32" else "standard"):
+            one = np.asarray(bj.render(model, frame, step=32, precision=precision))
+            two = bj.render(model, frame, step=32, precision=precision, devices="all")
         assert len(two.sharding.device_set) == 2, two.sharding
         two = np.asarray(two)
         assert two.shape == one.shape, (two.shape, one.shape)

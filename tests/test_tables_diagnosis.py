@@ -3,12 +3,11 @@ effect is a physical one (second lobe, shadowing, distribution shape or angular 
 response, and the report says that sigma was estimated.
 
 Each dataset's diagnosis refits the base with every candidate (minutes on a loaded 2-core box): the tables are
-decimated (every ``STEP``-th row) and the runs gated by BRDFJAX_SLOW=1; the README's numbers are from these runs.
+decimated (every ``STEP``-th row) and the runs gated by --slow; the fitting-tables guide's numbers are from these runs.
 """
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -18,7 +17,6 @@ from brdfjax.diagnose import diagnose
 from brdfjax.fit import read_cornell_brdf, read_merl_inplane
 
 REAL = Path(__file__).resolve().parent / "data" / "real"
-SLOW = os.environ.get("BRDFJAX_SLOW") == "1"
 PHYSICAL = {"second_lobe", "shadowing", "distribution_shape", "angular_sampling"}
 EFFECTS = ["second_lobe", "shadowing", "distribution_shape", "angular_sampling", "pixel_nonlinearity", "flux_scale"]
 STEP = 2
@@ -30,7 +28,7 @@ CASES = [
 ]
 
 
-@pytest.mark.skipif(not SLOW, reason="slow (a diagnosis of a real table): BRDFJAX_SLOW=1")
+@pytest.mark.slow  # a diagnosis of a real table
 @pytest.mark.parametrize("file, index", CASES, ids=[c[0].split(".")[0] for c in CASES])
 def test_real_table_diagnosis_names_a_physical_effect_first(file, index):
     table = read_merl_inplane(REAL / file) if file.startswith("merl") else read_cornell_brdf(REAL / file)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import write_config
 
 import brdfjax as bj
 from brdfjax.cli import main
@@ -36,8 +37,7 @@ def _lumos(path: Path, sign: float = 1.0) -> Path:
 
 
 def _config(tmp_path: Path, table: str) -> Path:
-    cfg = tmp_path / "fit.toml"
-    cfg.write_text(textwrap.dedent(f"""
+    return write_config(tmp_path, """
         [[data.tables]]
         {table}
         [model.terms.d]
@@ -45,8 +45,7 @@ def _config(tmp_path: Path, table: str) -> Path:
         params = {{ rho_d = 0.3 }}
         [params]
         "d.rho_d" = "free"
-    """))
-    return cfg
+    """, table=table)
 
 
 def _fails(tmp_path: Path, cfg: Path, capsys) -> str:

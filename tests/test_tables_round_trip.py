@@ -3,12 +3,10 @@
 the withheld one first and its final chi^2 is within 5 % of the truth's own chi^2 on the same data.
 
 Each diagnosis refits the base with every candidate (2-4 min on the loaded 2-core box, where the JIT compiles
-dominate: 119-125 points): gated by BRDFJAX_SLOW=1; README "Diagnosis of tables" gives the measured numbers.
+dominate: 119-125 points): gated by --slow; docs/guides/fitting-tables.md ("Diagnosis of tables") gives the measured numbers.
 """
 
 from __future__ import annotations
-
-import os
 
 import numpy as np
 import pytest
@@ -16,7 +14,6 @@ import pytest
 import brdfjax as bj
 from brdfjax.diagnose import diagnose, effects as E
 
-SLOW = os.environ.get("BRDFJAX_SLOW") == "1"
 TABLE_EFFECTS = ["second_lobe", "shadowing", "distribution_shape"]
 #: shadowing shows only on a rough lobe towards grazing incidence (at m ~ 0.08, theta_i <= 75 deg its
 #: delta BIC was 9.9, under the threshold of 10)
@@ -45,7 +42,7 @@ def test_wide_table_scenario_reaches_grazing_and_the_wings():
     assert sc.truth_model.terms["center"].shadowing == "smith" and sc.base_model.terms["center"].shadowing == "none"
 
 
-@pytest.mark.skipif(not SLOW, reason="slow (three diagnoses of a table, 2-4 min each here): BRDFJAX_SLOW=1")
+@pytest.mark.slow  # three diagnoses of a table, 2-4 min each here
 @pytest.mark.parametrize("name", TABLE_EFFECTS)
 def test_table_effect_round_trip(name):
     rng = np.random.default_rng(3)

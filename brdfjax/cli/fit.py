@@ -1,6 +1,6 @@
 """``brdfjax fit CONFIG --out DIR``: fit a model to data from a TOML config (see :mod:`brdfjax.fit.config`).
 
-Writes ``DIR/result.json`` (the output contract of issue 4: ``parameters``
+Writes ``DIR/result.json`` (the output contract: ``parameters``
 name -> ``{value, sigma, unit, free}`` in natural units, ``chi2``,
 ``chi2_reduced``, ``dof``, ``converged``, ``message``, ``n_iterations``,
 ``wall_s``, ...) and the figures.  Exit codes: 0 when the fit ran (also when

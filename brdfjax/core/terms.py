@@ -4,7 +4,7 @@ A term is a small ``equinox`` module whose fields are its parameters and whose
 call ``term(dirs, wavelength) -> sr^-1`` evaluates it on
 :class:`~brdfjax.core.geometry.Directions` expressed in the **sample frame** (the
 frame is rotated by ``-phi_ref`` about the normal before any term sees it, see
-:func:`brdfjax.core.render.sample_directions`).  A :class:`Model` is a named sum of
+:func:`brdfjax.core.render.pixel_directions`).  A :class:`Model` is a named sum of
 terms; wrappers (:class:`OffsetNormal`) wrap any term.
 
 Parameters are addressed by flat names ``"<term>.<parameter>"`` (the
@@ -57,6 +57,8 @@ class AbstractTerm(eqx.Module):
     """One additive BRDF contribution, in sr^-1."""
 
     kind: ClassVar[str]
+    #: the equation it implements: the seed dissertation's number ("Eq 70"), or the source it follows
+    equation: ClassVar[str] = ""
 
     @abc.abstractmethod
     def __call__(self, dirs: Directions, wavelength: ArrayLike) -> Array:
@@ -141,6 +143,7 @@ class Specular(AbstractTerm):
     """
 
     kind: ClassVar[str] = "specular"
+    equation: ClassVar[str] = "Eq 69-70 (seed form); Walter et al. 2007 (torrance_sparrow)"
     distribution: AbstractDistribution
     rho_s: Array = param("1", "specular weight")
     n: Array = param("1", "real part of the refractive index")
@@ -189,6 +192,7 @@ class MultiLobeSpecular(AbstractTerm):
     """
 
     kind: ClassVar[str] = "multi_lobe"
+    equation: ClassVar[str] = "Eq 54, 69-70, lobes summed; Heitz 2014 Eq 72 (smith_mixture)"
     lobes: dict[str, Lobe]
     n: Array = param("1", "real part of the refractive index (shared by every lobe)")
     k: Array = param("1", "imaginary part of the refractive index", default=0.0)
@@ -245,6 +249,7 @@ class ABg(AbstractTerm):
     """
 
     kind: ClassVar[str] = "abg"
+    equation: ClassVar[str] = "Harvey 1976"
     A: Array = param("sr^-1", "scale (sr^-1)")
     B: Array = param("1", "roll-off shoulder, in units of |beta - beta0|^g")
     g: Array = param("1", "fall-off exponent")
@@ -273,6 +278,7 @@ class Phong(AbstractTerm):
     """
 
     kind: ClassVar[str] = "phong"
+    equation: ClassVar[str] = "Lafortune 1994"
     rho: Array = param("1", "lobe weight (albedo at normal incidence)")
     k: Array = param("1", "exponent, k >= 0")
 
@@ -344,6 +350,7 @@ class Binomial(AbstractTerm):
     """
 
     kind: ClassVar[str] = "binomial"
+    equation: ClassVar[str] = "Greynolds 2015"
     coefficients: dict[str, Array] = eqx.field(metadata={"unit_dict": "log10", "doc": "b<k>_<i>, c<k>_<i>: signed coefficients of log10 f"})
     d: Array = param("1", "specularity constant (> 0)")
     l1: int = eqx.field(static=True, default=0)
@@ -397,6 +404,7 @@ class Lambertian(AbstractTerm):
     """Perfectly diffuse term ``rho_d / pi`` (Eq 50, 70)."""
 
     kind: ClassVar[str] = "lambertian"
+    equation: ClassVar[str] = "Eq 50, 70"
     rho_d: Array = param("1", "diffuse reflectance")
 
     def __check_init__(self):
@@ -416,6 +424,7 @@ class OffsetNormal(AbstractTerm):
     """
 
     kind: ClassVar[str] = "offset_normal"
+    equation: ClassVar[str] = "Eq 112-113"
     term: AbstractTerm
     dtheta: Array = param("rad", "zenith tilt of the second normal")
     dphi0: Array = param("rad", "azimuth of the tilt, from +x toward +y")
@@ -437,6 +446,7 @@ class Oriented(AbstractTerm):
     """
 
     kind: ClassVar[str] = "oriented"
+    equation: ClassVar[str] = "rotation of any term about the normal by psi"
     term: AbstractTerm
     psi: Array = param("rad", "orientation of the wrapped term's x axis, from +x toward +y")
 
@@ -464,6 +474,7 @@ class Diffraction(AbstractTerm):
     """
 
     kind: ClassVar[str] = "diffraction"
+    equation: ClassVar[str] = "Eq 114-115"
     rho: Array = param("sr^-1", "peak magnitude (rho_s3)")
     a: Array = param("m", "bar spacing")
     b: Array = param("m", "bar width")
@@ -554,6 +565,7 @@ class Model(AbstractTerm):
     """
 
     kind: ClassVar[str] = "model"
+    equation: ClassVar[str] = "sum of terms"
     terms: dict[str, AbstractTerm]
     aliases: tuple[tuple[str, str], ...] = eqx.field(static=True, default=())
 

@@ -88,7 +88,7 @@ from ..core.detector import Detector
 from ..core.render import Frame
 from ..instrument.nd import stack_od
 from ..instrument.synthetic import EFFECTS, load_instrument_config
-from ..io import atomic_output, check_output_dir, geometry_attrs
+from ..io import check_output_dir, geometry_attrs, toml
 from ..io.fingerprint import check_resume, value_digest
 from ..io.raw import Exposure, RawAttrs, read_raw_exr, write_raw_exr
 from ..runtime.errors import InputError
@@ -128,36 +128,36 @@ class CaptureError(InputError, RuntimeError):
 class LabStage(StrictModel):
     serial: str = Field(description="the Kinesis controller's serial number")
     scale: str | float = Field("stage", description="pylablib scale: a stage name (e.g. 'PRM1-Z8'), 'stage' or steps per unit")
-    channel: int = Field(1, ge=1)
+    channel: int = Field(1, ge=1, description="the controller's channel (>= 1)")
 
 
 class LabConfig(StrictModel):
-    camera_serial: str | None = None
-    sample_theta: LabStage
-    arm: LabStage
+    camera_serial: str | None = Field(None, description="the camera's serial number (default: the first camera found)")
+    sample_theta: LabStage = Field(description="the stage that sets the sample's incidence angle theta_i")
+    arm: LabStage = Field(description="the stage that sets the detector arm angle theta_c")
     sample_phi: LabStage | None = Field(None, description="None: phi_ref set by hand when prompted")
     camera_axial: LabStage | None = Field(None, description="None: the axial micrometer moved by hand when prompted")
-    filters: Literal["manual"] = "manual"
-    shutter: Literal["manual"] = "manual"
+    filters: Literal["manual"] = Field("manual", description="ND filters are changed by hand when prompted")
+    shutter: Literal["manual"] = Field("manual", description="the beam is blocked by hand when prompted")
     power_meter: str | None = Field(None, description="the PM160's VISA address")
-    pixel_pitch_um: float = Field(5.5, gt=0)
-    distance_m: float = Field(0.325, gt=0)
+    pixel_pitch_um: float = Field(5.5, gt=0, description="the camera's pixel pitch in micrometres")
+    distance_m: float = Field(0.325, gt=0, description="sample-to-array distance R in metres")
 
 
 class InstrumentSection(StrictModel):
-    kind: Literal["simulated", "lab"] = "simulated"
+    kind: Literal["simulated", "lab"] = Field("simulated", description="'simulated' (the simulated bench) or 'lab' (hardware through pylablib)")
     bin: int = Field(8, ge=1, description="binning of the seed camera (pixel pitch 5.5 um x bin)")
     shape: tuple[int, int] | None = Field(None, description="(n_v, n_h) pixels; default the seed array / bin")
-    roll_deg: float = 0.0
-    yaw_deg: float = 0.0
-    pitch_deg: float = 0.0
-    m_h_px: float = 0.0
-    m_v_px: float = 0.0
-    camera_seed: int = 0
+    roll_deg: float = Field(0.0, description="simulated bench: the true (injected) CCD roll in degrees")
+    yaw_deg: float = Field(0.0, description="simulated bench: the true CCD yaw in degrees")
+    pitch_deg: float = Field(0.0, description="simulated bench: the true CCD pitch in degrees")
+    m_h_px: float = Field(0.0, description="simulated bench: the true in-plane peak offset in pixels")
+    m_v_px: float = Field(0.0, description="simulated bench: the true out-of-plane peak offset in pixels")
+    camera_seed: int = Field(0, description="simulated bench: seed of the camera's fixed per-pixel maps")
     instrument: str | None = Field(None, description="an instrument TOML (effects), relative to the config")
-    without: list[str] = Field(default_factory=list)
-    frame_delay_s: float = Field(0.0, ge=0)
-    lab: LabConfig | None = None
+    without: list[str] = Field(default_factory=list, description="simulated bench: instrument effects switched off (e.g. ['stray_light'])")
+    frame_delay_s: float = Field(0.0, ge=0, description="simulated bench: acquisition time per frame in seconds (tests)")
+    lab: LabConfig | None = Field(None, description="the [instrument.lab] table (kind = 'lab')")
 
     @model_validator(mode="after")
     def _lab_needs_table(self) -> "InstrumentSection":
@@ -167,9 +167,9 @@ class InstrumentSection(StrictModel):
 
 
 class ExposureSection(StrictModel):
-    exposures_ms: list[float] = Field(default_factory=lambda: [t * 1e3 for t in DEFAULT_EXPOSURES_S])
-    n_frames: int = Field(32, ge=1)
-    background: bool = True
+    exposures_ms: list[float] = Field(default_factory=lambda: [t * 1e3 for t in DEFAULT_EXPOSURES_S], description="the exposure bracket in milliseconds, shortest first")
+    n_frames: int = Field(32, ge=1, description="frames averaged per exposure")
+    background: bool = Field(True, description="take a background (beam blocked) per measurement")
 
     @field_validator("exposures_ms")
     @classmethod
@@ -180,27 +180,27 @@ class ExposureSection(StrictModel):
 
 
 class AlignmentSection(StrictModel):
-    enabled: bool = False
-    slew_deg: float = Field(1.0, gt=0, lt=10)
-    translation_mm: float = Field(25.4, gt=0, le=25.4)
+    enabled: bool = Field(False, description="run the seed's alignment (§3.4) before the beam signature")
+    slew_deg: float = Field(1.0, gt=0, lt=10, description="arm slew of the alignment scan in degrees (< 10)")
+    translation_mm: float = Field(25.4, gt=0, le=25.4, description="axial translation of the alignment in millimetres (<= 25.4)")
     exposure_ms: float | None = Field(None, gt=0, description="default: the shortest exposure")
-    n_frames: int | None = Field(None, ge=1)
-    roll_deg: float = 0.0
-    yaw_deg: float = 0.0
-    pitch_deg: float = 0.0
-    m_h_px: float = 0.0
-    m_v_px: float = 0.0
+    n_frames: int | None = Field(None, ge=1, description="frames averaged per alignment exposure (default: the [exposure] value)")
+    roll_deg: float = Field(0.0, description="enabled = false: the CCD roll known from an earlier alignment, degrees")
+    yaw_deg: float = Field(0.0, description="enabled = false: the known CCD yaw, degrees")
+    pitch_deg: float = Field(0.0, description="enabled = false: the known CCD pitch, degrees")
+    m_h_px: float = Field(0.0, description="enabled = false: the known in-plane peak offset, pixels")
+    m_v_px: float = Field(0.0, description="enabled = false: the known out-of-plane peak offset, pixels")
 
 
 class BeamSection(StrictModel):
-    nd: str = "auto"
+    nd: str = Field("auto", description="ND stack of the beam signature, e.g. '4.0+1.0', or 'auto' (refused by the interlock below the safe OD)")
 
 
 class MeasurementSection(StrictModel):
-    name: str | None = None
-    theta_i_deg: float = Field(ge=0, lt=89)
-    phi_ref_deg: float = 0.0
-    nd: str = "auto"
+    name: str | None = Field(None, description="the measurement's file stem (default ti<theta_i>_phi<phi_ref>)")
+    theta_i_deg: float = Field(ge=0, lt=89, description="incidence angle in degrees, 0 <= theta_i_deg < 89")
+    phi_ref_deg: float = Field(0.0, description="sample rotation about its normal in degrees")
+    nd: str = Field("auto", description="ND stack of the sample measurement, or 'auto'")
 
     @field_validator("name")
     @classmethod
@@ -216,27 +216,27 @@ class MeasurementSection(StrictModel):
 
 
 class CaptureSection(StrictModel):
-    override_interlock: bool = False
-    retries: int = Field(2, ge=0, le=10)
-    live: Literal["auto", "window", "png", "off"] = "auto"
-    live_interval_s: float = Field(1.0, ge=0)
+    override_interlock: bool = Field(False, description="allow a beam stack below the interlock's safe OD")
+    retries: int = Field(2, ge=0, le=10, description="retries of a device call that failed in a retryable way (0-10)")
+    live: Literal["auto", "window", "png", "off"] = Field("auto", description="live view: 'window', 'png', 'off', or 'auto' (a window with a display, else png)")
+    live_interval_s: float = Field(1.0, ge=0, description="seconds between live-view updates")
 
 
 class CalibrationSection(StrictModel):
-    nd_tolerances: dict[str, float] = Field(default_factory=dict)
+    nd_tolerances: dict[str, float] = Field(default_factory=dict, description="nominal OD -> tolerance of the physical filters, copied into the manifest")
 
 
 class CaptureConfig(StrictModel):
-    seed: int = 0
-    wavelength_nm: float = Field(632.8, gt=0)
-    instrument: InstrumentSection = InstrumentSection()
-    model: ModelConfig | None = None
-    exposure: ExposureSection = ExposureSection()
-    alignment: AlignmentSection = AlignmentSection()
-    beam: BeamSection = BeamSection()
-    measurements: list[MeasurementSection] = Field(default_factory=list)
-    capture: CaptureSection = CaptureSection()
-    calibration: CalibrationSection = CalibrationSection()
+    seed: int = Field(0, description="noise seed of the simulated instrument")
+    wavelength_nm: float = Field(632.8, gt=0, description="source wavelength in nanometres")
+    instrument: InstrumentSection = Field(InstrumentSection(), description="the [instrument] table")
+    model: ModelConfig | None = Field(None, description="the simulated sample's [model] table (same schema as the simulate config)")
+    exposure: ExposureSection = Field(ExposureSection(), description="the [exposure] table")
+    alignment: AlignmentSection = Field(AlignmentSection(), description="the [alignment] table")
+    beam: BeamSection = Field(BeamSection(), description="the [beam] table")
+    measurements: list[MeasurementSection] = Field(default_factory=list, description="one [[measurements]] table per sample measurement")
+    capture: CaptureSection = Field(CaptureSection(), description="the [capture] table")
+    calibration: CalibrationSection = Field(CalibrationSection(), description="the [calibration] table")
 
     @model_validator(mode="after")
     def _checks(self) -> "CaptureConfig":
@@ -371,22 +371,6 @@ def build_plan(cfg: CaptureConfig) -> list[Measurement]:
 # --- manifest with capture state ------------------------------------------------------------------
 
 
-def _q(s: str) -> str:
-    return json.dumps(s)  # a valid TOML basic string
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int | float):
-        return repr(float(v)) if isinstance(v, float) else str(v)
-    if isinstance(v, str):
-        return _q(v)
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
 @dataclass
 class CaptureState:
     digest: str
@@ -403,44 +387,36 @@ class CaptureState:
 
 def write_capture_manifest(path: Path, state: CaptureState, plan: list[Measurement], cfg: CaptureConfig) -> Path:
     """The measurement set's manifest (raw format) plus the ``[capture]`` state table, atomically."""
-    lines = []
+    doc: dict[str, Any] = {}
     if "beam" in state.done:
         f, bg = state.files["beam"]
-        lines += ["[beam]", f"file = {_q(f)}", f"background = {_q(bg)}", ""]
-    for m in plan:
-        if m.kind == "sample" and m.name in state.done:
-            f, bg = state.files[m.name]
-            lines += ["[[sample]]", f"name = {_q(m.name)}", f"file = {_q(f)}", f"background = {_q(bg)}", ""]
+        doc["beam"] = {"file": f, "background": bg}
+    samples = [m.name for m in plan if m.kind == "sample" and m.name in state.done]
+    if samples:
+        doc["sample"] = [{"name": n, "file": state.files[n][0], "background": state.files[n][1]} for n in samples]
     tol = cfg.calibration.nd_tolerances
     if tol:
-        lines += ["[calibration.nd_tolerances]"] + [f"{_q(str(float(k)))} = {float(v)!r}" for k, v in tol.items()] + [""]
-    lines += [
-        "[capture]",
-        "# brdfjax capture progress (read by --resume; brdfjax reduce ignores it)",
-        f"status = {_q(state.status)}",
-        f"config = {_q(cfg.source)}",
-        f"config_digest = {_q(state.digest)}",
-        f"seed = {state.seed}",
-        f"plan = {_toml_value([m.name for m in plan])}",
-        f"done = {_toml_value(state.done)}",
-        f"interlock_safe_nd = {_q(state.safe_stack) if state.safe_stack is not None else _q('')}",
-        f"interlock_evidence = {_q(state.safe_evidence)}",
-        f"interlock_overridden = {_toml_value(state.overridden or [])}",
-        f"updated = {_q(time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()))}",
-        "",
-    ]
+        doc["calibration"] = {"nd_tolerances": {str(float(k)): float(v) for k, v in tol.items()}}
+    cap: dict[str, Any] = {
+        "status": state.status,
+        "config": cfg.source,
+        "config_digest": state.digest,
+        "seed": state.seed,
+        "plan": [m.name for m in plan],
+        "done": list(state.done),
+        "interlock_safe_nd": state.safe_stack if state.safe_stack is not None else "",
+        "interlock_evidence": state.safe_evidence,
+        "interlock_overridden": list(state.overridden or []),
+        "updated": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
     if state.fingerprint:
-        lines += ["[capture.fingerprint]", "# what defines this capture's problem; --resume refuses any difference"]
-        lines += [f"{_q(k)} = {_toml_value(v)}" for k, v in state.fingerprint.items()]
-        lines.append("")
+        cap["fingerprint"] = dict(state.fingerprint)
     if state.alignment:
-        lines += ["[capture.alignment]"]
-        for k, v in state.alignment.items():
-            if isinstance(v, int | float | str | bool):
-                lines.append(f"{k} = {_toml_value(v)}")
-        lines.append("")
-    with atomic_output(path) as tmp:
-        tmp.write_text("\n".join(lines), encoding="utf-8")
+        cap["alignment"] = {k: v for k, v in state.alignment.items() if isinstance(v, int | float | str | bool)}
+    doc["capture"] = cap
+    toml.write(path, doc, header=(
+        "[capture]: brdfjax capture progress (read by --resume; brdfjax reduce ignores it)\n"
+        "[capture.fingerprint]: what defines this capture's problem; --resume refuses any difference"))
     return path
 
 

@@ -1,7 +1,7 @@
 """Live view while capturing: the current frame in BRDF units on the detector grid, with theta_s / phi_s contours.
 
 Each exposure read during a sample measurement is turned into a BRDF preview
-with the same pixel mapping as the reduction (Eq 45 inverted:
+with the same pixel mapping as the reduction (Eq 45, :func:`brdfjax.instrument.radiometry.brdf_from_flux`:
 ``f_r = rate 10^OD / (Phi_i cos(theta_s) Omega_d)``, ``rate`` = counts above
 the black level per second, ``Phi_i`` the unattenuated incident flux from the
 beam signature) and merged with the earlier exposures of the measurement
@@ -32,6 +32,7 @@ import numpy as np
 
 from ..core.render import Frame, render_geometry
 from ..instrument.nd import stack_od
+from ..instrument.radiometry import brdf_from_flux
 from ..io import atomic_output
 from ..plotting import plot_frame
 from .interfaces import bench_detector
@@ -96,7 +97,7 @@ class LiveView:
         self._last = now
         if m.kind == "sample" and beam_flux:
             theta_s, omega = self._geom
-            img = self._best * 10 ** stack_od(nd) / (beam_flux * np.cos(theta_s) * omega)
+            img = brdf_from_flux(self._best * 10 ** stack_od(nd), beam_flux, theta_s, omega)
             unit = "BRDF"
         else:
             img = self._best

@@ -54,17 +54,17 @@ EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 class DiagnoseSection(StrictModel):
     """The ``[diagnose]`` table of a diagnose config (see the module docstring)."""
 
-    effects: list[str] | None = None
-    heldout: list[str] = Field(default_factory=list)
-    bic_threshold: float = 10.0
-    max_steps: int = Field(4, ge=0, le=12)
-    path_pool: int = Field(4, ge=1)
-    refit_top: int | None = Field(None, ge=1)
-    fresh_top: int = Field(3, ge=0)
-    threshold_sigma: float = Field(4.0, gt=0)
-    smooth: int = Field(3, ge=1, le=31)
-    figures: bool = True
-    truth: ModelConfig | None = None
+    effects: list[str] | None = Field(None, description="candidate effects by name (brdfjax.diagnose.EFFECT_LIBRARY); default: the whole library")
+    heldout: list[str] = Field(default_factory=list, description="block names (frames or tables) predicted by each model of the path, never fitted")
+    bic_threshold: float = Field(10.0, description="BIC gain an effect needs to enter the path (and that a removal or swap must beat)")
+    max_steps: int = Field(4, ge=0, le=12, description="the most effects the greedy path adds (0-12)")
+    path_pool: int = Field(4, ge=1, description="at each later step, refit this many runners-up of the previous step and this many strongest new signatures")
+    refit_top: int | None = Field(None, ge=1, description="refit only the candidates with the strongest residual signatures (default: every candidate)")
+    fresh_top: int = Field(3, ge=0, description="where the fit moved far from its starts, refit this many best candidates from the fresh starts too (0: off)")
+    threshold_sigma: float = Field(4.0, gt=0, description="smoothed normalised residual (in sigma) beyond which a region is significant")
+    smooth: int = Field(3, ge=1, le=31, description="box size in points of the residual smoothing that finds the significant regions (1-31)")
+    figures: bool = Field(True, description="embed the residual maps and path chart in report.html")
+    truth: ModelConfig | None = Field(None, description="with [data.synthetic] only: the model that generates the synthetic data (default: [model]); the diagnosis never sees it")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -209,7 +209,7 @@ def peak_scales(model: np.ndarray, sx: np.ndarray, sy: np.ndarray, usable: np.nd
 
 
 def _classify(cx, cy, major, minor, ang, scales, one_d: bool, cover: float = 0.0, span: float = math.inf) -> tuple[str, str]:
-    """Zone kind and description from a region's position AND extent (issue 18: named by the centroid alone, a
+    """Zone kind and description from a region's position AND extent (named by the centroid alone, a
     floor spanning the whole region was called a peak core, and a lobe at the specular direction a secondary
     lobe of the brighter offset peak).
 

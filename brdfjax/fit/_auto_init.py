@@ -60,7 +60,7 @@ import numpy as np
 
 from ..core.distributions import GGX, Beckmann, BeckmannAniso, GGXAniso
 from ..core.geometry import Directions
-from ..core.render import Frame, sample_directions
+from ..core.render import Frame, pixel_directions
 from ..core.terms import Diffraction, Lambertian, Model, OffsetNormal, Oriented, Specular
 from ..instrument.synthetic import convolve_footprint
 from ..io.blocks import FrameData, TableData
@@ -339,7 +339,7 @@ def init_solar_cell(
 
 @eqx.filter_jit
 def _term_values_jit(model, frame, detector, n_h, n_v):
-    return model.term_values(sample_directions(detector, frame, n_h[None, :], n_v[:, None]), frame.wavelength)
+    return model.term_values(pixel_directions(detector, frame, n_h[None, :], n_v[:, None]), frame.wavelength)
 
 
 def _grid_term_values(model: Model, frame: Frame, fr: FrameData) -> dict[str, np.ndarray]:
@@ -398,7 +398,7 @@ def _directions_of(blk: FrameData | TableData) -> tuple[Directions, np.ndarray, 
         return Directions.from_angles(*ang), wl, d
     rows, cols = np.nonzero(ok)
     frame = Frame(np.float64(blk.theta_i), np.float64(blk.phi_ref), np.float64(blk.wavelength))
-    dirs = sample_directions(blk.arm_detector(), frame, np.asarray(blk.grid.n_h, float)[cols], np.asarray(blk.grid.n_v, float)[rows])
+    dirs = pixel_directions(blk.arm_detector(), frame, np.asarray(blk.grid.n_h, float)[cols], np.asarray(blk.grid.n_v, float)[rows])
     return dirs, np.full(d.shape, float(blk.wavelength)), d
 
 

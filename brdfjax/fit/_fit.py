@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from ..core.fft import fast_len
 from ..core.geometry import Directions
 from ..core.render import Frame, cast, resolve_dtype
 from ..core.terms import Model
@@ -150,19 +151,6 @@ def _dilate(mask: np.ndarray, r: int, c: int) -> np.ndarray:
 #: The scatter directions of a frame's evaluation points are computed once per problem (they depend on
 #: no fitted parameter when theta_i is fixed) up to this many points per frame (9 floats a point).
 DIRS_MAX_POINTS = 4_000_000
-
-
-def _fast_len(n: int) -> int:
-    """The smallest 2-3-5-smooth integer >= n (a fast FFT length)."""
-    m = max(int(n), 1)
-    while True:
-        k = m
-        for p in (2, 3, 5):
-            while k % p == 0:
-                k //= p
-        if k == 1:
-            return m
-        m += 1
 
 
 def _box_need(usable: np.ndarray, kshape: tuple[int, int]) -> tuple[int, int]:
@@ -375,7 +363,7 @@ def prepare(
         if isinstance(b, FrameData) and b.footprint is not None and use_footprint:
             kshape = tuple(np.shape(b.footprint))
             needs.setdefault(kshape, []).append(_box_need(u, kshape))
-    boxes = {ks: (_fast_len(max(n[0] for n in v)), _fast_len(max(n[1] for n in v))) for ks, v in needs.items()}
+    boxes = {ks: (fast_len(max(n[0] for n in v)), fast_len(max(n[1] for n in v))) for ks, v in needs.items()}
     for i, (b, u) in enumerate(zip(blocks, usable)):
         template = template_for_block(model, layout, i)
         fl = _floor(b, u, floor)

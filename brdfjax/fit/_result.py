@@ -1,4 +1,4 @@
-"""The result of a fit and its JSON form (issue 4's output contract).
+"""The result of a fit and its JSON form (the output contract of ``brdfjax fit``).
 
 ``FitResult.to_json()`` writes at least ``parameters`` (name -> ``{"value",
 "sigma", "unit", "free"}`` in natural units: angles in degrees with unit

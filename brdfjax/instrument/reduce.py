@@ -106,12 +106,12 @@ from ..io.raw import (
 from ..plotting import agg_pyplot
 from ..runtime.errors import InputError
 from .nd import SEED_ND_TOLERANCES
+from .radiometry import brdf_from_flux, incident_flux
 from .uncertainty import (
     SEED_ARM_ANGLE_UNCERTAINTY,
     SEED_DISTANCE_UNCERTAINTY,
     SEED_PITCH_UNCERTAINTY,
     SEED_SCATTER_NONLINEARITY,
-    brdf_eq45,
     brdf_uncertainty,
 )
 
@@ -520,13 +520,8 @@ def stitch_raw(stack: RawStack, *, saturation_fraction: float = 0.98) -> np.ndar
 # --- §3.8 and §4.2 --------------------------------------------------------------------------------
 
 
-def incident_flux(beam_flux: float, od_beam: float, od_sample: float) -> float:
-    """Eq 87: ``Phi_i = Phi_b 10^(OD_b - OD_m)`` (units of ``beam_flux``)."""
-    return float(beam_flux) * 10.0 ** (float(od_beam) - float(od_sample))
-
-
 def _eq45_scalar(phi_s: float, phi_i: float, cos_theta_s: float, solid_angle: float) -> float:
-    return float(np.asarray(brdf_eq45(phi_s, phi_i, math.acos(cos_theta_s), solid_angle)))
+    return float(brdf_from_flux(phi_s, phi_i, math.acos(cos_theta_s), solid_angle))
 
 
 def noise_equivalent_brdf(
@@ -779,7 +774,7 @@ def reduce_measurement(
     n_exp = len(sample.exposures)
     partly = ~saturated & ((src < n_exp) if s.merge == "weighted" else (src < n_exp - 1))
     del s, src
-    brdf = np.asarray(brdf_eq45(phi_s_flux, phi_i, theta_s, omega), dtype=np.float32)
+    brdf = np.asarray(brdf_from_flux(phi_s_flux, phi_i, theta_s, omega), dtype=np.float32)
 
     # §4.2 figures from the inputs.
     bg_raw = stitch_raw(sample_background, saturation_fraction=saturation_fraction)
@@ -793,7 +788,7 @@ def reduce_measurement(
     neb_std = noise_equivalent_brdf(phi_low_std, beam_flux, od_b, od_m, **nominal)
     f_max = max_measurable_brdf(phi_high, beam_flux, od_b, od_m, **nominal)
     decades = dynamic_range_decades(phi_high, phi_low)
-    neb_map = np.asarray(brdf_eq45(phi_low * exposure_ratio, phi_i, theta_s, omega), dtype=np.float32)
+    neb_map = np.asarray(brdf_from_flux(phi_low * exposure_ratio, phi_i, theta_s, omega), dtype=np.float32)
 
     # Masks.
     flags = np.zeros(brdf.shape, np.uint8)

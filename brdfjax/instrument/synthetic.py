@@ -107,6 +107,7 @@ from pydantic import Field, field_validator
 
 from ..config.base import StrictModel, read_toml, validate
 from ..core.detector import Detector
+from ..core.fft import fast_len
 from ..core.render import Frame, render, render_geometry
 from ..core.terms import AbstractTerm
 from ..io.header import geometry_attrs
@@ -119,6 +120,7 @@ from ..io.raw import (
     write_raw_exr,
 )
 from .nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES, choose_nd_filters, parse_nd_filters
+from .radiometry import flux_from_brdf
 
 __all__ = [
     "EFFECTS",
@@ -158,15 +160,15 @@ SEED_BEAM_FILTERS = "4.0+1.0+0.2"
 class Footprint(StrictModel):
     """Focused beam footprint, the instrument function (Eq 73): Gaussian with 1/e^2 radius ``w_px`` pixels."""
 
-    enabled: bool = True
-    w_px: float = Field(25.0, gt=0)
+    enabled: bool = Field(True, description="convolve the scatter image with the beam footprint")
+    w_px: float = Field(25.0, gt=0, description="1/e^2 radius of the Gaussian footprint, in pixels")
 
 
 class ShotNoise(StrictModel):
     """Photon shot noise: Poisson in electrons; ``gain`` in electrons per count (full well 20000 e- / 16383)."""
 
-    enabled: bool = True
-    gain_e_per_count: float = Field(20000.0 / 16383.0, gt=0)
+    enabled: bool = Field(True, description="Poisson photon noise in electrons")
+    gain_e_per_count: float = Field(20000.0 / 16383.0, gt=0, description="electrons per count (full well 20000 e- over 16383 counts)")
 
 
 class Dark(StrictModel):
@@ -177,35 +179,35 @@ class Dark(StrictModel):
     ``fixed_pattern_fraction`` of its variance is a fixed per-pixel pattern.
     """
 
-    enabled: bool = True
-    rate_counts_per_s: float = Field(16.3714, ge=0)
-    read_std: float = Field(1.96294, ge=0)
-    sat_std: float = Field(23.4554, ge=0)
-    tau_s: float = Field(0.0292368, gt=0)
-    n_ref_frames: int = Field(32, ge=1)
-    fixed_pattern_fraction: float = Field(0.0, ge=0, le=1)
+    enabled: bool = Field(True, description="add dark signal and its noise")
+    rate_counts_per_s: float = Field(16.3714, ge=0, description="mean dark signal rate, counts per second")
+    read_std: float = Field(1.96294, ge=0, description="read-noise std of an n_ref_frames average, counts")
+    sat_std: float = Field(23.4554, ge=0, description="exposure-dependent noise std at long exposures, counts")
+    tau_s: float = Field(0.0292368, gt=0, description="time constant of the exposure-dependent noise, seconds")
+    n_ref_frames: int = Field(32, ge=1, description="frames averaged in the lens-cap reference the noise figures describe")
+    fixed_pattern_fraction: float = Field(0.0, ge=0, le=1, description="fraction of the dark variance that is a fixed per-pixel pattern (0-1)")
 
 
 class BlackLevel(StrictModel):
     """Black-level offset added by the camera, counts (29.29 at 1 ms minus 1 ms of dark signal)."""
 
-    enabled: bool = True
-    counts: float = Field(29.2736, ge=0)
+    enabled: bool = Field(True, description="add the camera's black-level offset")
+    counts: float = Field(29.2736, ge=0, description="black-level offset, counts")
 
 
 class Ambient(StrictModel):
     """Ambient room light, counts/s per pixel, with a smooth pattern of relative std ``nonuniformity``."""
 
-    enabled: bool = True
-    rate_counts_per_s: float = Field(2.2218, ge=0)
-    nonuniformity: float = Field(0.3, ge=0, lt=0.5)
+    enabled: bool = Field(True, description="add ambient room light")
+    rate_counts_per_s: float = Field(2.2218, ge=0, description="ambient light per pixel, counts per second")
+    nonuniformity: float = Field(0.3, ge=0, lt=0.5, description="relative std of the ambient light's smooth spatial pattern (< 0.5)")
 
 
 class StrayLight(StrictModel):
     """Displaced faint copies of the image: ``(dh_px, dv_px, log10 of the copy's peak / main peak)`` each."""
 
-    enabled: bool = True
-    peaks: tuple[tuple[int, int, float], ...] = ((310, -140, -4.85), (-420, 95, -5.05), (150, 380, -5.3))
+    enabled: bool = Field(True, description="add displaced faint copies of the image")
+    peaks: tuple[tuple[int, int, float], ...] = Field(((310, -140, -4.85), (-420, 95, -5.05), (150, 380, -5.3)), description="each copy as [dh_px, dv_px, log10 of its peak over the main peak]")
 
 
 class NonLinearity(StrictModel):
@@ -218,34 +220,34 @@ class NonLinearity(StrictModel):
     ``[outlier_threshold, outlier_max]``.
     """
 
-    enabled: bool = True
-    common_max: float = Field(0.0172, ge=0)
-    gain_mean: float = Field(0.0046, gt=0)
-    gain_std: float = Field(0.0050, gt=0)
-    outlier_threshold: float = Field(0.0519, ge=0)
-    outlier_fraction: float = Field(2.1e-4, ge=0, le=1)
-    outlier_max: float = Field(0.1632, ge=0)
+    enabled: bool = Field(True, description="apply the camera's non-linear response")
+    common_max: float = Field(0.0172, ge=0, description="array-average deviation from linear at full scale, a fraction")
+    gain_mean: float = Field(0.0046, gt=0, description="mean of the per-pixel gain error |g|")
+    gain_std: float = Field(0.0050, gt=0, description="std of the per-pixel gain error |g|")
+    outlier_threshold: float = Field(0.0519, ge=0, description="total error beyond which a pixel is an outlier, a fraction")
+    outlier_fraction: float = Field(2.1e-4, ge=0, le=1, description="fraction of pixels that are outliers (0-1)")
+    outlier_max: float = Field(0.1632, ge=0, description="largest total error of an outlier pixel, a fraction")
 
 
 class Quantisation(StrictModel):
     """Rounding to integer counts: of the averaged output (``round_average``, the camera's internal
     averaging, seed §3.1) or of every frame before a software average (``round_average=False``)."""
 
-    enabled: bool = True
-    round_average: bool = True
+    enabled: bool = Field(True, description="round to integer counts")
+    round_average: bool = Field(True, description="round the camera's averaged output (true) or every frame before a software average (false)")
 
 
 class Saturation(StrictModel):
     """Clipping at the ADC's full scale ``2**adc_bits - 1`` counts (and at 0)."""
 
-    enabled: bool = True
+    enabled: bool = Field(True, description="clip at 0 and at the ADC's full scale 2**adc_bits - 1 counts")
 
 
 class SourceDrift(StrictModel):
     """Incident flux of each measurement scaled by ``1 + N(0, rel_std)`` (seed Eq 96: 1.01 %)."""
 
-    enabled: bool = False
-    rel_std: float = Field(0.0101, ge=0)
+    enabled: bool = Field(False, description="scale each measurement's incident flux by a random factor")
+    rel_std: float = Field(0.0101, ge=0, description="relative std of that factor (seed Eq 96: 1.01 %)")
 
 
 class Source(StrictModel):
@@ -260,9 +262,9 @@ class Source(StrictModel):
     to switch off in the seed's instrument).
     """
 
-    rel_width: float = Field(0.0, ge=0, lt=0.5)
-    n_nodes: int = Field(15, ge=1, le=101)
-    spectrum: tuple[tuple[float, float], ...] = ()
+    rel_width: float = Field(0.0, ge=0, lt=0.5, description="relative rms width sigma_lambda / lambda of a Gaussian source line (0: monochromatic)")
+    n_nodes: int = Field(15, ge=1, le=101, description="wavelengths (Gauss-Hermite nodes) a finite line is rendered at (1-101)")
+    spectrum: tuple[tuple[float, float], ...] = Field((), description="explicit [wavelength_nm, relative power] samples instead of a line; the frame's wavelength is then ignored")
 
     def samples(self, wavelength: float) -> list[tuple[float, float]]:
         """``(wavelength in m, weight)`` pairs, weights summing to 1."""
@@ -283,8 +285,8 @@ class Source(StrictModel):
 class NDError(StrictModel):
     """True OD of each physical filter = nominal + U(-tol, tol); tolerances by nominal OD (seed §4.3)."""
 
-    enabled: bool = False
-    tolerances: tuple[tuple[float, float], ...] = tuple(sorted(SEED_ND_TOLERANCES.items()))
+    enabled: bool = Field(False, description="draw each physical filter's true OD as nominal + U(-tol, tol)")
+    tolerances: tuple[tuple[float, float], ...] = Field(tuple(sorted(SEED_ND_TOLERANCES.items())), description="[nominal OD, tolerance] pairs (seed §4.3)")
 
 
 #: Effect name -> the :class:`InstrumentConfig` field holding its switch and parameters.
@@ -315,24 +317,24 @@ class InstrumentConfig(StrictModel):
     See :data:`EFFECTS` and the module docstring.
     """
 
-    exposures_s: tuple[float, ...] = (1e-3, 1e-2, 1e-1, 1.0)
-    n_frames: int = Field(32, ge=1)
-    adc_bits: int = Field(14, ge=1, le=24)
-    incident_flux_cps: float = Field(SEED_BEAM_FLUX * 10**SEED_BEAM_OD, gt=0)
-    camera_seed: int = 0
-    write_counts_std: bool = False
-    footprint: Footprint = Footprint()
-    stray_light: StrayLight = StrayLight()
-    ambient: Ambient = Ambient()
-    source_drift: SourceDrift = SourceDrift()
-    nd_error: NDError = NDError()
-    shot_noise: ShotNoise = ShotNoise()
-    nonlinearity: NonLinearity = NonLinearity()
-    dark: Dark = Dark()
-    black_level: BlackLevel = BlackLevel()
-    quantisation: Quantisation = Quantisation()
-    saturation: Saturation = Saturation()
-    source: Source = Source()
+    exposures_s: tuple[float, ...] = Field((1e-3, 1e-2, 1e-1, 1.0), description="exposure times in seconds, strictly increasing (seed: 1, 10, 100, 1000 ms)")
+    n_frames: int = Field(32, ge=1, description="frames averaged per exposure")
+    adc_bits: int = Field(14, ge=1, le=24, description="ADC resolution in bits: full scale 2**adc_bits - 1 counts")
+    incident_flux_cps: float = Field(SEED_BEAM_FLUX * 10**SEED_BEAM_OD, gt=0, description="counts per second reaching the array from the unattenuated beam")
+    camera_seed: int = Field(0, description="seed of the camera's fixed per-pixel maps (gain, dark pattern)")
+    write_counts_std: bool = Field(False, description="write the optional per-pixel counts_std channel")
+    footprint: Footprint = Field(Footprint(), description="the [footprint] table: beam footprint (instrument function)")
+    stray_light: StrayLight = Field(StrayLight(), description="the [stray_light] table: displaced ghost copies")
+    ambient: Ambient = Field(Ambient(), description="the [ambient] table: room light")
+    source_drift: SourceDrift = Field(SourceDrift(), description="the [source_drift] table: incident-flux drift between measurements")
+    nd_error: NDError = Field(NDError(), description="the [nd_error] table: ND filter OD errors")
+    shot_noise: ShotNoise = Field(ShotNoise(), description="the [shot_noise] table: photon noise")
+    nonlinearity: NonLinearity = Field(NonLinearity(), description="the [nonlinearity] table: the camera's response curve")
+    dark: Dark = Field(Dark(), description="the [dark] table: dark signal and noise")
+    black_level: BlackLevel = Field(BlackLevel(), description="the [black_level] table: offset added by the camera")
+    quantisation: Quantisation = Field(Quantisation(), description="the [quantisation] table: integer counts")
+    saturation: Saturation = Field(Saturation(), description="the [saturation] table: clipping at full scale")
+    source: Source = Field(Source(), description="the [source] table: the source's spectrum")
 
     @field_validator("exposures_s")
     @classmethod
@@ -453,22 +455,6 @@ def footprint_kernel(w_px: float, *, tail: float = 1e-12, step: int = 1) -> np.n
     return k / k.sum()
 
 
-def _fast_len(n: int) -> int:
-    """Smallest 2^a 3^b 5^c >= n (fast FFT sizes)."""
-    best = 1 << (n - 1).bit_length()
-    p5 = 1
-    while p5 < best:
-        p35 = p5
-        while p35 < best:
-            m = p35
-            while m < n:
-                m *= 2
-            best = min(best, m)
-            p35 *= 3
-        p5 *= 5
-    return best
-
-
 def convolve_footprint(image: np.ndarray, kernel: np.ndarray, *, strip_rows: int = 512) -> np.ndarray:
     """Linear 2-D convolution of ``image`` with a centred odd ``kernel`` (zero outside), float32 out.
 
@@ -486,8 +472,8 @@ def convolve_footprint(image: np.ndarray, kernel: np.ndarray, *, strip_rows: int
     ph, pw = kh // 2, kw // 2
     rows, cols = image.shape
     strip_rows = max(1, min(strip_rows, rows))
-    fr = _fast_len(strip_rows + kh - 1)
-    fc = _fast_len(cols + kw - 1)
+    fr = fast_len(strip_rows + kh - 1)
+    fc = fast_len(cols + kw - 1)
     kf = np.fft.rfft2(kernel, s=(fr, fc))
     out = np.empty((rows, cols), dtype=np.float32)
     for r0 in range(0, rows, strip_rows):
@@ -505,11 +491,9 @@ def convolve_footprint(image: np.ndarray, kernel: np.ndarray, *, strip_rows: int
 def scatter_flux_image(
     brdf: np.ndarray, theta_s: np.ndarray, solid_angle: np.ndarray, incident_flux: float
 ) -> np.ndarray:
-    """Eq 45 inverted, ``Phi_s = f_r cos(theta_s) Omega_d Phi_i`` per pixel (units of ``incident_flux``), float32."""
-    out = np.asarray(brdf, dtype=np.float64) * np.cos(np.asarray(theta_s, dtype=np.float64))
-    out *= np.asarray(solid_angle, dtype=np.float64)
-    out *= float(incident_flux)
-    return out.astype(np.float32)
+    """Eq 45 inverted (:func:`~brdfjax.instrument.radiometry.flux_from_brdf`) per pixel in float64, as float32."""
+    f64 = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
+    return flux_from_brdf(f64(brdf), float(incident_flux), f64(theta_s), f64(solid_angle)).astype(np.float32)
 
 
 def beam_flux_image(shape: tuple[int, int], centre: tuple[float, float], w_px: float, flux: float) -> np.ndarray:

@@ -74,6 +74,7 @@ from jaxtyping import Array, ArrayLike
 from ..core.detector import Detector, PixelGrid
 from ..core.render import cast, map_rows, resolve_dtype
 from .nd import SEED_ND_TOLERANCES, NDSpec, parse_nd_filters
+from .radiometry import brdf_from_flux
 
 __all__ = [
     "SEED_DISTANCE_UNCERTAINTY",
@@ -113,13 +114,8 @@ Precision = Literal["float32", "float64"]
 # -- Eq 45 and its sensitivities ----------------------------------------------------------
 
 
-def brdf_eq45(scatter_flux: ArrayLike, incident_flux: ArrayLike, theta_s: ArrayLike, solid_angle: ArrayLike) -> Array:
-    """``f_r = Phi_s / (Phi_i cos(theta_s) Omega_d)`` in sr^-1 (seed Eq 45).
-
-    Fluxes in any common unit (the seed uses scaled digital counts), ``theta_s``
-    in radians, ``solid_angle`` in sr.
-    """
-    return scatter_flux / (incident_flux * jnp.cos(theta_s) * solid_angle)
+#: Eq 45 under its older name (the one definition is :func:`brdfjax.instrument.radiometry.brdf_from_flux`).
+brdf_eq45 = brdf_from_flux
 
 
 def eq45_log_sensitivities(theta_s: ArrayLike, solid_angle: ArrayLike) -> tuple[Array, Array, Array, Array]:
@@ -134,7 +130,7 @@ def eq45_log_sensitivities(theta_s: ArrayLike, solid_angle: ArrayLike) -> tuple[
     one = jnp.ones_like(theta_s)
 
     def log_f(phi_s, phi_i, th, om):
-        return jnp.log(brdf_eq45(phi_s, phi_i, th, om))
+        return jnp.log(brdf_from_flux(phi_s, phi_i, th, om))
 
     grad = jax.grad(log_f, argnums=(0, 1, 2, 3))
     for _ in range(theta_s.ndim):

@@ -143,7 +143,7 @@ import OpenEXR  # the official bindings (3.x API)
 from ..core.detector import Detector
 from ..core.render import Frame
 from ..runtime.errors import InputError
-from . import atomic_output
+from . import atomic_output, toml
 from .header import GEOMETRY_ATTRS, detector_from_attrs, frame_from_attrs
 
 #: An ND filter stack: ``"4.0+1.0+0.2"``, a sequence of ODs, or None (no filter).
@@ -820,10 +820,6 @@ def _nonlinearity_curve(where: str, curve: Any) -> tuple[tuple[float, float], ..
     return tuple(out)
 
 
-def _toml_str(s: str) -> str:
-    return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
-
-
 def write_manifest(
     path: str | os.PathLike,
     beam: tuple[str, str],
@@ -835,23 +831,21 @@ def write_manifest(
     Paths are written as given (they should be relative to the manifest's folder).
     """
     path = Path(path)
-    lines = ["[beam]", f"file = {_toml_str(beam[0])}", f"background = {_toml_str(beam[1])}", ""]
+    doc: dict = {"beam": {"file": beam[0], "background": beam[1]}, "sample": []}
     for name, file, bg in samples:
         if not _NAME_RE.match(name):
             raise ManifestError(f"{path}: sample name {name!r} is not file-name-safe (letters, digits, _ . + -)")
-        lines += ["[[sample]]", f"name = {_toml_str(name)}", f"file = {_toml_str(file)}",
-                  f"background = {_toml_str(bg)}", ""]
+        doc["sample"].append({"name": name, "file": file, "background": bg})
+    if not doc["sample"]:
+        del doc["sample"]
     if calibration is not None:
-        lines.append("[calibration]")
+        cal: dict = {}
         if calibration.scatter_nonlinearity is not None:
-            lines.append(f"scatter_nonlinearity = {float(calibration.scatter_nonlinearity)!r}")
+            cal["scatter_nonlinearity"] = float(calibration.scatter_nonlinearity)
         if calibration.nonlinearity_curve is not None:
             curve = _nonlinearity_curve(f"{path}: calibration.nonlinearity_curve", calibration.nonlinearity_curve)
-            lines.append("nonlinearity_curve = [" + ", ".join(f"[{x!r}, {e!r}]" for x, e in curve) + "]")
+            cal["nonlinearity_curve"] = [[x, e] for x, e in curve]
         if calibration.nd_tolerances:
-            lines += ["", "[calibration.nd_tolerances]"]
-            lines += [f'"{float(od)!r}" = {float(t)!r}' for od, t in sorted(calibration.nd_tolerances.items())]
-        lines.append("")
-    with atomic_output(path) as tmp:
-        tmp.write_text("\n".join(lines))
-    return path
+            cal["nd_tolerances"] = {repr(float(od)): float(t) for od, t in sorted(calibration.nd_tolerances.items())}
+        doc["calibration"] = cal
+    return toml.write(path, doc)

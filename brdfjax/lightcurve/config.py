@@ -85,14 +85,14 @@ class PhongConfig(StrictModel):
 class LCModelConfig(StrictModel):
     """``[models.<name>]``: a [model]-style table, a Lambertian or Phong baseline; optionally a fit or posterior."""
 
-    preset: str | None = None
-    params: dict[str, float] = Field(default_factory=dict)
-    terms: dict[str, Any] | None = None
+    preset: str | None = Field(None, description="a model preset (as in [model])")
+    params: dict[str, float] = Field(default_factory=dict, description="overrides of the preset's parameters: angles as <name>_deg, lengths as <name>_m")
+    terms: dict[str, Any] | None = Field(None, description="named terms, as [model.terms.<name>]")
     without_terms: tuple[str, ...] = Field((), description="term names to drop (e.g. ['bars']: no diffraction)")
     lambertian_albedo: float | None = Field(None, ge=0, le=1, description="a Lambertian baseline's albedo")
     albedo_of: str | None = Field(None, description="a Lambertian baseline with the directional albedo of this model")
     albedo_theta_deg: float = Field(0.0, ge=0, lt=90, description="incidence angle of that albedo (deg)")
-    phong: PhongConfig | None = None
+    phong: PhongConfig | None = Field(None, description="lumos-sat's Phong baseline: {kd, ks, exponent}")
     fit_result: str | None = Field(None, description="a brdfjax fit result.json whose parameters replace the model's")
     posterior: str | None = Field(None, description="a brdfjax sample chain.h5: the model's parameters are drawn from it")
     posterior_samples: int = Field(200, ge=2, description="number of posterior draws")
@@ -118,8 +118,8 @@ class FacetConfig(StrictModel):
     area_m2: float = Field(gt=0, description="facet area (m^2)")
     normal: tuple[float, float, float] = Field(description="body-frame normal [x, y, z] (nonzero)")
     x_axis: tuple[float, float, float] | None = Field(None, description="body-frame in-plane axis (tracking: rotation axis)")
-    phi_ref_deg: float = 0.0
-    tracking: bool = False
+    phi_ref_deg: float = Field(0.0, description="turns the model's frame about the facet normal, degrees")
+    tracking: bool = Field(False, description="the facet turns about x_axis to face the Sun (a solar array)")
     model: str = Field(description="a [models.<name>] table")
 
     @field_validator("normal")
@@ -131,11 +131,11 @@ class FacetConfig(StrictModel):
 
 
 class SatelliteConfig(StrictModel):
-    attitude: Literal["nadir", "inertial"] = "nadir"
-    roll_deg: float = 0.0
-    pitch_deg: float = 0.0
-    yaw_deg: float = 0.0
-    facets: dict[str, FacetConfig]
+    attitude: Literal["nadir", "inertial"] = Field("nadir", description="'nadir' (z toward the Earth, x along the velocity) or 'inertial'")
+    roll_deg: float = Field(0.0, description="roll offset (nadir) or inertial orientation, degrees")
+    pitch_deg: float = Field(0.0, description="pitch offset (nadir) or inertial orientation, degrees")
+    yaw_deg: float = Field(0.0, description="yaw offset (nadir) or inertial orientation, degrees")
+    facets: dict[str, FacetConfig] = Field(description="the [satellite.facets.<name>] tables")
 
     @field_validator("facets")
     @classmethod
@@ -150,17 +150,17 @@ class OrbitConfig(StrictModel):
 
 
 class ObserverConfig(StrictModel):
-    lat_deg: float = Field(ge=-90, le=90)
-    lon_deg: float = Field(ge=-180, le=360)
-    height_m: float = 0.0
-    min_elevation_deg: float = Field(10.0, ge=0, lt=90)
-    max_sun_elevation_deg: float = Field(-12.0, le=90)
+    lat_deg: float = Field(ge=-90, le=90, description="observer's geodetic latitude in degrees")
+    lon_deg: float = Field(ge=-180, le=360, description="observer's longitude in degrees (east positive)")
+    height_m: float = Field(0.0, description="observer's height above the ellipsoid in metres")
+    min_elevation_deg: float = Field(10.0, ge=0, lt=90, description="the satellite must be at least this high, degrees")
+    max_sun_elevation_deg: float = Field(-12.0, le=90, description="the Sun must be at most this high (the sky dark), degrees")
 
 
 class TimeConfig(StrictModel):
-    start: dt.datetime
-    stop: dt.datetime
-    step_s: float = Field(gt=0)
+    start: dt.datetime = Field(description="start of the time span (UTC, a TOML datetime)")
+    stop: dt.datetime = Field(description="end of the time span (UTC, after start)")
+    step_s: float = Field(gt=0, description="time step in seconds")
 
     @model_validator(mode="after")
     def _order(self):
@@ -173,8 +173,8 @@ class SunConfig(StrictModel):
     disk: Literal["adaptive", "full", "point"] = Field(
         "adaptive", description="'adaptive': the full rule only near sharp features; 'full': everywhere; 'point': the centre")
     disk_rings: int = Field(16, ge=0, le=64, description="rings of the solar-disk quadrature (0: point Sun)")
-    limb_darkening: float = Field(0.0, ge=0, le=1)
-    magnitude: float = -26.76
+    limb_darkening: float = Field(0.0, ge=0, le=1, description="linear limb-darkening coefficient of the solar disk (0-1)")
+    magnitude: float = Field(-26.76, description="the Sun's apparent magnitude")
 
 
 class GlintConfig(StrictModel):
@@ -183,18 +183,18 @@ class GlintConfig(StrictModel):
 
 
 class LightcurveConfig(StrictModel):
-    source: str = "<string>"
-    wavelength_nm: float = Field(550.0, gt=0)
-    precision: Literal["float32", "float64"] = "float64"
-    chunk: int = Field(256, ge=1)
-    orbit: OrbitConfig
-    observer: ObserverConfig
-    time: TimeConfig
-    sun: SunConfig = SunConfig()
-    satellite: SatelliteConfig
-    models: dict[str, LCModelConfig]
-    compare: dict[str, dict[str, str]] = Field(default_factory=dict)
-    glints: GlintConfig = GlintConfig()
+    source: str = Field("<string>", description="set by the loader to the config file's path (not written in a config)")
+    wavelength_nm: float = Field(550.0, gt=0, description="wavelength the models are evaluated at, nanometres")
+    precision: Literal["float32", "float64"] = Field("float64", description="'float32' or 'float64'")
+    chunk: int = Field(256, ge=1, description="time steps evaluated per compiled chunk")
+    orbit: OrbitConfig = Field(description="the [orbit] table")
+    observer: ObserverConfig = Field(description="the [observer] table")
+    time: TimeConfig = Field(description="the [time] table")
+    sun: SunConfig = Field(SunConfig(), description="the [sun] table")
+    satellite: SatelliteConfig = Field(description="the [satellite] table")
+    models: dict[str, LCModelConfig] = Field(description="the [models.<name>] tables")
+    compare: dict[str, dict[str, str]] = Field(default_factory=dict, description="[compare.<name>]: the same pass with models replaced (model name -> replacement)")
+    glints: GlintConfig = Field(GlintConfig(), description="the [glints] table")
 
     @model_validator(mode="after")
     def _references(self) -> "LightcurveConfig":

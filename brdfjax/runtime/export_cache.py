@@ -5,7 +5,7 @@ compiled executables, but its key is the lowered program, so every process
 still traces and lowers each program before it can look it up.  On the
 synthetic solar-cell fit that is most of a second process's first fit: the
 Levenberg-Marquardt program and the structured Jacobian take about 3 s to
-trace and lower against 0.7 s to run (issue 19).  JAX has no cache of traces;
+trace and lower against 0.7 s to run.  JAX has no cache of traces;
 ``jax.export`` serialises a traced program (StableHLO), so this module keeps
 one file per program and structure and calls the deserialised program in
 later processes, whose compile then comes from the persistent cache.

@@ -10,7 +10,8 @@ seed and the problem's fingerprint (:mod:`brdfjax.io.fingerprint`: model,
 fixed values, bounds, priors, every data block's values, uncertainties,
 mask and grid, the likelihood's and the sampler's settings); resuming
 checks them against the current problem and refuses any difference, naming
-it.
+it.  The file handling both samplers share (the open policy, the problem's
+record, unreadable files) is the chain store, :mod:`brdfjax.sample._store`.
 
 A chain file that cannot be read (corrupted, truncated, not HDF5) or that
 belongs to another problem is an error naming the file; it is never
@@ -27,7 +28,6 @@ steps earlier (emcee's documented criterion).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -41,13 +41,12 @@ import emcee
 import h5py
 import numpy as np
 
-from ..io.fingerprint import check_resume
 from ._priors import SampleError
+from ._store import ChainStore
 
 __all__ = ["ChainInfo", "Diagnostics", "open_chain", "run_chain", "diagnose", "read_chain"]
 
 GROUP = "mcmc"
-META = "brdfjax"
 #: Convergence: chain longer than this many autocorrelation times ...
 N_TAU = 50
 #: ... and tau stable to this fraction between checks.
@@ -66,48 +65,35 @@ class ChainInfo:
     meta: dict[str, Any]
 
 
-def _corrupt(path: Path, why: str) -> SampleError:
-    return SampleError(
-        f"{path}: the chain file cannot be read ({why}); it may be corrupted or truncated. It was left untouched: "
-        "move or delete it to start a new chain, or choose another --out"
-    )
+def _store(path: str | os.PathLike) -> ChainStore:
+    return ChainStore(Path(path), GROUP, "emcee")
 
 
 def read_chain_info(path: str | os.PathLike) -> ChainInfo:
     """Open an existing chain file read-only and check it (raises :class:`SampleError` naming the file)."""
-    path = Path(path)
+    store = _store(path)
+    path = store.path
+    meta = store.read_meta()  # refuses a file that is not HDF5 or holds no emcee chain
     try:
         with h5py.File(path, "r") as f:
-            if GROUP not in f:
-                raise SampleError(
-                    f"{path}: not an emcee chain (no '{GROUP}' group); it was left untouched: move it or choose "
-                    "another --out"
-                )
             g = f[GROUP]
             it = int(g.attrs["iteration"])
             nw, nd = int(g.attrs["nwalkers"]), int(g.attrs["ndim"])
             chain = g["chain"]
             lp = g["log_prob"]
             if chain.shape[0] < it or lp.shape[0] < it or chain.shape[1:] != (nw, nd):
-                raise _corrupt(path, f"iteration {it} but the chain holds {chain.shape[0]} steps of {chain.shape[1:]}")
+                raise store.corrupt(f"iteration {it} but the chain holds {chain.shape[0]} steps of {chain.shape[1:]}")
             if it:
                 # read the data back: a damaged file fails here rather than mid-run
                 c = chain[:it]
                 lpv = lp[:it]
                 if not np.all(np.isfinite(c)) or np.any(np.isnan(lpv)):
-                    raise _corrupt(path, "non-finite walker positions or NaN log-probabilities")
-            meta = json.loads(f[META].attrs["meta"]) if META in f and "meta" in f[META].attrs else {}
+                    raise store.corrupt("non-finite walker positions or NaN log-probabilities")
     except SampleError:
         raise
     except (OSError, KeyError, ValueError, RuntimeError) as e:
-        raise _corrupt(path, f"{type(e).__name__}: {e}") from None
+        raise store.corrupt(f"{type(e).__name__}: {e}") from None
     return ChainInfo(path, it, nw, nd, tuple(meta.get("names", ())), meta)
-
-
-def _write_meta(path: Path, meta: dict[str, Any]) -> None:
-    with h5py.File(path, "a") as f:
-        g = f.require_group(META)
-        g.attrs["meta"] = json.dumps(meta)
 
 
 def open_chain(
@@ -123,46 +109,25 @@ def open_chain(
 
     ``resume=False`` with an existing file, ``resume=True`` without one, a
     corrupted file and a chain of another problem (names, walkers) are
-    errors; the file is never modified before these checks pass.  With
-    ``fingerprint`` a new chain records it and a resumed one must match it
+    errors; the file is never modified before these checks pass
+    (:class:`~brdfjax.sample._store.ChainStore`).  With ``fingerprint`` a new
+    chain records it and a resumed one must match it
     (:func:`brdfjax.io.fingerprint.check_resume`: the message names every
     difference).
     """
+    existing = ChainStore.check_open(path, resume=resume)
     if path is None:
-        if resume:
-            raise SampleError("resume needs a chain file")
         return emcee.backends.Backend(), None
-    path = Path(path)
-    if path.exists():
-        if not resume:
-            raise SampleError(
-                f"{path} already holds a chain; continue it with --resume (resume=True), or move it away / choose "
-                "another --out to start a new one (an existing chain is never overwritten)"
-            )
-        info = read_chain_info(path)
-        if info.names and tuple(info.names) != tuple(names):
-            raise SampleError(
-                f"{path}: the chain samples {', '.join(info.names)}, but this problem's free parameters are "
-                f"{', '.join(names)}; it cannot be resumed with this config"
-            )
-        if (info.n_walkers, info.ndim) != (n_walkers, len(names)):
-            raise SampleError(
-                f"{path}: the chain has {info.n_walkers} walkers x {info.ndim} parameters, but this run asks for "
-                f"{n_walkers} x {len(names)}; resume with the same n_walkers"
-            )
-        if fingerprint is not None:
-            check_resume(
-                path, info.meta.get("fingerprint"), fingerprint,
-                "Resume with the problem that started the chain, or start a new chain in another --out "
-                "(the chain is left untouched).",
-            )
-        return emcee.backends.HDFBackend(str(path), name=GROUP), info
-    if resume:
-        raise SampleError(f"--resume: there is no chain to resume at {path}; run without --resume to start one")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    backend = emcee.backends.HDFBackend(str(path), name=GROUP)
+    store = _store(path)
+    if existing:
+        info = read_chain_info(store.path)
+        store.check_same_problem(info.meta, names, [("walkers", info.n_walkers, n_walkers),
+                                                    ("parameters", info.ndim, len(names))], "n_walkers", fingerprint)
+        return emcee.backends.HDFBackend(str(store.path), name=GROUP), info
+    store.path.parent.mkdir(parents=True, exist_ok=True)
+    backend = emcee.backends.HDFBackend(str(store.path), name=GROUP)
     backend.reset(n_walkers, len(names))
-    _write_meta(path, dict(meta or {}, names=list(names), **({"fingerprint": fingerprint} if fingerprint else {})))
+    store.write_meta(names, meta, fingerprint)
     return backend, None
 
 

@@ -49,10 +49,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..io.fingerprint import check_resume
 from ._chain import N_TAU, Diagnostics, RunOutcome
 from ._posterior import LogPosterior, _log_posterior_sampler
 from ._priors import SampleError
+from ._store import ChainStore
 
 __all__ = ["NUTS_GROUP", "NutsChain", "have_blackjax", "open_nuts", "run_nuts", "nuts_diagnostics", "RHAT_MAX"]
 
@@ -101,6 +101,11 @@ class NutsChain:
     fingerprint: dict[str, Any] | None = None
 
     @property
+    def store(self) -> ChainStore:
+        assert self.path is not None
+        return _store(self.path)
+
+    @property
     def ndim(self) -> int:
         return len(self.names)
 
@@ -111,15 +116,13 @@ class NutsChain:
     def _write_header(self) -> None:
         if self.path is None:
             return
+        self.store.write_meta(self.names, {"sampler": "nuts", "seed": self.seed}, self.fingerprint)
         with h5py.File(self.path, "a") as f:
             g = f.require_group(NUTS_GROUP)
-            g.attrs["names"] = json.dumps(list(self.names))
             g.attrs["n_chains"] = self.n_chains
             g.attrs["seed"] = self.seed
             g.attrs["n_warmup"] = self.n_warmup
             g.attrs["iteration"] = self.iteration
-            if self.fingerprint is not None:
-                g.attrs["fingerprint"] = json.dumps(self.fingerprint)
             for k, v in (("center", self.center), ("scale", self.scale)):
                 if k in g:
                     del g[k]
@@ -145,16 +148,7 @@ class NutsChain:
         for k, v in rows.items():
             self.rows[k] = v if k not in self.rows else np.concatenate([self.rows[k], v])
         if self.path is not None:
-            with h5py.File(self.path, "a") as f:
-                g = f[NUTS_GROUP]
-                for k, v in rows.items():
-                    if k not in g:
-                        g.create_dataset(k, shape=(0, *v.shape[1:]), maxshape=(None, *v.shape[1:]), dtype=v.dtype, chunks=True)
-                    d = g[k]
-                    d.resize(self.iteration + n_new, axis=0)
-                    d[self.iteration :] = v
-                f.flush()
-                g.attrs["iteration"] = self.iteration + n_new  # last: the rows above are complete
+            self.store.append(rows, self.iteration)
         self.iteration += n_new
 
     def state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -165,47 +159,42 @@ class NutsChain:
         return self.rows["z"][i], self.rows["logdensity"][i], self.rows["grad"][i]
 
 
-def _corrupt(path: Path, why: str) -> SampleError:
-    return SampleError(
-        f"{path}: the NUTS chain file cannot be read ({why}); it may be corrupted or truncated. It was left untouched: "
-        "move or delete it to start a new chain, or choose another --out"
-    )
+def _store(path: str | os.PathLike) -> ChainStore:
+    return ChainStore(Path(path), NUTS_GROUP, "NUTS", "; an emcee chain? keep sampler = 'emcee' to resume it")
 
 
 def _read(path: Path) -> NutsChain:
+    store = _store(path)
+    meta = store.read_meta()  # refuses a file that is not HDF5 or holds no NUTS chain
     try:
         with h5py.File(path, "r") as f:
-            if NUTS_GROUP not in f:
-                raise SampleError(
-                    f"{path}: not a NUTS chain (no '{NUTS_GROUP}' group; an emcee chain? keep sampler = 'emcee' to "
-                    "resume it); it was left untouched: move it or choose another --out"
-                )
             g = f[NUTS_GROUP]
+            # files written before the shared chain store kept the names and fingerprint on the nuts group
+            names = meta["names"] if "names" in meta else json.loads(g.attrs["names"])
+            fp = meta.get("fingerprint", json.loads(g.attrs["fingerprint"]) if "fingerprint" in g.attrs else None)
             chain = NutsChain(
-                path, tuple(json.loads(g.attrs["names"])), int(g.attrs["n_chains"]), np.asarray(g["center"]),
-                np.asarray(g["scale"]), int(g.attrs["seed"]), int(g.attrs["n_warmup"]),
+                path, tuple(names), int(g.attrs["n_chains"]), np.asarray(g["center"]),
+                np.asarray(g["scale"]), int(g.attrs["seed"]), int(g.attrs["n_warmup"]), fingerprint=fp,
             )
             it = int(g.attrs["iteration"])
-            if "fingerprint" in g.attrs:
-                chain.fingerprint = json.loads(g.attrs["fingerprint"])
             if "warmup" in g and int(g.attrs.get("warmup_done", 0)):
                 w = g["warmup"]
                 chain.step_size, chain.inv_mass = np.asarray(w["step_size"]), np.asarray(w["inv_mass"])
                 chain.rows["warm"] = (np.asarray(w["z"]), np.asarray(w["logdensity"]), np.asarray(w["grad"]))
             elif it:
-                raise _corrupt(path, f"{it} steps but no warm-up")
+                raise store.corrupt(f"{it} steps but no warm-up")
             for k in ("z", "logdensity", "grad", "x", "log_prob", "diverging", "n_leapfrog", "accept"):
                 if it:
                     if k not in g or g[k].shape[0] < it:
-                        raise _corrupt(path, f"iteration {it} but '{k}' holds fewer steps")
+                        raise store.corrupt(f"iteration {it} but '{k}' holds fewer steps")
                     chain.rows[k] = np.asarray(g[k][:it])
             chain.iteration = it
             if it and not np.all(np.isfinite(chain.rows["z"])):
-                raise _corrupt(path, "non-finite positions")
+                raise store.corrupt("non-finite positions")
     except SampleError:
         raise
     except (OSError, KeyError, ValueError, RuntimeError) as e:
-        raise _corrupt(path, f"{type(e).__name__}: {e}") from None
+        raise store.corrupt(f"{type(e).__name__}: {e}") from None
     return chain
 
 
@@ -218,37 +207,15 @@ def open_nuts(
     With ``fingerprint`` a new chain records it and a resumed one must match
     it (:func:`brdfjax.io.fingerprint.check_resume`, as for emcee chains).
     """
+    existing = ChainStore.check_open(path, resume=resume)
     if path is None:
-        if resume:
-            raise SampleError("resume needs a chain file")
         return NutsChain(None, tuple(names), n_chains, np.asarray(center, np.float64), np.asarray(scale, np.float64), seed, n_warmup)
     path = Path(path)
-    if path.exists():
-        if not resume:
-            raise SampleError(
-                f"{path} already holds a chain; continue it with --resume (resume=True), or move it away / choose "
-                "another --out to start a new one (an existing chain is never overwritten)"
-            )
+    if existing:
         chain = _read(path)
-        if tuple(chain.names) != tuple(names):
-            raise SampleError(
-                f"{path}: the chain samples {', '.join(chain.names)}, but this problem's free parameters are "
-                f"{', '.join(names)}; it cannot be resumed with this config"
-            )
-        if chain.n_chains != n_chains:
-            raise SampleError(
-                f"{path}: the chain file has {chain.n_chains} chains, this run asks for {n_chains}; resume with the same n_chains"
-            )
-        if fingerprint is not None:
-            check_resume(
-                path, chain.fingerprint, fingerprint,
-                "Resume with the problem that started the chain, or start a new chain in another --out "
-                "(the chain is left untouched).",
-            )
+        chain.store.check_same_problem({"names": chain.names, "fingerprint": chain.fingerprint}, names,
+                                       [("chains", chain.n_chains, n_chains)], "n_chains", fingerprint)
         return chain
-    if resume:
-        raise SampleError(f"--resume: there is no chain to resume at {path}; run without --resume to start one")
-    path.parent.mkdir(parents=True, exist_ok=True)
     chain = NutsChain(path, tuple(names), n_chains, np.asarray(center, np.float64), np.asarray(scale, np.float64), seed, n_warmup,
                       fingerprint=fingerprint)
     chain._write_header()

@@ -72,6 +72,7 @@ from ..runtime.progress import make_console
 from ._api import SAMPLERS, check_sampling, sample
 from ._posterior import check_walkers
 from ._priors import PRIOR_KINDS, Prior, SampleError
+from ._store import ChainStore
 
 __all__ = ["SampleSection", "PriorConfig", "add_arguments", "run", "priors_from_config"]
 
@@ -238,14 +239,7 @@ def run(args: argparse.Namespace) -> int:
     priors = priors_from_config(str(cfg.source), sec, model)
     if args.steps is not None and args.steps < 1:
         raise SampleError(f"--steps must be a positive integer, got {args.steps}")
-    chain_exists = (out / "chain.h5").exists()
-    if chain_exists and not args.resume:
-        raise SampleError(
-            f"{out / 'chain.h5'} already holds a chain; continue it with --resume, or choose another --out "
-            "(an existing chain is never overwritten)"
-        )
-    if args.resume and not chain_exists:
-        raise SampleError(f"--resume: there is no chain to resume at {out / 'chain.h5'}; run without --resume to start one")
+    chain_exists = ChainStore.check_open(out / "chain.h5", resume=args.resume)  # refusals before any fitting
     if args.walkers is not None and args.walkers < 2:
         raise SampleError(f"--walkers must be an even number >= 2 x the free parameters, got {args.walkers}")
     # a prior on a parameter the config holds fixed: before any data are generated or read

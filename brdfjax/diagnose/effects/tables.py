@@ -11,7 +11,7 @@ shadowing-masking; and the rule that instrument responses are ranked on detector
 
 :func:`tables_only` is the reason an instrument-response effect (a response curve, a flux scale) is not
 ranked on tables: a table carries no pixel-level signature of the instrument, so such a curve would only
-absorb a model-shape error (measured in issue 14: ``pixel_nonlinearity`` first on two real tables with
+absorb a model-shape error (as measured: ``pixel_nonlinearity`` ranked first on two real tables with
 its exponent on its bound).
 """
 
