@@ -55,12 +55,13 @@ def _fails(tmp_path: Path, cfg: Path, capsys) -> str:
     return capsys.readouterr().err
 
 
-def test_merl_layout_with_other_column_names_through_a_mapping(tmp_path):
+def test_merl_layout_with_lumos_sat_names_and_through_a_mapping(tmp_path):
     f = _lumos(tmp_path / "scan.csv")
-    with pytest.raises(FitInputError, match=r"scan.csv: no column 'phi_in' for 'theta_i'; the header has: phi_i, theta_i"):
-        read_merl_inplane(f)
+    direct = read_merl_inplane(f, wavelength=532.0)  # lumos-sat's own header: recognised
     t = read_merl_inplane(f, columns={"theta_i": "phi_i", "phi_i": "theta_i", "theta_s": "phi_o", "phi_s": "theta_o"},
                           wavelength=532.0)
+    np.testing.assert_array_equal(direct.brdf, t.brdf)
+    np.testing.assert_array_equal(direct.phi_s, t.phi_s)
     assert len(t) == 70 and float(t.wavelength) == pytest.approx(532e-9)
     k = int(np.argmax(t.brdf[:35]))  # the 20-deg slice peaks at the mirror direction, brdfjax's phi_s = 180 deg
     assert np.degrees(t.theta_s[k]) == pytest.approx(20.0) and np.degrees(t.phi_s[k]) == pytest.approx(180.0)
@@ -199,3 +200,24 @@ def test_dropped_rows_are_printed_and_recorded_for_result_json(tmp_path):
     assert any("dropped 2 of 46 rows: 1 non_finite, 1 theta_90deg" in n for n in job.notes), job.notes
     doc = _describe_block(job.blocks[0])
     assert doc["screening"]["dropped"]["non_finite"] == {"count": 1, "lines": [5]} and doc["n_rows"] == 44
+
+
+def test_rows_below_min_brdf_are_recorded_under_screening(tmp_path):
+    from brdfjax.fit.config import load_fit_config
+    from brdfjax.fit.job import _describe_block, build_fit_job
+
+    ts = np.arange(0.0, 89.0, 2.0)
+    rows = [[30.0, t, _lobe(30.0, t)] for t in ts] + [[50.0, t, _lobe(50.0, t)] for t in ts]
+    rows[3][2] = float("nan")
+    _csv(tmp_path / "t.csv", "ti,ts,f", rows)
+    cfg = _config(tmp_path, 'path = "t.csv"\ncolumns = { theta_i = "ti", theta_s = "ts", brdf = "f" }\n'
+                            'signed_inplane = true\nmin_brdf = 0.02\ntheta_i_deg = [30]')
+    job = build_fit_job(load_fit_config(cfg))
+    b = np.array([r[2] for r in rows])
+    low = np.flatnonzero((np.arange(len(rows)) < 45) & (b < 0.02))  # the 30-deg slice only (theta_i_deg)
+    assert low.size > 3
+    rec = _describe_block(job.blocks[0])["screening"]
+    assert rec["dropped"]["min_brdf"] == {"count": low.size, "min_brdf": 0.02, "lines": (low + 2).tolist()}
+    assert rec["dropped"]["non_finite"] == {"count": 1, "lines": [5]}
+    assert rec["n_rows"] == 90 and rec["n_kept"] == 90 - 1 - low.size
+    assert any(f"{low.size} min_brdf" in n for n in job.notes), job.notes

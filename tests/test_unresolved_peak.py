@@ -73,3 +73,60 @@ def test_diagnosis_ranks_angular_sampling_and_says_the_peak_is_unresolved(table)
     md = markdown_report(d)
     assert "| 1 (detected) | angular_sampling |" in md and "Detected (angular_sampling, ranked first" in md
     assert d.gap["sigma_estimated"] and "sigma ESTIMATED" in d.summary()
+
+
+M_SPIKE = 0.000826  # a Beckmann spike of in-plane FWHM 0.157 deg at 30 deg incidence, beside a 0.03 halo
+
+
+def _multi(m_spike: float, m_halo: float = 0.03) -> bj.Model:
+    lobes = {"halo": bj.Lobe(bj.Beckmann(m_halo), 0.2), "spike": bj.Lobe(bj.Beckmann(m_spike), RHO_TRUE)}
+    return bj.Model(terms={"ml": bj.MultiLobeSpecular(lobes, n=1.5), "d": bj.Lambertian(0.05)})
+
+
+def test_each_lobe_of_a_multi_lobe_term_is_checked():
+    from brdfjax.fit.internal import lobe_parameters, lobe_term
+
+    model = _multi(M_SPIKE)
+    assert lobe_parameters(model) == [("ml", "ml.halo.m", "ml.halo.rho_s"), ("ml", "ml.spike.m", "ml.spike.rho_s")]
+    spike = lobe_term(model, "ml", "ml.spike.m")
+    assert list(spike.lobes) == ["spike"]
+    fwhm = lobe_fwhm(spike, math.radians(30.0), 632.8e-9, math.radians(1.0))
+    assert math.degrees(fwhm) == pytest.approx(0.157, abs=0.01)
+    # the whole term's half maximum would be the spike's too, but a halo's lobe alone is wide
+    halo = lobe_fwhm(lobe_term(model, "ml", "ml.halo.m"), math.radians(30.0), 632.8e-9, math.radians(20.0))
+    assert math.degrees(halo) > 2.0
+
+
+def test_multi_lobe_spike_on_a_1deg_table_is_not_determined():
+    truth = _multi(M_SPIKE)
+    ts = np.radians(np.arange(0.0, 86.0, 1.0))
+    ti = np.full(ts.shape, math.radians(30.0))
+    dirs = bj.Directions.from_angles(ti, 0 * ti, ts, np.full(ts.shape, math.pi))
+    f = np.asarray(truth(dirs, 632.8e-9))
+    d = f * np.exp(0.05 * np.random.default_rng(1).standard_normal(f.size))
+    table = TableData(ti, 0 * ti, ts, np.full(ts.shape, math.pi), d, name="spike_halo")
+    params = {"ml.spike.m": Param(0.02, lower=1e-5, upper=1.0), "ml.spike.rho_s": "free",
+              "ml.halo.m": Param(0.05, lower=1e-3, upper=1.0), "ml.halo.rho_s": "free", "d.rho_d": "free"}
+    res = fit(_multi(0.02, 0.05), table, params)
+    assert res.converged, res.message
+    u = res.undetermined
+    assert set(u) == {"ml.spike.m", "ml.spike.rho_s"}
+    assert "the peak is unresolved" in u["ml.spike.m"]["reason"] and u["ml.spike.m"]["open_below"]
+    assert u["ml.spike.m"]["range"][0] <= M_SPIKE <= u["ml.spike.m"]["range"][1]
+    assert math.isnan(res.sigma("ml.spike.m")) and "ml.spike.m is NOT determined" in res.summary()
+    # the resolved halo keeps its covariance, and its width is found
+    assert math.isfinite(res.sigma("ml.halo.m")) and res.value("ml.halo.m") == pytest.approx(0.03, rel=0.05)
+
+
+def test_aliased_lobe_of_a_preset_is_checked(table):
+    """A preset's lobe under its public name (the mirror preset's ``m`` for ``specular.m``) is checked too."""
+    from brdfjax.core.presets import mirror
+    from brdfjax.fit.internal import lobe_parameters
+
+    model = bj.Model({**mirror(m=0.02, rho_s=RHO_TRUE, n=1.5).terms, "d": bj.Lambertian(0.05)}, mirror().aliases)
+    assert lobe_parameters(model) == [("specular", "m", "rho_s")]
+    res = fit(model, table, {"m": Param(0.02, lower=1e-5, upper=1.0), "rho_s": "free", "d.rho_d": "free"})
+    assert res.converged, res.message
+    assert set(res.undetermined) == {"m", "rho_s"} and res.undetermined["m"]["open_below"]
+    lo, hi = res.undetermined["m"]["range"]
+    assert lo <= M_TRUE <= hi and math.isnan(res.sigma("m"))

@@ -25,21 +25,54 @@ from typing import Any
 import numpy as np
 
 from ..core.geometry import Directions
+from ..core.terms import MultiLobeSpecular
 from ..io.blocks import TableData
 from ._params import Param, as_param
 
-__all__ = ["lobe_parameters", "table_step", "lobe_fwhm", "check_resolution"]
+__all__ = ["lobe_parameters", "lobe_term", "table_step", "lobe_fwhm", "check_resolution"]
+
+
+def _width_field(dist: Any) -> str | None:
+    return getattr(type(dist), "width_field", None) if dist is not None else None
 
 
 def lobe_parameters(model: Any) -> list[tuple[str, str, str]]:
-    """``(term, width parameter, weight parameter)`` of every microfacet lobe of a model (full names)."""
+    """``(term, width parameter, weight parameter)`` of every microfacet lobe of a model.
+
+    Parameter names are the model's public ones, as a fit reports them: an
+    alias where the model declares one (a preset's ``m`` for
+    ``specular.m``), else the full name.  A
+    :class:`~brdfjax.core.terms.MultiLobeSpecular` term gives one entry per
+    lobe (``<term>.<lobe>.<width>``, ``<term>.<lobe>.rho_s``): a narrow spike
+    beside a wide halo is checked on its own (:func:`lobe_term`).
+    """
+    public = {flat: alias for alias, flat in getattr(model, "aliases", ())}
     out = []
     for name, term in getattr(model, "terms", {}).items():
-        dist = getattr(term, "distribution", None)
-        field = getattr(type(dist), "width_field", None) if dist is not None else None
+        if isinstance(term, MultiLobeSpecular):
+            for key, lobe in term.lobes.items():
+                field = _width_field(lobe.distribution)
+                if field is not None:
+                    w, a = f"{name}.{key}.{field}", f"{name}.{key}.rho_s"
+                    out.append((name, public.get(w, w), public.get(a, a)))
+            continue
+        field = _width_field(getattr(term, "distribution", None))
         if field is not None and hasattr(term, "rho_s"):
-            out.append((name, f"{name}.{field}", f"{name}.rho_s"))
+            w, a = f"{name}.{field}", f"{name}.rho_s"
+            out.append((name, public.get(w, w), public.get(a, a)))
     return out
+
+
+def lobe_term(model: Any, term_name: str, width_name: str) -> Any:
+    """The term whose peak :func:`lobe_fwhm` measures for a :func:`lobe_parameters` entry: the term itself, or,
+    for one lobe of a :class:`~brdfjax.core.terms.MultiLobeSpecular`, that term with this lobe alone (the other
+    lobes would hide a narrow spike's width under a halo's)."""
+    term = model.terms[term_name]
+    if isinstance(term, MultiLobeSpecular):
+        flat = dict(getattr(model, "aliases", ())).get(width_name, width_name)
+        key = flat[len(term_name) + 1 :].split(".")[0]
+        return dataclasses.replace(term, lobes={key: term.lobes[key]})
+    return term
 
 
 def _signed_inplane(b: TableData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -126,7 +159,7 @@ def check_resolution(
         aperture = result.parameters.get("instrument.aperture")
         limit = max(step, float(aperture.value) if aperture is not None else 0.0)
         wl = float(np.mean(np.asarray(blocks[k].wavelength, float)))
-        term = result.models[k].terms[term_name]
+        term = lobe_term(result.models[k], term_name, wname)
         fwhm = lobe_fwhm(term, ti, wl, 3.0 * limit)
         if not (math.isfinite(fwhm) and fwhm < limit):
             continue

@@ -27,12 +27,12 @@ file::
     allow_different_detectors = false
     # [[data.tables]]                       # goniometer tables (beside or instead of frames)
     # path = "../shared/data/real/merl_aluminium_inplane.txt"
-    # format = "merl"                       # merl | cornell | astm | table
+    # format = "merl"                       # merl (= lumos-sat) | cornell | astm | table
     # columns = { theta_i = "ti", theta_s = "ts", phi_s = "ps", brdf = "f" }   # format "table"
     # angle_unit = "deg"; signed_inplane = false; azimuth_offset = 0.0
     # theta_i_deg = [20, 40]                # keep these incident angles only
     # wavelength_nm = 532.0; sigma_rel = 0.05 (replaces the estimated noise)
-    # on_bad_rows = "drop"; placeholder_run = 10; check_mirror = true; mirror_tolerance_deg = 10.0
+    # on_bad_rows = "drop"; placeholder_run = 10; floor_repeats = 3; check_mirror = true; mirror_tolerance_deg = 10.0
     # (every key: the README's "Goniometer tables")
     # [data.synthetic]                      # generate the frames with the synthetic instrument
     # theta_i_deg = [20, 40, 60]; phi_ref_deg = 0.0; seed = 2026; bin = 8
@@ -216,12 +216,14 @@ class TableConfig(StrictModel):
 
     path: str = Field(description="the table file, relative to the config")
     format: Literal["table", "merl", "lumos-sat", "cornell", "astm"] = Field(
-        "table", description="'table' (columns mapping), 'merl' (= 'lumos-sat'), 'cornell' or 'astm'"
+        "table", description="'table' (columns mapping), 'merl' (= 'lumos-sat': MERL's or lumos-sat's header), "
+        "'cornell' or 'astm'"
     )
     name: str | None = Field(None, description="a name for messages and the result (default: the file stem)")
     columns: dict[str, str | int] | None = Field(
         None, description="role -> column name or 0-based index (theta_i, phi_i, theta_s, phi_s, brdf, sigma_rel, "
-        "sigma, wavelength); format 'table': required; 'merl': renames MERL's phi_in/theta_in/phi_out/theta_out/brdf"
+        "sigma, wavelength); format 'table': required; 'merl'/'lumos-sat': renames the columns of the recognised "
+        "header (MERL's phi_in/theta_in/phi_out/theta_out/brdf or lumos-sat's phi_i/theta_i/phi_o/theta_o/brdf)"
     )
     angle_unit: Literal["deg", "rad"] = Field("deg", description="'deg' or 'rad' (format 'table')")
     signed_inplane: bool | None = Field(
@@ -240,11 +242,17 @@ class TableConfig(StrictModel):
     )
     theta_i_deg: list[float] | None = Field(None, description="keep these incident angles only (deg)")
     max_theta_s_deg: float | None = Field(None, gt=0, description="drop rows with theta_s beyond this (deg)")
-    min_brdf: float | None = Field(None, ge=0, description="drop rows with BRDF below this (sr^-1)")
+    min_brdf: float | None = Field(
+        None, ge=0, description="drop rows with BRDF below this (sr^-1; counted under the result's screening)"
+    )
     on_bad_rows: Literal["drop", "error"] = Field(
-        "drop", description="rows with NaN, theta = 90 deg, BRDF <= 0 or placeholder runs: 'drop' (counted) or 'error'"
+        "drop", description="rows with NaN, theta = 90 deg, BRDF <= 0 or placeholder values: 'drop' (counted) or 'error'"
     )
     placeholder_run: int = Field(10, ge=2, description="this many identical consecutive BRDF values in a slice: placeholder rows")
+    floor_repeats: int = Field(
+        3, ge=0, description="one BRDF value in this many rows, the lowest of its slices and written more coarsely than the "
+        "next larger values: floor placeholder rows, isolated or not (0: off)"
+    )
     check_mirror: bool = Field(True, description="check that each slice's peak sits near the mirror direction")
     mirror_tolerance_deg: float = Field(10.0, gt=0, description="how far from the mirror direction a peak may sit (deg)")
 

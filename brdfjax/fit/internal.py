@@ -17,8 +17,8 @@ is documented and stable within brdfjax; the modules it comes from
 - :func:`get_solver`, :data:`LOSSES`: the solver and robust-loss registries;
 - :func:`natural_unit`, :func:`to_natural`: the reported unit of a stored one (rad -> deg) and its factor;
 - :data:`FRAME_PARAMETERS`: the frame parameters a fit may free (``theta_i``, ``phi_ref``), with units;
-- :func:`lobe_parameters`, :func:`lobe_fwhm`, :func:`table_step`: a model's microfacet lobes, a lobe's
-  angular FWHM and a table's angular step at its peak (the unresolved-peak check).
+- :func:`lobe_parameters`, :func:`lobe_term`, :func:`lobe_fwhm`, :func:`table_step`: a model's microfacet
+  lobes (each lobe of a multi_lobe term), the term that holds one lobe alone, a lobe's angular FWHM and a table's angular step at its peak (the unresolved-peak check).
 """
 
 from ._common import FRAME_PARAMETERS as FRAME_PARAMETERS, natural_unit as natural_unit, to_natural as to_natural
@@ -26,7 +26,12 @@ from ._params import SPEC_KEYS as SPEC_KEYS, as_param as as_param, check_param a
 from ._prepare import block_names as block_names, prepare as prepare_problem
 from ._problem import Problem as Problem
 from ._residuals import LOSSES as LOSSES
-from ._resolution import lobe_fwhm as lobe_fwhm, lobe_parameters as lobe_parameters, table_step as table_step
+from ._resolution import (
+    lobe_fwhm as lobe_fwhm,
+    lobe_parameters as lobe_parameters,
+    lobe_term as lobe_term,
+    table_step as table_step,
+)
 from ._solvers import get_solver as get_solver
 
 __all__ = [
@@ -40,6 +45,7 @@ __all__ = [
     "get_solver",
     "lobe_fwhm",
     "lobe_parameters",
+    "lobe_term",
     "natural_unit",
     "param_problems",
     "prepare_problem",

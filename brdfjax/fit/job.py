@@ -232,8 +232,8 @@ def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
     name = t.name or path.stem
     wl = None if t.wavelength_nm in (None, "mean") else float(t.wavelength_nm)
     screen = Screen(
-        on_bad_rows=t.on_bad_rows, placeholder_run=t.placeholder_run, check_mirror=t.check_mirror,
-        mirror_tolerance_deg=t.mirror_tolerance_deg,
+        on_bad_rows=t.on_bad_rows, placeholder_run=t.placeholder_run, floor_repeats=t.floor_repeats,
+        check_mirror=t.check_mirror, mirror_tolerance_deg=t.mirror_tolerance_deg,
     )
     conv = []
     for k, default in (("azimuth_offset", -180.0 if t.format in ("merl", "lumos-sat") else 0.0),
@@ -276,7 +276,9 @@ def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
         keep &= np.degrees(np.asarray(table.theta_s, float)) <= t.max_theta_s_deg
     if t.min_brdf is not None:
         with np.errstate(invalid="ignore"):
-            keep &= np.asarray(table.brdf, float) >= t.min_brdf
+            low = keep & ~(np.asarray(table.brdf, float) >= t.min_brdf)  # among the rows still selected
+        keep &= ~low
+        table = replace(table, screening=_with_min_brdf(table, low, t.min_brdf))
     sigma = table.sigma_rel
     if t.sigma_rel is not None:
         if sigma is not None:
@@ -289,6 +291,21 @@ def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
         except FitInputError as e:
             raise ConfigError(str(cfg.source), [(key, f"empty mask: {e}")]) from None
     return table
+
+
+def _with_min_brdf(table: TableData, low: np.ndarray, min_brdf: float) -> dict[str, Any]:
+    """The table's screening record with the rows below ``min_brdf`` counted as dropped (with their lines)."""
+    rec = dict(table.screening or {"n_rows": len(table), "n_kept": len(table), "dropped": {}})
+    dropped = dict(rec.get("dropped") or {})
+    n = int(low.sum())
+    if n:
+        entry: dict[str, Any] = {"count": n, "min_brdf": float(min_brdf)}
+        if table.lines is not None:
+            entry["lines"] = np.asarray(table.lines)[low][:50].tolist()
+        dropped["min_brdf"] = entry
+    rec["dropped"] = dropped
+    rec["n_kept"] = int(rec.get("n_kept", len(table))) - n
+    return rec
 
 
 def build_fit_job(cfg: FitConfig, *, work_dir: str | os.PathLike | None = None) -> FitJob:

@@ -30,6 +30,7 @@ import os
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -287,6 +288,35 @@ def read_table(
 
 
 MERL_COLUMNS = {"theta_i": "phi_in", "phi_i": "theta_in", "theta_s": "phi_out", "phi_s": "theta_out", "brdf": "brdf"}
+#: lumos-sat's own header for the same layout (``phi_*`` zenith angles, ``theta_*`` azimuths)
+LUMOS_COLUMNS = {"theta_i": "phi_i", "phi_i": "theta_i", "theta_s": "phi_o", "phi_s": "theta_o", "brdf": "brdf"}
+_LAYOUT_ORDER = ("theta_i", "phi_i", "theta_s", "phi_s", "brdf")  # the layout's column order (zenith first)
+
+
+def _inplane_mapping(path: Path, header: list[str] | None, n_cols: int) -> dict[str, str | int]:
+    """The column mapping of a file of the MERL/lumos-sat layout, from its header.
+
+    MERL's names (``phi_in theta_in phi_out theta_out brdf``) or lumos-sat's
+    (``phi_i theta_i phi_o theta_o brdf``), in any order and case; a file
+    without a header and with five columns is read in the layout's order.
+    """
+    if header is None:
+        if n_cols == len(_LAYOUT_ORDER):
+            return {role: i for i, role in enumerate(_LAYOUT_ORDER)}
+        raise FitInputError(
+            f"{path}: no header and {n_cols} columns; the MERL/lumos-sat layout has 5 "
+            "(zenith_in azimuth_in zenith_out azimuth_out brdf), or give columns"
+        )
+    names = {_header_name(t)[0] for t in header}
+    for mapping in (MERL_COLUMNS, LUMOS_COLUMNS):
+        if {mapping[role] for role in _ANGLES} <= names:  # the angle names tell the layouts apart
+            return dict(mapping)
+    raise FitInputError(
+        f"{path}: the header ({', '.join(_header_name(t)[0] for t in header)}) is neither MERL's "
+        f"({' '.join(MERL_COLUMNS.values())}) nor lumos-sat's ({' '.join(LUMOS_COLUMNS.values())}); "
+        "map the columns with columns = {theta_i = ..., phi_i = ..., theta_s = ..., phi_s = ..., brdf = ...} "
+        "(theta: zenith, phi: azimuth, in brdfjax's names)"
+    )
 
 
 def read_merl_inplane(
@@ -299,35 +329,41 @@ def read_merl_inplane(
     wavelength: float | None = None,
     screen: "Screen | None" = None,
 ) -> TableData:
-    """MERL in-plane slices in the lumos-sat layout (``../shared/data/real/merl_aluminium_inplane.txt``).
+    """In-plane slices in the lumos-sat layout (MERL's slices as lumos-sat ships them, lumos-sat's own tables).
 
-    Columns ``phi_in theta_in phi_out theta_out brdf`` where ``phi`` is the
-    ZENITH (degrees; signed in-plane for the outgoing direction) and
-    ``theta`` the azimuth, the source at azimuth 180 and the mirror direction
-    at 0 (checked on the file: each slice peaks at ``phi_out = phi_in``,
-    ``theta_out = 0``).  No uncertainties.  ``columns`` renames any of these
-    (canonical role -> the file's header name or index, e.g.
-    ``{"theta_i": "phi_i", "phi_i": "theta_i", "theta_s": "phi_o", "phi_s":
-    "theta_o"}`` for files of this layout with other names); roles not given
-    keep MERL's names.  ``wavelength`` (nm): the layout states none; default
-    632.8 nm.
+    Columns ``phi_in theta_in phi_out theta_out brdf`` (MERL's names, as in
+    ``tests/data/real/merl_aluminium_inplane.txt``) or ``phi_i theta_i phi_o
+    theta_o brdf`` (lumos-sat's), where ``phi`` is the ZENITH (degrees;
+    signed in-plane for the outgoing direction, negative on the source side)
+    and ``theta`` the azimuth, the source at azimuth 180 (or -180) and the
+    mirror direction at 0 (checked on the file: each slice peaks at
+    ``phi_out = phi_in``, ``theta_out = 0``).  Either header is recognised,
+    as a first line or as the last comment line before the data; a file
+    without a header and with five columns is read in this order.  No
+    uncertainties.  ``columns`` renames any role (canonical role -> the
+    file's header name or index) for files of this layout with other names;
+    roles not given keep the recognised header's names.  ``wavelength``
+    (nm): the layout states none; default 632.8 nm.
     """
-    mapping = dict(MERL_COLUMNS)
+    p = _path(path)
+    header, data, lines = _read_numeric(p, "#", None)
+    if columns and set(columns) >= set(_LAYOUT_ORDER):
+        mapping: dict[str, str | int] = {}
+    elif columns:
+        try:
+            mapping = _inplane_mapping(p, header, data.shape[1])
+        except FitInputError:
+            mapping = dict(MERL_COLUMNS)  # the error then names the first role the mapping misses
+    else:
+        mapping = _inplane_mapping(p, header, data.shape[1])
     mapping.update(columns or {})
     screen = screen or Screen()
     if not screen.convention:
         screen = dataclasses.replace(
             screen, convention=f"azimuth_offset (now {azimuth_offset:g}) or signed_inplane (now {str(signed_inplane).lower()})"
         )
-    return read_table(
-        path,
-        mapping,
-        angle_unit="deg",
-        signed_inplane=signed_inplane,
-        azimuth_offset=azimuth_offset,
-        wavelength=wavelength,
-        name=name,
-        screen=screen,
+    return _columns_to_table(
+        p, header, data, mapping, "deg", signed_inplane, azimuth_offset, wavelength, "nm", name, lines, screen
     )
 
 
@@ -408,9 +444,17 @@ class Screen:
     table's ``screening`` record) or ``"error"`` (refuse the file, listing
     them).  Bad rows: a non-finite angle or BRDF (NaN rows named by line),
     ``theta_s`` or ``theta_i`` at 90 deg (the model is exactly 0 there),
-    BRDF <= 0, and constant placeholder runs: ``placeholder_run`` or more
+    BRDF <= 0, constant placeholder runs: ``placeholder_run`` or more
     consecutive rows of one slice with the identical BRDF value (a slice made
-    only of them is always an error).  ``check_mirror``: each slice's peak
+    only of them is always an error), and floor placeholders, isolated or not:
+    one exact BRDF value in ``floor_repeats`` or more rows (0: no such check)
+    that is the lowest value of every slice it occurs in and is written more
+    coarsely than the next larger values, by two or more decimal places or
+    significant digits (a provider's
+    ``1e-4`` written where a measurement fell below its detection limit, among
+    values such as ``0.000113``); see :func:`_floor_rows` for why real noise
+    floors, quantised or printed to fixed decimals, are not taken.
+    ``check_mirror``: each slice's peak
     must lie within ``mirror_tolerance_deg`` (or twice the distance of the
     slice's nearest sample to the mirror direction, if larger) of the mirror
     direction, in most slices with a clear peak (max / median >= 3); else the
@@ -420,6 +464,7 @@ class Screen:
 
     on_bad_rows: str = "drop"
     placeholder_run: int = 10
+    floor_repeats: int = 3
     check_mirror: bool = True
     mirror_tolerance_deg: float = 10.0
     convention: str = ""
@@ -459,6 +504,58 @@ def _placeholder_rows(brdf: np.ndarray, rows: np.ndarray, run: int) -> np.ndarra
             if i - start >= run:
                 out[start:i] = True
             start = i
+    return out
+
+
+def _last_decimal(v: float) -> int:
+    """The decimal exponent of ``v``'s last significant digit as written (12 digits at most): 0.000113 -> -6,
+    0.0001 -> -4, 1040 -> 1."""
+    exponent = Decimal(format(float(v), ".12g")).normalize().as_tuple().exponent
+    return int(exponent) if isinstance(exponent, int) else 0
+
+
+def _digits(v: float) -> int:
+    """The number of significant digits of ``v`` as written (12 at most): 0.000113 -> 3, 0.0001 -> 1, 1040 -> 3."""
+    return int(math.floor(math.log10(abs(v)))) - _last_decimal(v) + 1 if v else 1
+
+
+def _floor_rows(b: np.ndarray, ok: np.ndarray, slices: list[np.ndarray], min_count: int, k: int = 6) -> np.ndarray:
+    """Rows holding a floor placeholder: a value written in place of a measurement (see :class:`Screen`).
+
+    A value ``v`` is one when (1) it occurs in ``min_count`` or more usable
+    rows (``ok``), (2) it is the lowest usable value of every slice it occurs
+    in (nothing lies below a floor that replaced what fell below it), and (3)
+    it is written more coarsely than the ``k`` next larger usable values of
+    the table: its last significant digit lies two or more decimal places
+    above their median last digit (``1e-4`` below ``0.000113, 0.000117``), or
+    it has two or more significant digits fewer than their median (``1e-4``
+    below ``0.00101, 0.00102``).  (3) keeps real noise floors: a table printed
+    to 3 significant digits repeats its lowest values (the V2 Mini mirror
+    film's 0.000113, four times) and one printed to fixed decimals repeats
+    them more (Cornell Cayman at 550 nm: 1e-06, sixteen times), but the values
+    just above them are written to the same last digit.  A margin of one
+    decimal place would drop real rows (measured in
+    ``experiments/table_floor_screening.py``: Cornell Cayman, tables printed to
+    2 significant digits or 5 fixed decimals).
+    """
+    out = np.zeros(b.shape, bool)
+    if min_count < 1 or not ok.any():
+        return out
+    usable = np.sort(b[ok])
+    lowest = [(r, float(np.min(b[r]))) for rows in slices if (r := rows[ok[rows]]).size]
+    for v in sorted({m for _, m in lowest}):
+        hits = np.flatnonzero(ok & (b == v))
+        if hits.size < min_count:
+            continue
+        if any(np.any(b[r] == v) and m < v for r, m in lowest):
+            continue  # below it elsewhere in one of its slices: not a floor
+        above = usable[np.searchsorted(usable, v, side="right") :][:k]
+        if not above.size:
+            continue
+        coarser = _last_decimal(v) - float(np.median([_last_decimal(x) for x in above]))
+        fewer = float(np.median([_digits(x) for x in above])) - _digits(v)
+        if coarser >= 2 or fewer >= 2:
+            out[hits] = True
     return out
 
 
@@ -591,20 +688,27 @@ def make_table(
             f"(BRDF = {b[rows[0]]:.6g} in all its {rows.size} rows, {label}s {where[rows[0]]}-{where[rows[-1]]}); "
             "remove it from the file or select other incident angles (theta_i_deg)"
         )
+    floor = _floor_rows(b, finite & ~grazing & ~non_pos & ~placeholder, _slices(ti, pi_), int(screen.floor_repeats))
+    floor_values = ", ".join(f"{v:.6g}" for v in np.unique(b[floor]))
     reasons = {
         "non_finite": ~finite,
         "theta_90deg": grazing,
         "non_positive": non_pos,
         "placeholder": placeholder,
+        "placeholder_floor": floor,
     }
     texts = {
         "non_finite": "NaN/non-finite angle or BRDF",
         "theta_90deg": "at theta = 90 deg (the model is 0 there)",
         "non_positive": "BRDF <= 0",
         "placeholder": f"constant placeholder runs (>= {screen.placeholder_run} identical values)",
+        "placeholder_floor": f"floor placeholder value(s) {floor_values} (the lowest of their slices, written more "
+        f"coarsely than the next larger values, >= {screen.floor_repeats} rows)",
     }
     dropped = {k: {"count": int(m.sum()), f"{label}s": where[m][:50].tolist()} for k, m in reasons.items() if m.any()}
-    bad = ~finite | grazing | non_pos | placeholder
+    if floor.any():
+        dropped["placeholder_floor"]["values"] = np.unique(b[floor]).tolist()
+    bad = ~finite | grazing | non_pos | placeholder | floor
     if bad.any() and screen.on_bad_rows == "error":
         parts = [f"{int(m.sum())} {texts[k]} ({_fmt_lines(label, where[m])})" for k, m in reasons.items() if m.any()]
         raise FitInputError(f"{path}: bad rows: " + "; ".join(parts) + " (on_bad_rows = 'error'; 'drop' drops them)")

@@ -149,7 +149,8 @@ def _features(term: AbstractTerm, delta: Array, tol: float) -> list[Feature]:
     if isinstance(term, Specular):
         return [Feature("axis", jnp.asarray(_Z), _distribution_radius(term.distribution, delta, tol))]
     if isinstance(term, MultiLobeSpecular):
-        r = jnp.max(jnp.stack([_distribution_radius(lobe.distribution, delta, tol) for lobe in term.lobes.values()]))
+        # one radius per disk radius (the feature's table): the widest reach of any lobe at each
+        r = jnp.max(jnp.stack([_distribution_radius(lobe.distribution, delta, tol) for lobe in term.lobes.values()]), axis=0)
         return [Feature("axis", jnp.asarray(_Z), r)]
     if isinstance(term, CorePhong | LCPhong):
         k = term.k if isinstance(term, CorePhong) else term.exponent

@@ -33,8 +33,9 @@ PAGES: dict[str, tuple[str, str, tuple[str, ...]]] = {
                  "The diagnosis given a base model without one effect of the truth: is the withheld effect found?",
                  ("withheld_",)),
     "real-data": ("Real data",
-                  "Every model fitted to measured tables (Cornell, MERL), per incident angle, and the MERL gap analysis.",
-                  ("real_data_fits", "merl_gap", "real_table_paths", "ftol_real_data")),
+                  "Every model fitted to measured tables (Cornell, MERL), per incident angle, the MERL gap analysis, "
+                  "and the row screening's floor placeholders on reference and real tables.",
+                  ("real_data_fits", "merl_gap", "real_table_paths", "ftol_real_data", "table_floor_screening")),
     "performance": ("Performance",
                     "Timings and memory of frames, fits, sampling, light curves and studies. Wall times depend on the "
                     "machine and its load; each record keeps the load and CPU count it was measured at.",

@@ -18,7 +18,7 @@ import numpy as np
 from ...core.distributions import Beckmann
 from ...core.terms import Diffraction, Model, Specular
 from ...fit import FrameData, Param, TableData
-from ...fit.internal import lobe_fwhm, lobe_parameters, table_step
+from ...fit.internal import lobe_fwhm, lobe_parameters, lobe_term, table_step
 from ...instrument.synthetic import footprint_kernel
 from .base import (
     Effect,
@@ -511,7 +511,7 @@ class AngularSamplingEffect(Effect):
     def unresolved(self, ctx) -> tuple[float, str] | None:
         """A peak the sampling does not resolve: ``(z, text)`` or None.
 
-        The fitted main lobe's FWHM is below the table's angular step at its highest sample, and that
+        The fitted narrowest lobe's FWHM is below the table's angular step at its highest sample, and that
         sample stands out of its two in-plane neighbours by more than a lobe one step wide allows (a
         Gaussian of FWHM = step falls to 1/16 one step away): ``z`` is that excess of ln(peak /
         neighbour) over ln 16 in units of the noise of ln BRDF.  The width and weight of such a lobe are
@@ -528,9 +528,11 @@ class AngularSamplingEffect(Effect):
             if st is None:
                 continue
             step, ti = st
-            term = ctx.block_model(k).terms[lobes[0][0]]
             wl = float(np.mean(np.asarray(b.wavelength, float)))
-            fwhm = lobe_fwhm(term, ti, wl, 3.0 * step)
+            # the narrowest lobe (each lobe of a multi_lobe term on its own)
+            widths = [lobe_fwhm(lobe_term(ctx.block_model(k), t, w), ti, wl, 3.0 * step) for t, w, _ in lobes]
+            widths = [x for x in widths if math.isfinite(x)]
+            fwhm = min(widths) if widths else math.nan
             if not (math.isfinite(fwhm) and fwhm < step):
                 continue
             d = np.asarray(b.brdf, float)
