@@ -350,12 +350,14 @@ def _bands(sat, facets, fam_names, models, result_paths, w_c, w_s, scale, ratio,
             names, d = covariance_draws(result_paths[fam], model, S, rng, f"models.{fam}")
         else:
             names, d = (), np.zeros((S, 0))
-        vals = _family_flux_draws(model, tuple(names), d, jnp.asarray(w_c[:, cols]), jnp.asarray(w_s[:, cols]),
-                                  wavelength)  # (S, T, len(cols))
+        # only the draws in which one of its facets uses this family are evaluated
+        used = np.flatnonzero(np.any(choice[:, cols] == fi, 1))
+        vals = _family_flux_draws(model, tuple(names), d[used], jnp.asarray(w_c[:, cols]), jnp.asarray(w_s[:, cols]),
+                                  wavelength)  # (S_used, T, len(cols))
         vals = np.nan_to_num(vals, nan=0.0, posinf=0.0)
         for q, j in enumerate(cols):
-            use = choice[:, j] == fi
-            total[use] += vals[use, :, q] * (area[j] * scale * ratio[:, j])[None, :]
+            use = choice[used, j] == fi
+            total[used[use]] += vals[use, :, q] * (area[j] * scale * ratio[:, j])[None, :]
             counts.setdefault(facets[j].name, {})[fam] = int(use.sum())
     with np.errstate(divide="ignore"):
         m = sun_mag[None, :] - 2.5 * np.log10(total)
