@@ -20,5 +20,5 @@ from .engine import (
     magnitude as magnitude,
 )
 from .glintmap import GlintMap as GlintMap, glint_map as glint_map
-from .models import Phong as Phong, directional_albedo as directional_albedo
+from .models import Phong as Phong, directional_albedo as directional_albedo, lumos_phong as lumos_phong
 from .run import build_job as build_job, posterior_total_flux as posterior_total_flux, run_lightcurve as run_lightcurve

@@ -46,6 +46,7 @@ from ..core.terms import Model
 from ..io.observations import Observations
 from ..runtime.errors import InputError
 from .attitude import lumos_normal_to_body, offset_facets
+from .earthshine import earthshine_flux
 from .engine import Attitude, Facets, Satellite, SunDisk, facet_flux
 from .photometry import BANDS, BandError, band
 from .skygeometry import SkyGeometry, sky_geometry
@@ -266,12 +267,17 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
                 draws: int = 0, seed: int = 0, parameter_uncertainty: bool = True, model_form: bool = True,
                 result_paths: dict[str, Path] | None = None, out_of_plane_deg: float = 5.0,
                 incidence_margin_deg: float = 1.0, min_flux_fraction: float = 0.1,
-                min_altitude_deg: float = 0.0) -> SetPrediction:
+                min_altitude_deg: float = 0.0, earthshine_albedo: float | None = None,
+                earthshine_grid: tuple[int, int] = (32, 64)) -> SetPrediction:
     """Predict one observation set (see the module docstring).
 
     ``models``: model name -> object with ``.model`` (a Model) and ``.draws``
     (None or posterior (names, (S, p))); ``result_paths``: model name -> the
-    result.json its covariance draws come from.
+    result.json its covariance draws come from.  ``earthshine_albedo``: add
+    the light of a Lambertian Earth of that albedo (:mod:`.earthshine`, on an
+    ``earthshine_grid`` of polar x azimuthal elements); the band's draws scale
+    each facet's direct flux by the nominal (direct + earthshine) / direct
+    ratio.
     """
     geo = sky_geometry(obs, yaw_law=yaw_law, earth_radius=earth_radius, min_altitude_deg=min_altitude_deg)
     kept = obs.take(geo.keep)
@@ -303,6 +309,11 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
         ratio = np.where(point > 0, flux / np.where(point > 0, point, 1.0), 1.0)
     else:
         ratio = np.ones_like(flux)
+    if earthshine_albedo is not None:
+        es = np.asarray(earthshine_flux(sat, g, earthshine_albedo, n_psi=earthshine_grid[0], n_chi=earthshine_grid[1],
+                                        earth_radius=er, wavelength=wavelength))
+        ratio = ratio * np.where(flux > 0, (flux + es) / np.where(flux > 0, flux, 1.0), 1.0)
+        flux = flux + es
     total = flux.sum(-1)
     with np.errstate(divide="ignore"):
         mag = sun_mag - 2.5 * np.log10(total)

@@ -48,6 +48,11 @@
     terms_file = "v2mini/mirror_binomial.terms.toml"
     fit_result = "v2mini/mirror_binomial.result.json"   # values, and the covariance of the band
 
+    [earthshine]
+    albedo = 0.3                     # a Lambertian Earth (omit: no earthshine)
+    n_psi = 32
+    n_chi = 64
+
     [bands]
     draws = 200                      # 0: no band
     seed = 0
@@ -144,6 +149,12 @@ class LabConfig(StrictModel):
         return self
 
 
+class EarthshineConfig(StrictModel):
+    albedo: float | None = Field(None, ge=0, le=1, description="a Lambertian Earth's albedo; none: no earthshine")
+    n_psi: int = Field(32, ge=4, description="polar rings of the visible cap")
+    n_chi: int = Field(64, ge=8, description="azimuths of the visible cap")
+
+
 class BandsConfig(StrictModel):
     draws: int = Field(200, ge=0)
     seed: int = 0
@@ -172,6 +183,7 @@ class ObserveConfig(StrictModel):
     facets: dict[str, ObserveFacetConfig] = Field(min_length=1)
     lab: dict[str, LabConfig] = Field(default_factory=dict)
     models: dict[str, LCModelConfig] = Field(min_length=1)
+    earthshine: EarthshineConfig = Field(default_factory=EarthshineConfig)
     bands: BandsConfig = Field(default_factory=BandsConfig)
     flags: FlagsConfig = Field(default_factory=FlagsConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
@@ -247,7 +259,8 @@ def predict_all(cfg: ObserveConfig, log=lambda s: None) -> list[SetPrediction]:
             parameter_uncertainty=cfg.bands.parameter_uncertainty, model_form=cfg.bands.model_form,
             result_paths=results, out_of_plane_deg=cfg.flags.out_of_plane_deg,
             incidence_margin_deg=cfg.flags.incidence_margin_deg, min_flux_fraction=cfg.flags.min_flux_fraction,
-            min_altitude_deg=oc.min_altitude_deg)
+            min_altitude_deg=oc.min_altitude_deg, earthshine_albedo=cfg.earthshine.albedo,
+            earthshine_grid=(cfg.earthshine.n_psi, cfg.earthshine.n_chi))
         log(f"{oc.name}: {len(pred.mag)} rows predicted (dropped: {pred.obs.dropped})")
         out.append(pred)
     return out
@@ -323,7 +336,7 @@ def run_observe(cfg: ObserveConfig, out_dir: str | Path, log=lambda s: sys.stder
     Path(out).mkdir(parents=True, exist_ok=True)
     preds = predict_all(cfg, log)
     summary: dict[str, Any] = {"config": cfg.source, "photometry": cfg.photometry.convention, "sun_disk": cfg.sun.disk,
-                               "attitude": cfg.attitude.law, "sets": {}}
+                               "attitude": cfg.attitude.law, "earthshine_albedo": cfg.earthshine.albedo, "sets": {}}
     for pred in preds:
         text = _csv(pred)
         with atomic_output(Path(out) / f"predictions_{pred.name}.csv") as tmp:
