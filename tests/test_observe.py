@@ -313,6 +313,20 @@ def test_cli_exit_2_on_bad_observations(tmp_path):
     assert "bad.csv: line 2, column 'measured_ab': 'n/a' is not a number" in r.stderr
 
 
+def test_model_error_widens_the_band_where_flagged():
+    """A model's own error (RMS of ln BRDF) widens the band: by about 1.0857 sigma in magnitude for a one-facet satellite."""
+    obs = read_observations(SLINGSHOT, "slingshot").take(np.arange(0, 1584, 50))
+    facets = [FacetSpec("plate", 10.0, (0, 0, -1), ["boom"], max_theta_i_deg=10.0, in_plane=True)]
+    kw = dict(normals="lumos", convention="lumos", earth_radius=LUMOS_EARTH_RADIUS_M, draws=4000, seed=1)
+    p0 = predict_set("s", obs, facets, _authors_models(), **kw)
+    p1 = predict_set("s", obs, facets, _authors_models(), model_error={"boom": (0.1, 0.5)}, **kw)
+    w0 = p0.band[:, 3] - p0.band[:, 1]
+    w1 = p1.band[:, 3] - p1.band[:, 1]
+    assert np.all(w0 < 1e-9)  # no covariance, no uncertainty column: a line
+    sig = np.where(p1.flag_incidence[:, 0] | p1.flag_plane[:, 0], 0.5, 0.1) * 2.5 / np.log(10)
+    np.testing.assert_allclose(w1, 2 * sig, rtol=0.08)
+
+
 def test_solar_disk_changes_little_on_broad_lab_brdfs():
     obs = read_observations(SLINGSHOT, "slingshot").take(np.arange(0, 1584, 40))
     kw = dict(normals="lumos", convention="lumos", earth_radius=LUMOS_EARTH_RADIUS_M)

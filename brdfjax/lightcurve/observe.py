@@ -268,7 +268,8 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
                 result_paths: dict[str, Path] | None = None, out_of_plane_deg: float = 5.0,
                 incidence_margin_deg: float = 1.0, min_flux_fraction: float = 0.1,
                 min_altitude_deg: float = 0.0, earthshine_albedo: float | None = None,
-                earthshine_grid: tuple[int, int] = (32, 64)) -> SetPrediction:
+                earthshine_grid: tuple[int, int] = (32, 64),
+                model_error: dict[str, tuple[float, float]] | None = None) -> SetPrediction:
     """Predict one observation set (see the module docstring).
 
     ``models``: model name -> object with ``.model`` (a Model) and ``.draws``
@@ -277,7 +278,11 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     the light of a Lambertian Earth of that albedo (:mod:`.earthshine`, on an
     ``earthshine_grid`` of polar x azimuthal elements); the band's draws scale
     each facet's direct flux by the nominal (direct + earthshine) / direct
-    ratio.
+    ratio.  ``model_error``: model name -> (inside, outside) RMS of ln BRDF:
+    each draw multiplies a facet's flux by ``exp(sigma z)`` (z normal, per
+    draw, row and facet), sigma the model's error inside the lab's geometry
+    (its fit's log-RMS) or outside it (e.g. its log-RMS on a withheld
+    incidence), by the facet's flag on that row.
     """
     geo = sky_geometry(obs, yaw_law=yaw_law, earth_radius=earth_radius, min_altitude_deg=min_altitude_deg)
     kept = obs.take(geo.keep)
@@ -331,12 +336,13 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     if draws > 0:
         pred.band, pred.families_drawn = _bands(sat, facets, fam_names, models, result_paths or {}, np.asarray(w_c),
                                                 np.asarray(w_s), np.asarray(scale), ratio, sun_mag, kept.mag_err, draws,
-                                                seed, parameter_uncertainty, model_form, wavelength)
+                                                seed, parameter_uncertainty, model_form, wavelength, model_error or {},
+                                                flag_i | flag_p)
     return pred
 
 
 def _bands(sat, facets, fam_names, models, result_paths, w_c, w_s, scale, ratio, sun_mag, mag_err, S, seed,
-           parameter_uncertainty, model_form, wavelength):
+           parameter_uncertainty, model_form, wavelength, model_error, outside):
     rng = np.random.default_rng(seed)
     J = len(facets)
     T = w_c.shape[0]
@@ -368,7 +374,11 @@ def _bands(sat, facets, fam_names, models, result_paths, w_c, w_s, scale, ratio,
         vals = np.nan_to_num(vals, nan=0.0, posinf=0.0)
         for q, j in enumerate(cols):
             use = choice[used, j] == fi
-            total[used[use]] += vals[use, :, q] * (area[j] * scale * ratio[:, j])[None, :]
+            contrib = vals[use, :, q] * (area[j] * scale * ratio[:, j])[None, :]
+            if fam in model_error:
+                sig = np.where(outside[:, j], model_error[fam][1], model_error[fam][0])  # (T,)
+                contrib = contrib * np.exp(sig[None, :] * rng.standard_normal(contrib.shape))
+            total[used[use]] += contrib
             counts.setdefault(facets[j].name, {})[fam] = int(use.sum())
     with np.errstate(divide="ignore"):
         m = sun_mag[None, :] - 2.5 * np.log10(total)

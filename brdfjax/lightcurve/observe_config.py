@@ -53,6 +53,10 @@
     n_psi = 32
     n_chi = 64
 
+    [model_error.mirror_binomial]    # the model's own error, RMS of ln BRDF (widens the band)
+    inside_log_rms = 0.79            # its fit's log-RMS
+    outside_log_rms = 1.28           # its log-RMS on a withheld incidence (experiments/sky_lab_cv.py)
+
     [bands]
     draws = 200                      # 0: no band
     seed = 0
@@ -155,6 +159,11 @@ class EarthshineConfig(StrictModel):
     n_chi: int = Field(64, ge=8, description="azimuths of the visible cap")
 
 
+class ModelErrorConfig(StrictModel):
+    inside_log_rms: float = Field(ge=0, description="RMS of ln BRDF inside the lab's geometry (the fit's log-RMS)")
+    outside_log_rms: float = Field(ge=0, description="RMS of ln BRDF outside it (e.g. on a withheld incidence)")
+
+
 class BandsConfig(StrictModel):
     draws: int = Field(200, ge=0)
     seed: int = 0
@@ -184,6 +193,7 @@ class ObserveConfig(StrictModel):
     lab: dict[str, LabConfig] = Field(default_factory=dict)
     models: dict[str, LCModelConfig] = Field(min_length=1)
     earthshine: EarthshineConfig = Field(default_factory=EarthshineConfig)
+    model_error: dict[str, ModelErrorConfig] = Field(default_factory=dict)
     bands: BandsConfig = Field(default_factory=BandsConfig)
     flags: FlagsConfig = Field(default_factory=FlagsConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
@@ -196,6 +206,9 @@ class ObserveConfig(StrictModel):
                     raise ValueError(f"facets.{name}: unknown model '{m}'; known: {', '.join(self.models)}")
             if f.lab is not None and f.lab not in self.lab:
                 raise ValueError(f"facets.{name}.lab: unknown lab table '{f.lab}'; known: {', '.join(self.lab) or 'none'}")
+        for m in self.model_error:
+            if m not in self.models:
+                raise ValueError(f"model_error.{m}: unknown model; known: {', '.join(self.models)}")
         names = [o.name for o in self.observations]
         if len(set(names)) != len(names):
             raise ValueError(f"observations: names must differ (got {names})")
@@ -260,7 +273,8 @@ def predict_all(cfg: ObserveConfig, log=lambda s: None) -> list[SetPrediction]:
             result_paths=results, out_of_plane_deg=cfg.flags.out_of_plane_deg,
             incidence_margin_deg=cfg.flags.incidence_margin_deg, min_flux_fraction=cfg.flags.min_flux_fraction,
             min_altitude_deg=oc.min_altitude_deg, earthshine_albedo=cfg.earthshine.albedo,
-            earthshine_grid=(cfg.earthshine.n_psi, cfg.earthshine.n_chi))
+            earthshine_grid=(cfg.earthshine.n_psi, cfg.earthshine.n_chi),
+            model_error={k: (v.inside_log_rms, v.outside_log_rms) for k, v in cfg.model_error.items()})
         log(f"{oc.name}: {len(pred.mag)} rows predicted (dropped: {pred.obs.dropped})")
         out.append(pred)
     return out
