@@ -27,6 +27,7 @@ from brdfjax.lightcurve.config import build_models  # noqa: E402
 from brdfjax.lightcurve.engine import SunDisk  # noqa: E402
 from brdfjax.lightcurve.observe import FacetSpec, predict_set  # noqa: E402
 from brdfjax.lightcurve.observe_config import load_observe_config  # noqa: E402
+from brdfjax.lightcurve.skygeometry import sky_geometry  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,8 +54,12 @@ def main() -> None:
     facets.append(FacetSpec("twist_2", 0.6, (0.0, -0.5, -0.866), ["a700_binomial", "a700_abg", "a700_ggx"],
                             max_theta_i_deg=75.0, in_plane=True))
     facets[6] = FacetSpec("boom", 2.2, (0.0, 0.0, -1.0), ["boom_abg_authors"])
-    obs = synthetic(a.n)
-    kw = dict(normals="lumos", convention="lumos", disk=SunDisk.rings(3), draws=a.draws, result_paths=results)
+    many = synthetic(3 * a.n)
+    keep = sky_geometry(many).keep  # sunlit and above the horizon
+    obs = many.take(keep[: a.n])
+    errors = {k: (v.inside_log_rms, v.outside_log_rms) for k, v in cfg.model_error.items()}
+    kw = dict(normals="lumos", convention="lumos", disk=SunDisk.rings(3), draws=a.draws, result_paths=results,
+              model_error=errors)
     t = time.perf_counter()
     predict_set("bench", obs, facets, models, **kw)
     t_first = time.perf_counter() - t

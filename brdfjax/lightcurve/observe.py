@@ -37,6 +37,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -238,26 +239,31 @@ def _angles(w_c, w_s):
     return ti, ts, out
 
 
-def _family_flux_draws(model: Model, names: tuple[str, ...], draws: np.ndarray, w_c, w_s, wavelength: float,
-                       chunk: int = 64) -> np.ndarray:
-    """BRDF x cos_i x cos_s of ``model`` with each parameter draw, (S, T, Jm), evaluated in draw chunks."""
+@eqx.filter_jit
+def _draw_values(model: Model, names: tuple[str, ...], draws, w_c, w_s, wavelength: float):
+    """BRDF x cos_i x cos_s of ``model`` at each parameter draw (rows of ``draws``): (S, T, Jm).  One compilation per
+    model structure and shape (``names`` and ``wavelength`` static)."""
     cos = jnp.maximum(w_c[..., 2], 0.0) * jnp.maximum(w_s[..., 2], 0.0)
     dirs = Directions.from_vectors(w_c, w_s)
 
-    @jax.jit
-    def one_chunk(p):
-        def one(pp):
-            m = model.with_params(dict(zip(names, [pp[i] for i in range(len(names))]))) if names else model
-            return m(dirs, wavelength) * cos
-        return jax.lax.map(one, p) if p.shape[0] > 0 else jnp.zeros((0,) + cos.shape)
+    def one(pp):
+        m = model.with_params({n: pp[i] for i, n in enumerate(names)}) if names else model
+        return m(dirs, wavelength) * cos
 
-    out = []
+    return jax.lax.map(one, draws, batch_size=16)
+
+
+def _family_flux_draws(model: Model, names: tuple[str, ...], draws: np.ndarray, w_c, w_s, wavelength: float,
+                       block: int = 128) -> np.ndarray:
+    """:func:`_draw_values` with the draws padded to a multiple of ``block`` (fewer distinct shapes to compile)."""
     S = draws.shape[0]
-    pad = (-S) % chunk
+    if S == 0:
+        return np.zeros((0,) + tuple(w_c.shape[:-1]))
+    pad = (-S) % block
     d = np.concatenate([draws, np.repeat(draws[-1:], pad, 0)]) if pad else draws
-    for k in range(0, d.shape[0], chunk):
-        out.append(np.asarray(one_chunk(jnp.asarray(d[k:k + chunk]))))
-    return np.concatenate(out)[:S]
+    if d.shape[1] == 0:
+        d = np.zeros((d.shape[0], 1))
+    return np.asarray(_draw_values(model, tuple(names), jnp.asarray(d), w_c, w_s, float(wavelength)))[:S]
 
 
 def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: dict[str, "object"],
