@@ -44,6 +44,7 @@ import numpy as np
 
 from ..core.geometry import Directions
 from ..core.terms import Model
+from ..fit import read_cornell_brdf, read_merl_inplane, read_table
 from ..io.observations import Observations
 from ..runtime.errors import InputError
 from .attitude import lumos_normal_to_body, offset_facets
@@ -130,8 +131,6 @@ def metrics(observed: np.ndarray, predicted: np.ndarray, bands: np.ndarray | Non
 
 def lab_coverage(path: str | Path, fmt: str = "lumos-sat", columns: dict | None = None) -> tuple[float, bool]:
     """The largest incident angle (deg) of a lab table and whether every row lies in the plane of incidence."""
-    from ..fit import read_cornell_brdf, read_merl_inplane, read_table
-
     path = Path(path)
     if fmt in ("lumos-sat", "merl"):
         t = read_merl_inplane(path, columns=columns)
