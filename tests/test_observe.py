@@ -333,3 +333,38 @@ def test_solar_disk_changes_little_on_broad_lab_brdfs():
     p0 = predict_set("s", obs, _authors_facets(), _authors_models(), **kw)
     p1 = predict_set("s", obs, _authors_facets(), _authors_models(), disk=SunDisk.rings(3), **kw)
     assert np.max(np.abs(p0.mag - p1.mag)) < 0.01
+
+
+# --- attitude conventions --------------------------------------------------------------------------------------
+
+
+def test_sun_yaw_frame_tracking_array_and_differentiable_cant():
+    """nadir_sun_yaw: the Sun lies in the body y-z plane, lumos-sat's Earth-facing normal is body +z (nadir), an array
+    tracking about body x faces the Sun exactly; a facet's cant is differentiable (gradient = finite difference)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from brdfjax.lightcurve.attitude import lumos_normal_to_body, offset_facets
+    from brdfjax.lightcurve.engine import Attitude, Facets, Satellite, facet_flux, magnitude
+
+    obs = read_observations(SLINGSHOT, "slingshot").take(np.arange(0, 1584, 100))
+    g = sky_geometry(obs, earth_radius=LUMOS_EARTH_RADIUS_M).engine_geometry()
+    M = np.asarray(Attitude.nadir().matrix(g.r_hat, g.v_hat))
+    s_b = np.einsum("tij,ti->tj", M, np.asarray(g.s))
+    assert np.max(np.abs(s_b[:, 0])) < 1e-12 and np.all(s_b[:, 1] > 0)
+    np.testing.assert_allclose(M[:, :, 2], -np.asarray(g.r_hat), atol=1e-12)  # body z = nadir
+    np.testing.assert_array_equal(lumos_normal_to_body([0, 0, -1]), [0, 0, 1])
+    fac = Facets.build(["array", "chassis"], [10.0, 1.0], [[0, 1.0, 0], [0, 0, 1.0]], x_axis=[[1.0, 0, 0], None],
+                       tracking=[True, False])
+    _, _, n = fac.frames(jnp.asarray(s_b))
+    np.testing.assert_allclose(np.sum(np.asarray(n)[:, 0] * s_b, -1), 1.0, atol=1e-12)  # cos_i = 1 on the array
+    model = Model({"t": ABg(0.02, 1e-3, 2.0)})
+
+    def mag(cant):
+        sat = Satellite(offset_facets(fac, jnp.stack([0.0, cant]), jnp.zeros(2)), (model,), Attitude.nadir(), (0, 0))
+        return jnp.sum(magnitude(facet_flux(sat, g, SunDisk.point())["flux"][:, 1]))
+
+    c0 = 0.1
+    grad = float(eqx.filter_grad(mag)(jnp.asarray(c0)))
+    fd = float((mag(jnp.asarray(c0 + 1e-6)) - mag(jnp.asarray(c0 - 1e-6))) / 2e-6)
+    assert np.isfinite(grad) and grad != 0 and grad == pytest.approx(fd, rel=1e-5)
