@@ -166,6 +166,13 @@ def test_score_phase_angles_agree_with_satchecker():
     theirs = np.array([float(rows[int(line) - 2]["phase_angle_deg_satchecker"]) for line in sub.line[g.keep]])
     dphase = np.abs(g.phase_angle_deg() - theirs)
     assert np.median(dphase) < 0.02 and np.max(dphase) < 0.1
+    # the Earth's shadow: exactly SatChecker's 8 rows marked not illuminated (one more row is below the horizon)
+    full = sky_geometry(obs)
+    assert full.dropped == {"below_horizon": 1, "in_shadow": 8, "no_position": 0}
+    lit = np.zeros(len(obs), bool)
+    lit[full.keep] = True
+    theirs_lit = np.array([r["illuminated"] == "True" for r in rows])
+    assert np.sum(~theirs_lit) == 8 and not np.any(lit & ~theirs_lit)
 
 
 # --- the authors' prediction -----------------------------------------------------------------------------------
