@@ -18,7 +18,7 @@ from brdfjax.cli import main
 from brdfjax.lightcurve.config import load_lightcurve_config
 from brdfjax.lightcurve.engine import Attitude, Facets, Geometry, Satellite, SunDisk, facet_flux, magnitude
 from brdfjax.lightcurve.ephemeris import AU_M, gmst, parse_tle, sun_position_teme
-from brdfjax.lightcurve.models import Phong, directional_albedo
+from brdfjax.lightcurve.models import directional_albedo, lumos_phong
 from brdfjax.lightcurve.run import build_job
 
 jax.config.update("jax_enable_x64", True)
@@ -120,7 +120,7 @@ def test_gradient_matches_finite_differences():
     r_obs = 6.37e6 * r_hat - 3e5 * t_hat + np.array([0.0, 0.0, 2e5])
     geo = Geometry.from_positions(r_sat, 7.6e3 * t_hat, r_sat + s * AU_M, r_obs)
     fac = Facets.build(["a", "b"], [1.0, 2.0], [[0.0, 0.0, 1.0], [0.3, 0.2, 1.0]])
-    sat = Satellite(fac, (Phong(0.1, 0.4, 30.0), bj.Model({"d": bj.Lambertian(0.2)})), Attitude.nadir(yaw=0.05), (0, 1))
+    sat = Satellite(fac, (lumos_phong(0.1, 0.4, 30.0), bj.Model({"d": bj.Lambertian(0.2)})), Attitude.nadir(yaw=0.05), (0, 1))
     disk = SunDisk.rings(2)
     target = 6.0
 
@@ -131,7 +131,7 @@ def test_gradient_matches_finite_differences():
     assert np.all(np.isfinite(np.asarray(loss(sat))))
     grads = eqx.filter_grad(loss)(sat)
     getters = (
-        (lambda st: st.models[0].ks, 1e-6),
+        (lambda st: st.models[0].terms["phong"].rho, 1e-6),
         (lambda st: st.attitude.yaw, 1e-6),
         (lambda st: st.models[1].terms["d"].rho_d, 1e-7),
     )
@@ -187,7 +187,7 @@ def test_matches_lumos_sat_lambertian_and_phong(tmp_path):
                                                             "step_s = 10.0": "step_s = 15.0"}))
     job = build_job(cfg)
     kd, ks, nexp = 0.1, 0.3, 20.0
-    models = {"cell": Phong(kd, ks, nexp), "bus": bj.Model({"d": bj.Lambertian(0.3)}), "back": bj.Model({"d": bj.Lambertian(0.1)})}
+    models = {"cell": lumos_phong(kd, ks, nexp), "bus": bj.Model({"d": bj.Lambertian(0.3)}), "back": bj.Model({"d": bj.Lambertian(0.1)})}
     sat = Satellite(job.facets, tuple(models[n] for n in job.model_names), job.attitude, job.model_of)
     out = facet_flux(sat, job.geometry, SunDisk.point())
     disk_flux = np.asarray(facet_flux(sat, job.geometry, SunDisk.rings(8))["flux"]).sum(-1)
@@ -418,9 +418,9 @@ def test_adaptive_disk_without_glints_is_the_cheap_rule():
     geo = _glint_sweep(T=24)
     full = SunDisk.rings(8)
     fac = Facets.build(["a", "b"], [1.0, 2.0], [[0, 0, 1.0], [0.5, -0.2, 1.0]])
-    sat = Satellite(fac, (Phong(0.1, 0.3, 20.0), bj.Model({"d": bj.Lambertian(0.3)})), Attitude.inertial(), (0, 1))
+    sat = Satellite(fac, (lumos_phong(0.1, 0.3, 20.0), bj.Model({"d": bj.Lambertian(0.3)})), Attitude.inertial(), (0, 1))
     disk = AdaptiveDisk(full).plan(sat, geo)
-    assert disk.capacity == (0, 0)
+    assert disk.capacity == (0, 0, 0)  # units: lumos_phong's Lambertian and Phong terms, the plate's Lambertian
     out = facet_flux(sat, geo, disk)
     assert int(np.sum(out["disk_full"])) == 0 and int(np.sum(out["disk_overflow"])) == 0
     cheap = np.asarray(facet_flux(sat, geo, SunDisk.point())["flux"]) * float(full.mean_cos())

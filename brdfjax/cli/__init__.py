@@ -178,6 +178,12 @@ COMMANDS: dict[str, Command] = {
         _lazy(".lightcurve", "add_arguments"),
         _lazy(".lightcurve", "run"),
     ),
+    "observe": Command(
+        "observe",
+        "predict real satellite observations (alt/az or relative rows) from facet BRDF fits: bands, flags, metrics",
+        _lazy(".observe", "add_arguments"),
+        _lazy(".observe", "run"),
+    ),
 }
 
 

@@ -71,7 +71,7 @@ from pydantic import Field, field_validator, model_validator
 from ..config import ConfigError, ModelConfig, StrictModel, build_model, read_toml, validate
 from ..core.terms import Lambertian, Model
 from .ephemeris import TLEError, parse_tle
-from .models import Phong, directional_albedo, params_from_fit_result, posterior_samples
+from .models import directional_albedo, lumos_phong, params_from_fit_result, posterior_samples
 
 __all__ = ["LightcurveConfig", "load_lightcurve_config", "FacetConfig", "LCModelConfig"]
 
@@ -251,7 +251,7 @@ def build_models(cfg: LightcurveConfig, wavelength: float) -> dict[str, BuiltMod
             out[name] = BuiltModel(Model({"diffuse": Lambertian(m.lambertian_albedo)}))
             continue
         if m.phong is not None:
-            out[name] = BuiltModel(Model({"phong": Phong(m.phong.kd, m.phong.ks, m.phong.exponent)}))
+            out[name] = BuiltModel(lumos_phong(m.phong.kd, m.phong.ks, m.phong.exponent))
             continue
         table = {k: v for k, v in (("preset", m.preset), ("params", m.params), ("terms", m.terms)) if v}
         try:

@@ -1,9 +1,9 @@
 """Facet models beyond the core's: a Phong baseline, the directional albedo, models from fits and posteriors.
 
-:class:`Phong` is the baseline that light-curve tools use (lumos-sat's
-``PHONG(Kd, Ks, n)``: ``Kd / pi + Ks (n + 2) / (2 pi) max(r . w_s, 0)^n``,
-``r`` the mirror direction of ``w_i``); it lives here, not in the core,
-because it is a light-curve baseline rather than a measured material.
+:func:`lumos_phong` builds lumos-sat's ``PHONG(Kd, Ks, n)`` baseline
+(``Kd / pi + Ks (n + 2) / (2 pi) max(r . w_s, 0)^n``, ``r`` the mirror
+direction of ``w_i``) from the core's one :class:`~brdfjax.core.terms.Phong`
+and a Lambertian term (``Phong`` here is that core class, re-exported).
 :func:`directional_albedo` integrates any model over the scattered hemisphere
 in half-vector coordinates, fine enough for the seed's 2e-4 rad peaks, to
 give a baseline "of the same albedo".  :func:`params_from_fit_result` and
@@ -15,47 +15,31 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import ClassVar
 
 import h5py
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
 
-from ..core.fields import check_param, param
 from ..core.geometry import Directions
-from ..core.terms import AbstractTerm, Model
+from ..core.terms import AbstractTerm, Lambertian, Model, Phong
 from ..runtime.errors import InputError
 
-__all__ = ["Phong", "directional_albedo", "params_from_fit_result", "posterior_samples", "ModelSourceError"]
+__all__ = ["Phong", "lumos_phong", "directional_albedo", "params_from_fit_result", "posterior_samples", "ModelSourceError"]
 
 
 class ModelSourceError(InputError):
     """A fit result or posterior chain that cannot give a facet's model; the message names the file and key."""
 
 
-class Phong(AbstractTerm):
-    """lumos-sat's Phong BRDF: ``kd / pi + ks (n + 2) / (2 pi) max(r . w_s, 0)^n``, zero below the horizon."""
+def lumos_phong(kd: float, ks: float, n: float) -> Model:
+    """lumos-sat's ``PHONG(Kd, Ks, n)``: ``Kd / pi + Ks (n + 2) / (2 pi) max(r . w_s, 0)^n`` as a core model.
 
-    kind: ClassVar[str] = "phong"
-    kd: Array = param("1", "diffuse coefficient")
-    ks: Array = param("1", "specular coefficient")
-    exponent: Array = param("1", "Phong exponent n")
-
-    def __check_init__(self):
-        check_param("phong", "kd", self.kd, lambda v: v >= 0, "kd >= 0")
-        check_param("phong", "ks", self.ks, lambda v: v >= 0, "ks >= 0")
-        check_param("phong", "exponent", self.exponent, lambda v: v >= 0, "exponent >= 0")
-
-    def __call__(self, dirs: Directions, wavelength) -> Array:
-        wi, ws = dirs.w_i, dirs.w_s
-        # mirror of w_i about the normal (0, 0, 1): (-x, -y, z)
-        rdot = -wi[..., 0] * ws[..., 0] - wi[..., 1] * ws[..., 1] + wi[..., 2] * ws[..., 2]
-        rdot = jnp.clip(rdot, 0.0, 1.0)
-        spec = self.ks * (self.exponent + 2) / (2 * np.pi) * jnp.where(rdot > 0, rdot, 1.0) ** self.exponent
-        f = self.kd / np.pi + jnp.where(rdot > 0, spec, 0.0)
-        return jnp.where((dirs.cos_theta_i > 0) & (dirs.cos_theta_s > 0), f, 0.0)
+    The core's :class:`~brdfjax.core.terms.Phong` (``rho (k + 2) / (2 pi)
+    max(cos alpha, 0)^k``, alpha from the mirror direction) with ``rho = Ks``,
+    ``k = n``, plus a :class:`~brdfjax.core.terms.Lambertian` of ``rho_d = Kd``.
+    """
+    return Model({"diffuse": Lambertian(kd), "phong": Phong(ks, n)})
 
 
 def directional_albedo(model: AbstractTerm, theta_i: float, wavelength: float = 550e-9,
