@@ -2,7 +2,7 @@
 lumos-sat's own header.
 
 Real tables: ``tests/data/satellites/starlink_v2mini_lab`` (Starlink V2 Mini lab BRDFs, Kandula 2025, MIT;
-see SOURCE.md there) and ``tests/data/real`` (MERL aluminium, Cornell paints)."""
+see tests/data/satellites/README.md) and ``tests/data/real`` (MERL aluminium, Cornell paints)."""
 
 from __future__ import annotations
 
