@@ -28,6 +28,7 @@ MOVED = {
     "brdfjax.fit.cli_fit": "brdfjax.cli.fit",
     "brdfjax.lightcurve.cli": "brdfjax.cli.lightcurve",
     "brdfjax.instrument.raw": "brdfjax.io.raw",
+    "brdfjax.sample.cli": "brdfjax.sample.config",
 }
 
 __all__ = ["MOVED", "install"]

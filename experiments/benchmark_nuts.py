@@ -37,7 +37,7 @@ from brdfjax.fit.config import load_fit_config  # noqa: E402
 from brdfjax.fit.job import build_fit_job  # noqa: E402
 from brdfjax.io import write_json_atomic  # noqa: E402
 from brdfjax.sample import sample  # noqa: E402
-from brdfjax.sample.cli import SampleSection, priors_from_config  # noqa: E402
+from brdfjax.sample.config import SampleSection, priors_from_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -83,7 +83,7 @@ def test_bad_nuisance_input_names_the_key():
     base = {"data": {"frames": ["x.exr"]}, "model": {"preset": "solar_cell"}}
     with pytest.raises(ConfigError, match=r'c.toml: nuisance.nd_tolerances: .*"1.0" = -0.1: an OD tolerance must be'):
         parse_fit_config({**base, "nuisance": {"nd_tolerances": {"1.0": -0.1}}}, source="c.toml")
-    from brdfjax.sample.cli import SampleSection
+    from brdfjax.sample.config import SampleSection
 
     with pytest.raises(ConfigError, match=r"c.toml: sample.sampler: unknown sampler 'hmc'; expected 'emcee' or 'nuts'"):
         parse_fit_config({**base, "sample": {"sampler": "hmc"}}, source="c.toml", sections={"sample": SampleSection})

@@ -392,7 +392,7 @@ def test_shipped_config_runs(tmp_path, _):
 
 def test_config_priors_convert_units_and_name_unknown_keys():
     from brdfjax.config import ConfigError
-    from brdfjax.sample.cli import SampleSection, priors_from_config
+    from brdfjax.sample.config import SampleSection, priors_from_config
 
     sec = SampleSection.model_validate({"priors": {
         "dtheta_deg": {"kind": "normal", "mu": 0.5, "sigma": 0.1},

@@ -5,7 +5,7 @@ brdfjax imports it.  Subcommands are entries of :data:`COMMANDS` (a name, a
 help line, a function adding its arguments and a function running it); the
 fit, diagnose, sample and capture commands live beside their packages
 (:mod:`brdfjax.cli.fit`, :mod:`brdfjax.diagnose.cli`,
-:mod:`brdfjax.sample.cli`, :mod:`brdfjax.devices.capture`).
+:mod:`brdfjax.cli.sample`, :mod:`brdfjax.devices.capture`).
 
 ``brdfjax simulate [CONFIG] --out DIR [--step K] [--precision P] [--no-figures]``
 renders every frame of a TOML config (see :mod:`brdfjax.config`; without
@@ -169,8 +169,8 @@ COMMANDS: dict[str, Command] = {
     "sample": Command(
         "sample",
         "parameter posteriors (emcee or NUTS) from a fit config ([sample] table): chain.h5, posterior.json, corner/trace plots",
-        _lazy("..sample.cli", "add_arguments"),
-        _lazy("..sample.cli", "run"),
+        _lazy(".sample", "add_arguments"),
+        _lazy(".sample", "run"),
     ),
     "lightcurve": Command(
         "lightcurve",

@@ -21,14 +21,15 @@ import jax
 
 from ..io import check_output_dir
 from ..lightcurve.observe_config import load_observe_config, run_observe
+from ..runtime.cli_args import CONFIG, DIR, add_no_figures
 
 __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", metavar="CONFIG", help="observe TOML config (see configs/observe_v2mini_slingshot.toml)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
-    p.add_argument("--no-plot", action="store_true", help="write the CSV and JSON only")
+    p.add_argument("config", metavar=CONFIG, help="observe TOML config (see configs/observe_v2mini_slingshot.toml)")
+    p.add_argument("--out", required=True, metavar=DIR, help="output folder (created if needed)")
+    add_no_figures(p, "write the CSV and JSON only")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,5 +38,7 @@ def run(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     if cfg.precision == "float64":
         jax.config.update("jax_enable_x64", True)
-    run_observe(cfg, args.out, log=lambda s: sys.stderr.write(f"{prog}: {s}\n"), figures=False if args.no_plot else None)
+    quiet = getattr(args, "quiet", False)
+    log = (lambda s: None) if quiet else (lambda s: sys.stderr.write(f"{prog}: {s}\n"))
+    run_observe(cfg, args.out, log=log, figures=False if args.no_figures else None)
     return 0

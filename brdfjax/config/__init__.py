@@ -25,7 +25,7 @@ fit: ``[data]``, ``[data.reduce]``     ``FitDataConfig``, ``ReduceConfig``      
 fit: ``[[data.tables]]``               ``TableConfig``                                     ``brdfjax/fit/config.py``
 fit: ``[data.synthetic]``              ``SyntheticConfig``                                 ``brdfjax/fit/config.py``
 fit: ``[fit]``, ``[output]``           ``FitSection``, ``OutputConfig``                    ``brdfjax/fit/config.py``
-sample: ``[sample]``, ``.priors``      ``SampleSection``, ``PriorConfig``                  ``brdfjax/sample/cli.py``
+sample: ``[sample]``, ``.priors``      ``SampleSection``, ``PriorConfig``                  ``brdfjax/sample/config.py``
 diagnose: ``[diagnose]``               ``DiagnoseSection``                                 ``brdfjax/diagnose/cli.py``
 capture: every table                   ``CaptureConfig`` and its sections                  ``brdfjax/devices/capture.py``
 instrument TOML (synthetic camera)     ``InstrumentConfig`` (``load_instrument_config``)   ``brdfjax/instrument/synthetic.py``

@@ -42,7 +42,7 @@ def _roots() -> list[tuple[str, str, list[tuple[str, type[BaseModel]]]]]:
     from brdfjax.fit.config import FitConfig
     from brdfjax.instrument.synthetic import InstrumentConfig
     from brdfjax.lightcurve.config import LightcurveConfig
-    from brdfjax.sample.cli import SampleSection
+    from brdfjax.sample.config import SampleSection
 
     return [
         ("Simulate configs", "`brdfjax simulate`, `brdfjax synthesize`", [("", SimulateConfig)]),
