@@ -5,7 +5,7 @@ brdfjax imports it.  Subcommands are entries of :data:`COMMANDS` (a name, a
 help line, a function adding its arguments and a function running it); the
 fit, diagnose, sample and capture commands live beside their packages
 (:mod:`brdfjax.cli.fit`, :mod:`brdfjax.diagnose.cli`,
-:mod:`brdfjax.cli.sample`, :mod:`brdfjax.devices.capture`).
+:mod:`brdfjax.cli.sample`, :mod:`brdfjax.cli.capture`).
 
 ``brdfjax simulate [CONFIG] --out DIR [--step K] [--precision P] [--no-figures]``
 renders every frame of a TOML config (see :mod:`brdfjax.config`; without
@@ -157,8 +157,8 @@ COMMANDS: dict[str, Command] = {
     "capture": Command(
         "capture",
         "run a capture plan (beam signature, alignment, samples) on the simulated bench or lab hardware: raw set",
-        _lazy("..devices.capture", "capture_arguments"),
-        _lazy("..devices.capture", "run_capture_command"),
+        _lazy(".capture", "add_arguments"),
+        _lazy(".capture", "run"),
     ),
     "batch": Command(
         "batch",

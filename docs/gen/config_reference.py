@@ -37,7 +37,7 @@ def _roots() -> list[tuple[str, str, list[tuple[str, type[BaseModel]]]]]:
     """``(section title, what reads it, [(key prefix, model)])`` for every config file kind."""
     from brdfjax.batch import Study
     from brdfjax.config import SimulateConfig
-    from brdfjax.devices.capture import CaptureConfig
+    from brdfjax.devices.config import CaptureConfig
     from brdfjax.diagnose.cli import DiagnoseSection
     from brdfjax.fit.config import FitConfig
     from brdfjax.instrument.synthetic import InstrumentConfig
