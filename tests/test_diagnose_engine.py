@@ -549,3 +549,25 @@ def test_an_effect_that_nests_a_simpler_one_brings_it_into_the_refits():
         step2 = {c.effect: c for c in d.path_rankings[1]}  # the refitted (ranked) candidates of step 2
         assert nesting.name in step2 and ("plain_lobe" in step2) is refitted, (nesting.name, list(step2))
     assert engine._nested({"nesting_lobe", "lambertian"}, lib) == {"plain_lobe"}
+
+
+def test_an_oriented_term_is_written_to_a_config_and_read_back():
+    """``final_model.toml`` expresses every term kind the library adds, the oriented bars included (``oriented =
+    true`` with ``psi_deg`` among the term's parameters): written and read back, the model is the same."""
+    import tomllib
+
+    from brdfjax.config import ModelConfig
+    from brdfjax.config.model import build_model
+    from brdfjax.core.terms import Diffraction, Oriented
+    from brdfjax.diagnose.engine import model_terms_config, toml_text
+
+    model = bj.Model(terms={**LOBE, "bars": Oriented(Diffraction(rho=300.0, a=8.9e-4, b=1.1e-5, c=2.4e-3), psi=0.05)})
+    terms, keys = model_terms_config(model)
+    assert terms["bars"]["kind"] == "diffraction" and terms["bars"]["oriented"] is True
+    assert terms["bars"]["params"]["psi_deg"] == pytest.approx(np.degrees(0.05))
+    assert keys["bars.psi"] == ("bars.psi_deg", pytest.approx(np.radians(1.0)))
+    doc = tomllib.loads(toml_text({"model": {"terms": terms}}))
+    back = build_model("test", ModelConfig(**doc["model"]))
+    assert isinstance(back.terms["bars"], Oriented) and isinstance(back.terms["bars"].term, Diffraction)
+    for k, v in model.params().items():
+        assert float(back.params()[k]) == pytest.approx(float(v), rel=1e-12), k
