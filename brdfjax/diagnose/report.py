@@ -240,6 +240,23 @@ def noise_line(gap: dict[str, Any]) -> str:
     return "noise: the data's own uncertainties (sigma not estimated)"
 
 
+#: The rules by which the path admits and keeps an effect, stated in every report (and in docs/guides/diagnosis.md).
+PATH_RULES = (
+    "An effect enters the path when its refit lowers the BIC by more than the threshold and it is admissible: "
+    "its own new parameters have a finite sigma, no weight or width of a term it added ends dead (below 1e-3 of its "
+    "start), a lobe it added is not narrower than half the angular sampling, none of its parameters ends on a bound, "
+    "it does not drive a term of the model to zero, and its signature reaches its presence threshold (or its refit "
+    "dominates every admissible one 5x).",
+    "A generic effect (a floor, a response curve) that ranks first is refitted jointly with the best specific "
+    "runners-up: when taking it out of the joint model costs less than the threshold (the specific effect explains "
+    "its signature), or the joint model needs the specific effect more, the specific effect enters first.",
+    "Every effect must pass the same test to stay: after each step the earlier effects, and at the end every effect, "
+    "are taken out in turn (the model refitted); one whose removal costs less BIC than the threshold is taken out.",
+    "A refit that fails (raises, ends non-finite, or above the model it extends) is retried once from a second start; "
+    "a refit that fails twice is reported and counted (diagnosis.json settings.failed_refits), never ranked.",
+)
+
+
 def markdown_report(d: Diagnosis) -> str:
     lines = ["# Sim-to-real gap diagnosis", "", _headline(d).replace("**", "**"), ""]
     warns = report_warnings(d)
@@ -252,6 +269,13 @@ def markdown_report(d: Diagnosis) -> str:
     if d.notes:
         lines += ["## Notes", ""] + [f"- {n}" for n in d.notes] + [""]
     lines += ["Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in d.timings.items()), ""]
+    lines += ["## Rules of the path", "", f"(BIC threshold {d.bic_threshold:g}.)", ""] + [f"- {r}" for r in PATH_RULES] + [""]
+    fr = (getattr(d, "settings", None) or {}).get("failed_refits")
+    if fr:
+        lines += [f"Failed refits: {fr.get('candidates', 0)} candidate refit(s) failed after a retry"
+                  + (f" ({', '.join(fr.get('which', []))})" if fr.get("which") else "")
+                  + f", {fr.get('retried', 0)} retried, {fr.get('fresh_start_on_path', 0)} joint refit(s) from fresh "
+                  "starts on the path failed.", ""]
     lines += ["Figures: see report.html; every number: diagnosis.json.", ""]
     return "\n".join(lines)
 
@@ -453,5 +477,7 @@ def html_report(d: Diagnosis, *, figures: bool = True) -> str:
             parts.append(f"<figure><img alt='{html.escape(caption)}' src='data:image/png;base64,{b64}'><figcaption>{html.escape(caption)}</figcaption></figure>")
     if d.notes:
         parts.append("<h2>Notes</h2><ul>" + "".join(f"<li>{html.escape(n)}</li>" for n in d.notes) + "</ul>")
+    parts.append(f"<h2>Rules of the path</h2><p>BIC threshold {d.bic_threshold:g}.</p><ul>"
+                 + "".join(f"<li>{html.escape(r)}</li>" for r in PATH_RULES) + "</ul>")
     parts.append("</body></html>")
     return "\n".join(parts)
