@@ -571,3 +571,35 @@ def test_an_oriented_term_is_written_to_a_config_and_read_back():
     assert isinstance(back.terms["bars"], Oriented) and isinstance(back.terms["bars"].term, Diffraction)
     for k, v in model.params().items():
         assert float(back.params()[k]) == pytest.approx(float(v), rel=1e-12), k
+
+
+class _SpikeLobe(type(EFFECT_LIBRARY["lambertian"])):
+    """A second lobe started as a spike far narrower than the table's 1.6-deg sampling; its extension also frees
+    the first lobe's index (held in the base), so that its BIC gain comes from the first lobe's refit, not from
+    the lobe it adds (the real-table case: weight 2.7e-6, width 5e-6, no sigma, delta BIC 55)."""
+
+    name = "spike_lobe"
+    generic = False
+
+    def present_in(self, model):
+        return "spike" in model.terms
+
+    def extend(self, ctx):
+        model = bj.Model(terms={**ctx.model.terms, "spike": Specular(bj.GGX(2e-3), rho_s=0.05, n=1.5)},
+                         aliases=ctx.model.aliases)
+        params = {**ctx.params, "spike.rho_s": Param(0.05, lower=0.0), "spike.alpha": Param(2e-3, lower=1e-7, upper=1.0),
+                  "spec.n": Param(1.5, lower=1.05, upper=4.0)}
+        return Extension(model, params, 3, note="a spike lobe (test)")
+
+
+def test_a_dead_or_undetermined_lobe_is_not_admitted_whatever_its_gain():
+    truth = bj.Model(terms={"spec": Specular(bj.GGX(0.08), rho_s=1.0, n=2.2)})
+    table, _ = _table(truth)
+    lib = {"spike_lobe": _SpikeLobe()}
+    d = diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, max_steps=1, fresh_top=0,
+                 presence=False)
+    (c,) = d.ranking
+    assert c.delta_bic > 10.0  # the gain is real: it comes from the freed index
+    assert any(("ends dead" in f) or ("not determined" in f) for f in c.flags), c.flags
+    assert d.explained_by == [] and "no admissible candidate" in d.stop_reason
+    assert d.to_dict()["settings"]["failed_refits"]["candidates"] == 0
