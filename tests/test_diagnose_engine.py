@@ -603,3 +603,21 @@ def test_a_dead_or_undetermined_lobe_is_not_admitted_whatever_its_gain():
     assert any(("ends dead" in f) or ("not determined" in f) for f in c.flags), c.flags
     assert d.explained_by == [] and "no admissible candidate" in d.stop_reason
     assert d.to_dict()["settings"]["failed_refits"]["candidates"] == 0
+
+
+def test_a_failed_fresh_start_refit_is_flagged_and_counted(monkeypatch):
+    """A joint refit from fresh starts that fails is a flag at its step and a count in diagnosis.json, not a note
+    the reader must find (the real-table case: 'the joint refit from fresh starts failed; the warm refit is kept')."""
+    from brdfjax.diagnose import engine
+
+    monkeypatch.setattr(engine, "_fresh_refit", lambda state, params0: None)
+    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.3)})
+    table, _ = _table(truth)
+    d = diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=["lambertian"], max_steps=1, fresh_top=0)
+    assert d.explained_by == ["lambertian"]
+    step = d.path[1]
+    assert any("the joint refit from fresh starts failed" in f for f in step.flags)
+    fr = d.to_dict()["settings"]["failed_refits"]
+    assert fr["fresh_start_on_path"] == 1 and fr["candidates"] == 0
+    assert "joint refit(s) from fresh starts on the path failed" in __import__(
+        "brdfjax.diagnose.report", fromlist=["markdown_report"]).markdown_report(d)
