@@ -140,6 +140,8 @@ class Step:
                 "delta_bic": self.delta_bic,
                 "heldout_rms_log10": None if self.heldout is None else self.heldout["rms_log10"],
                 "heldout_chi2_reduced": None if self.heldout is None else self.heldout["chi2_reduced"],
+                # free parameters the fitted data do not determine on which the held-out prediction depends
+                "heldout_undetermined": None if self.heldout is None else self.heldout.get("undetermined"),
                 "zones": {k: v["chi2_reduced"] for k, v in self.zones.items()},
                 "parameters": self.parameters,
             }
