@@ -483,14 +483,14 @@ def test_benchmark_summary_of_shards_counts_a_shared_trial_once(tmp_path):
 def test_the_second_path_reuses_the_first_paths_base_fit_and_first_warm_refits(monkeypatch):
     """Run with the first path's stored base fit and step-1 warm refits, the fresh_top = 0 path is the same
     diagnosis as one run from scratch, with those fits not repeated."""
-    from brdfjax.diagnose import engine
+    from brdfjax.diagnose import engine, refits
 
     truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.3)})
     table, _ = _table(truth)
     lib = {"lambertian": EFFECT_LIBRARY["lambertian"], "wide_lobe": _WideLobe()}
     fits = []
-    real_fit = engine.fit
-    monkeypatch.setattr(engine, "fit", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
+    real_fit = refits.fit  # every fit of the path goes through the refits module
+    monkeypatch.setattr(refits, "fit", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
     kw = dict(effects=list(lib), heldout_blocks=None, fit_kwargs=None, bic_threshold=10.0, max_steps=2, path_pool=4,
               refit_top=None, threshold=4.0, smooth=3, presence=True, noise_stop=True, library=lib, progress=None)
     base = bj.Model(terms=dict(LOBE))
