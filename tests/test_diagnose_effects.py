@@ -217,7 +217,7 @@ def test_camera_turn_reproduces_a_misaligned_camera_in_every_frame():
     import equinox as eqx
 
     from brdfjax.core.detector import Detector
-    from brdfjax.core.render import Frame, sample_directions
+    from brdfjax.core.render import Frame, pixel_directions
     from brdfjax.diagnose.effects.terms import camera_axes, turn_scatter
 
     det = Detector.seed()
@@ -225,7 +225,7 @@ def test_camera_turn_reproduces_a_misaligned_camera_in_every_frame():
     nh, nv = np.meshgrid(np.arange(-400, 401, 40.0), np.arange(-300, 301, 40.0))
     # the camera-frame turn of this misalignment, fitted once on the first frame
     f0 = Frame(np.radians(35.5), np.radians(98.0), 632.8e-9)
-    d0, d1 = sample_directions(det, f0, nh, nv), sample_directions(bad, f0, nh, nv)
+    d0, d1 = pixel_directions(det, f0, nh, nv), pixel_directions(bad, f0, nh, nv)
     C = np.asarray(camera_axes(f0.theta_i, f0.phi_ref), float)
     c0 = np.asarray(d0.w_s, float).reshape(-1, 3) @ C
     c1 = np.asarray(d1.w_s, float).reshape(-1, 3) @ C
@@ -235,7 +235,7 @@ def test_camera_turn_reproduces_a_misaligned_camera_in_every_frame():
     assert shift > 3e-5  # the misalignment moves the pixel directions by several peak widths / 10
     for ti, phi in ((20.0, 0.0), (35.5, 98.0), (59.4, 171.0)):
         f = Frame(np.radians(ti), np.radians(phi), 632.8e-9)
-        d0, d1 = sample_directions(det, f, nh, nv), sample_directions(bad, f, nh, nv)
+        d0, d1 = pixel_directions(det, f, nh, nv), pixel_directions(bad, f, nh, nv)
         turned = turn_scatter(d0, *w, camera=(f.theta_i, f.phi_ref))
         assert np.abs(np.asarray(turned.w_s) - np.asarray(d1.w_s)).max() < 0.01 * shift
         # the same turn in the sample frame (no camera axes) misses as soon as the geometry changes

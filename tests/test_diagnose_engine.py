@@ -485,14 +485,14 @@ def test_benchmark_summary_of_shards_counts_a_shared_trial_once(tmp_path):
 def test_the_second_path_reuses_the_first_paths_base_fit_and_first_warm_refits(monkeypatch):
     """Run with the first path's stored base fit and step-1 warm refits, the fresh_top = 0 path is the same
     diagnosis as one run from scratch, with those fits not repeated."""
-    from brdfjax.diagnose import engine
+    from brdfjax.diagnose import engine, refits
 
     truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.3)})
     table, _ = _table(truth)
     lib = {"lambertian": EFFECT_LIBRARY["lambertian"], "wide_lobe": _WideLobe()}
     fits = []
-    real_fit = engine.fit
-    monkeypatch.setattr(engine, "fit", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
+    real_fit = refits.fit  # every fit of the path goes through the refits module
+    monkeypatch.setattr(refits, "fit", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
     kw = dict(effects=list(lib), heldout_blocks=None, fit_kwargs=None, bic_threshold=10.0, max_steps=2, path_pool=4,
               refit_top=None, threshold=4.0, smooth=3, presence=True, noise_stop=True, library=lib, progress=None)
     base = bj.Model(terms=dict(LOBE))
@@ -551,3 +551,75 @@ def test_an_effect_that_nests_a_simpler_one_brings_it_into_the_refits():
         step2 = {c.effect: c for c in d.path_rankings[1]}  # the refitted (ranked) candidates of step 2
         assert nesting.name in step2 and ("plain_lobe" in step2) is refitted, (nesting.name, list(step2))
     assert engine._nested({"nesting_lobe", "lambertian"}, lib) == {"plain_lobe"}
+
+
+def test_an_oriented_term_is_written_to_a_config_and_read_back():
+    """``final_model.toml`` expresses every term kind the library adds, the oriented bars included (``oriented =
+    true`` with ``psi_deg`` among the term's parameters): written and read back, the model is the same."""
+    import tomllib
+
+    from brdfjax.config import ModelConfig
+    from brdfjax.config.model import build_model
+    from brdfjax.core.terms import Diffraction, Oriented
+    from brdfjax.diagnose.engine import model_terms_config, toml_text
+
+    model = bj.Model(terms={**LOBE, "bars": Oriented(Diffraction(rho=300.0, a=8.9e-4, b=1.1e-5, c=2.4e-3), psi=0.05)})
+    terms, keys = model_terms_config(model)
+    assert terms["bars"]["kind"] == "diffraction" and terms["bars"]["oriented"] is True
+    assert terms["bars"]["params"]["psi_deg"] == pytest.approx(np.degrees(0.05))
+    assert keys["bars.psi"] == ("bars.psi_deg", pytest.approx(np.radians(1.0)))
+    doc = tomllib.loads(toml_text({"model": {"terms": terms}}))
+    back = build_model("test", ModelConfig(**doc["model"]))
+    assert isinstance(back.terms["bars"], Oriented) and isinstance(back.terms["bars"].term, Diffraction)
+    for k, v in model.params().items():
+        assert float(back.params()[k]) == pytest.approx(float(v), rel=1e-12), k
+
+
+class _SpikeLobe(type(EFFECT_LIBRARY["lambertian"])):
+    """A second lobe started as a spike far narrower than the table's 1.6-deg sampling; its extension also frees
+    the first lobe's index (held in the base), so that its BIC gain comes from the first lobe's refit, not from
+    the lobe it adds (the real-table case: weight 2.7e-6, width 5e-6, no sigma, delta BIC 55)."""
+
+    name = "spike_lobe"
+    generic = False
+
+    def present_in(self, model):
+        return "spike" in model.terms
+
+    def extend(self, ctx):
+        model = bj.Model(terms={**ctx.model.terms, "spike": Specular(bj.GGX(2e-3), rho_s=0.05, n=1.5)},
+                         aliases=ctx.model.aliases)
+        params = {**ctx.params, "spike.rho_s": Param(0.05, lower=0.0), "spike.alpha": Param(2e-3, lower=1e-7, upper=1.0),
+                  "spec.n": Param(1.5, lower=1.05, upper=4.0)}
+        return Extension(model, params, 3, note="a spike lobe (test)")
+
+
+def test_a_dead_or_undetermined_lobe_is_not_admitted_whatever_its_gain():
+    truth = bj.Model(terms={"spec": Specular(bj.GGX(0.08), rho_s=1.0, n=2.2)})
+    table, _ = _table(truth)
+    lib = {"spike_lobe": _SpikeLobe()}
+    d = diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, max_steps=1, fresh_top=0,
+                 presence=False)
+    (c,) = d.ranking
+    assert c.delta_bic > 10.0  # the gain is real: it comes from the freed index
+    assert any(("ends dead" in f) or ("not determined" in f) for f in c.flags), c.flags
+    assert d.explained_by == [] and "no admissible candidate" in d.stop_reason
+    assert d.to_dict()["settings"]["failed_refits"]["candidates"] == 0
+
+
+def test_a_failed_fresh_start_refit_is_flagged_and_counted(monkeypatch):
+    """A joint refit from fresh starts that fails is a flag at its step and a count in diagnosis.json, not a note
+    the reader must find (the real-table case: 'the joint refit from fresh starts failed; the warm refit is kept')."""
+    from brdfjax.diagnose import engine
+
+    monkeypatch.setattr(engine, "_fresh_refit", lambda state, params0: None)
+    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.3)})
+    table, _ = _table(truth)
+    d = diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=["lambertian"], max_steps=1, fresh_top=0)
+    assert d.explained_by == ["lambertian"]
+    step = d.path[1]
+    assert any("the joint refit from fresh starts failed" in f for f in step.flags)
+    fr = d.to_dict()["settings"]["failed_refits"]
+    assert fr["fresh_start_on_path"] == 1 and fr["candidates"] == 0
+    assert "joint refit(s) from fresh starts on the path failed" in __import__(
+        "brdfjax.diagnose.report", fromlist=["markdown_report"]).markdown_report(d)

@@ -6,6 +6,7 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 import brdfjax as bj
 from brdfjax.core.detector import PixelGrid
@@ -78,7 +79,7 @@ def test_warnings_held_out_gap_grew_bound_and_not_refitted_text():
         path_rankings=[[], [later]],
     )
     w = report_warnings(d)
-    assert w[0].startswith("the held-out gap grew at step 2 (+ diffraction): rms of log10 0.948 -> 1.128")
+    assert w[0].startswith("the held-out gap grew at step 2 (+diffraction): rms of log10 0.948 -> 1.128")
     assert w[1] == "base fit: parameter 'm1' ended on its bound 1e-05; its sigma is not meaningful"
     assert len(w) == 2  # the first step shrank the held-out gap: no warning for it
     skipped = Candidate("stray_light", "stray light", "not refitted", note="signature score 0 below the 4 best")
@@ -134,3 +135,32 @@ def test_candidate_progress_estimates_the_time_left_and_progress_lines_are_plain
     quiet = ProgressLine(make_console(quiet=True), "fit", None)
     quiet.update(3, "chi2 = 1")
     assert quiet.lines == []
+
+
+def test_a_removal_step_is_named_as_one_and_the_held_out_verdict_is_against_the_truth():
+    """The shipped example's path (issue 35's figures): a removal step is '-lambertian', never '+ lambertian'; a final
+    held-out prediction far worse than the truth's is a warning and in the headline, with the truth's figure."""
+    from brdfjax.diagnose.report import heldout_verdict
+
+    def held(rms, chi2):
+        return {"rms_log10": rms, "chi2_reduced": chi2, "n_points": 1471}
+
+    path = [Step("base", {"chi2_reduced": 18951.0}, {}, held(0.95, 2e5), action="base"),
+            Step("lambertian", {"chi2_reduced": 3008.0}, {}, held(1.43, 3e5)),
+            Step("diffraction", {"chi2_reduced": 1.019}, {}, held(1.81, 4e5)),
+            Step("lambertian", {"chi2_reduced": 1.028}, {}, held(1.9, 4.2e5), action="remove")]
+    truth = {"chi2_reduced": 1.045, "heldout": {"rms_log10": 0.012, "chi2_reduced": 1.022, "n_points": 1471}}
+    d = SimpleNamespace(path=path, base_result=None, final_result=None, context=None, final_context=None,
+                        significant=True, path_rankings=[], truth_gap=truth)
+    w = report_warnings(d)
+    assert any(x.startswith("the held-out gap grew at step 3 (-lambertian)") for x in w)
+    assert not any("(+ lambertian)" in x for x in w if "step 3" in x)
+    v = heldout_verdict(d)
+    assert v["worse"] and v["ratio"] == pytest.approx(1.9 / 0.012)
+    assert "WORSE than the base" in v["text"] and "WORSE than the truth by more than the noise" in v["text"]
+    assert v["text"] in w
+    # a final prediction as good as the truth's, within 3 sqrt(2/N) in reduced chi^2: no warning
+    path[-1] = Step("lambertian", {"chi2_reduced": 1.028}, {}, held(0.0125, 1.08), action="remove")
+    v = heldout_verdict(d)
+    assert not v["worse"] and "as well as the truth, within the noise" in v["text"]
+    assert not any("held-out prediction" in x for x in report_warnings(d))

@@ -30,6 +30,7 @@ from ..core.terms import (
     Model,
     MultiLobeSpecular,
     OffsetNormal,
+    Oriented,
     Specular,
 )
 from .base import ConfigError, StrictModel, raise_unknown, unknown_key_message
@@ -107,6 +108,11 @@ class TermConfig(StrictModel):
         None,
         description=f"microfacet kinds only: one of {', '.join(FRESNELS)} (default microfacet: F_s + F_p at the "
         "microfacet angle, Cook-Torrance / Walter; q_factor: the seed's Eq 69 Q at the macro angles)",
+    )
+    oriented: bool | None = Field(
+        None,
+        description="turn the term about the sample normal by its parameter psi (params psi_deg, default 0): the "
+        "orientation of a bar grating or of an anisotropic distribution's axes (core.terms.Oriented)",
     )
 
     @field_validator("params", mode="before")
@@ -337,6 +343,8 @@ def _term_units(
 
 def term_from_config(source: str, loc: str, t: TermConfig) -> AbstractTerm:
     units, required = _term_units(t.kind, t.distribution, t.lobes, t.params)
+    if t.oriented:
+        units["psi"] = "rad"  # Oriented's turn, not required (default 0)
     keys = parameter_keys(units)
     what = f"a '{t.kind}' term" + (f" with distribution '{t.distribution}'" if t.distribution else "")
     problems = [
@@ -350,6 +358,7 @@ def term_from_config(source: str, loc: str, t: TermConfig) -> AbstractTerm:
     if problems:
         raise ConfigError(source, problems)
     stored = {keys[k][0]: v * keys[k][1] for k, v in t.params.items()}
+    psi = stored.pop("psi", 0.0) if t.oriented else None
     try:
         term = registry.term_from_params(
             t.kind, stored, t.distribution, owner=loc, lobes=t.lobes, shadowing=t.shadowing, normalisation=t.normalisation,
@@ -362,6 +371,8 @@ def term_from_config(source: str, loc: str, t: TermConfig) -> AbstractTerm:
             if t.distance_m is not None:
                 opts["distance"] = float(t.distance_m)
             term = dataclasses.replace(term, **opts)
+        if psi is not None:
+            term = Oriented(term, psi=np.asarray(psi, float))
     except (ValueError, KeyError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         # Name the config key when the core's message names the parameter ("parameter 'c' = ...").
@@ -397,7 +408,7 @@ def describe_model(m: ModelConfig) -> str:
         dist = f"/{t.distribution}" if t.distribution else ""
         opts = "".join(
             f", {k}={getattr(t, k)}"
-            for k in ("grating_factor", "distance_m", "lobes", "shadowing", "normalisation", "fresnel", "l1")
+            for k in ("grating_factor", "distance_m", "lobes", "shadowing", "normalisation", "fresnel", "l1", "oriented")
             if getattr(t, k) is not None
         )
         parts.append(f"{name}: {t.kind}{dist}({ps}{opts})")

@@ -24,8 +24,15 @@ Where to find what (each module imports only those above it):
 - :mod:`~brdfjax.diagnose.report` and :mod:`~brdfjax.diagnose.results`: the
   results (:class:`Diagnosis`, :class:`Candidate`, :class:`Step`) and their
   Markdown/HTML reports;
-- :mod:`~brdfjax.diagnose.engine`: :func:`diagnose` itself (the base fit,
-  the candidates' refits, the explanation path);
+- :mod:`~brdfjax.diagnose.refits`: a fit state, a candidate's refit (retried
+  from a second start), the refits from fresh starts, taking an effect out,
+  the held-out and the truth's gaps, the ranking;
+- :mod:`~brdfjax.diagnose.admission`: the admission rules (bounds, a term
+  driven to zero, a weak signature, an effect's own terms dead or
+  undetermined, a dominant refit);
+- :mod:`~brdfjax.diagnose.engine`: :func:`diagnose` itself, the path search
+  (the generic-vs-specific rule, swaps, backward elimination, the final check);
+- :mod:`~brdfjax.diagnose.model_config`: the final model as a fit config;
 - :mod:`~brdfjax.diagnose.cli`: the ``brdfjax diagnose`` command.
 """
 

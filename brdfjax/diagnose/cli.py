@@ -133,7 +133,11 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
         # the generator's truth is known here (never shown to the diagnosis): its own reduced chi^2 on the fitted
         # frames is what the path's final reduced chi^2 is judged against
         try:
-            d.set_truth_gap(truth_gap(truth_model, fitted, fit_kwargs), source="[diagnose.truth] evaluated on the fitted frames")
+            tg = truth_gap(truth_model, fitted, fit_kwargs)
+            if held:
+                # the truth's own prediction of the held-out frames: what every step's held-out figure is judged by
+                tg["heldout"] = truth_gap(truth_model, held, fit_kwargs)
+            d.set_truth_gap(tg, source="[diagnose.truth] evaluated on the fitted (and held-out) frames")
         except Exception as e:  # noqa: BLE001 - the diagnosis stands; the note says why the figure is missing
             d.notes.append(f"the truth's own reduced chi^2 was not computed: {type(e).__name__}: {e}")
     synthetic_dir = None

@@ -26,6 +26,7 @@ from ..core.render import Frame, render, render_geometry
 from ..core.terms import Model
 from ..fit import FitResult, FrameData, Param, TableData
 from ..fit.internal import as_param
+from ..instrument.synthetic import convolve_footprint
 from .zones import specular_coordinates
 
 __all__ = ["Context", "build_context", "warm_params", "residual_maps", "gap_measures", "precision_name", "LN10"]
@@ -165,9 +166,29 @@ def _block_geometry(b: FrameData | TableData, frame: Any) -> dict[str, np.ndarra
     return {"theta_s": ts, "phi_s": ps, "sx": sx, "sy": sy, "theta_i": np.asarray(b.theta_i, float)}
 
 
-def _block_model(b: FrameData | TableData, model: Model, frame: Any) -> np.ndarray:
+def _block_model(b: FrameData | TableData, model: Model, frame: Any, use_footprint: bool = True,
+                 residual: Any = None) -> np.ndarray:
+    """The fitted model on a block as the fit compared it with the data.
+
+    A frame's model is convolved with its footprint when the fit did (``use_footprint``); at the usable pixels
+    the values are those the fit's own residuals imply (``ln f = ln d + r sigma``), so that per-frame terms and
+    nuisance scales the fit applied are in them too: a plot or a start value built on these values sees the
+    model the fit saw.  (Measured on the shipped withheld-diffraction example: the bare render missed the
+    footprint-convolved model by chi^2 8.6e5 against 105 in the peak's column.)
+    """
     if isinstance(b, FrameData):
-        return np.asarray(render(model, frame, b.arm_detector(), grid=b.grid, precision=precision_name()), float)
+        img = np.asarray(render(model, frame, b.arm_detector(), grid=b.grid, precision=precision_name()), float)
+        if b.footprint is not None and use_footprint:
+            k = np.asarray(b.footprint, float)
+            img = np.asarray(convolve_footprint(img, k / k.sum()), float)
+        if residual is not None:
+            u = np.asarray(b.usable(), bool)
+            r = np.asarray(residual, float)
+            if r.shape == (int(u.sum()),) and np.all(np.isfinite(r)):
+                sig = np.broadcast_to(np.asarray(b.sigma_rel, float), img.shape)[u]
+                img = img.copy()
+                img[u] = np.asarray(b.brdf, float)[u] * np.exp(r * sig)
+        return img
     dirs = Directions.from_angles(*(np.asarray(getattr(b, f), float) for f in ("theta_i", "phi_i", "theta_s", "phi_s")))
     wl = np.broadcast_to(np.asarray(b.wavelength, float), np.shape(b.brdf))
     return np.asarray(model(dirs, wl), float)
@@ -178,7 +199,9 @@ def build_context(model_spec: Model, params: Mapping[str, Any], result: FitResul
     """The :class:`Context` of a fit (the fitted model, residual maps, model values, geometry)."""
     fitted = result.models[0] if result.models else model_spec
     geometry = [_block_geometry(b, f) for b, f in zip(blocks, result.frames)]
-    values = [_block_model(b, m, f) for b, m, f in zip(blocks, result.models, result.frames)]
+    use_fp = bool(dict(fit_kwargs or {}).get("use_footprint", True))
+    res = list(result.residuals) if result.residuals else [None] * len(blocks)
+    values = [_block_model(b, m, f, use_fp, r) for b, m, f, r in zip(blocks, result.models, result.frames, res)]
     return Context(
         model=fitted,
         params=warm_params(params, result),

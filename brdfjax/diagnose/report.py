@@ -36,7 +36,7 @@ from ..plotting import agg_pyplot
 # write the reports (Any keeps the two out of a cycle)
 Diagnosis = Any
 
-__all__ = ["markdown_report", "html_report", "figures", "column_profile", "report_warnings"]
+__all__ = ["markdown_report", "html_report", "figures", "column_profile", "report_warnings", "heldout_verdict"]
 
 
 def _f(x: Any, fmt: str = ".4g") -> str:
@@ -85,13 +85,19 @@ def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
     if d.skipped:
         out.append(("Not ranked", ["effect", "status", "reason"], [_not_ranked_row(d, c) for c in d.skipped]))
     zone_names = list(d.path[0].zones)
+    truth = getattr(d, "truth_gap", None)
+    th = None if truth is None else truth.get("heldout")
     out.append(
         (
             "How far: the explanation path",
-            ["step", "effect", "chi2_reduced", "rms_log10", "held-out rms_log10", "delta BIC"] + [f"chi2_red {z}" for z in zone_names],
+            ["step", "effect", "chi2_reduced", "rms_log10", "held-out rms_log10", "held-out chi2_reduced"]
+            + (["truth: chi2_reduced", "truth: held-out rms_log10"] if truth is not None else [])
+            + ["delta BIC"] + [f"chi2_red {z}" for z in zone_names],
             [
                 [str(i), _name(s), _f(s.gap["chi2_reduced"]), _f(s.gap["rms_log10"]), _f(None if s.heldout is None else s.heldout["rms_log10"]),
-                 _f(s.delta_bic, ".1f")] + [_f(s.zones[z]["chi2_reduced"]) for z in zone_names]
+                 _f(None if s.heldout is None else s.heldout.get("chi2_reduced"))]
+                + ([_f(truth.get("chi2_reduced")), _f(th.get("rms_log10") if th else None)] if truth is not None else [])
+                + [_f(s.delta_bic, ".1f")] + [_f(s.zones[z]["chi2_reduced"]) for z in zone_names]
                 for i, s in enumerate(d.path)
             ],
         )
@@ -126,8 +132,9 @@ def report_warnings(d: Diagnosis) -> list[str]:
         h = None if s.heldout is None else s.heldout.get("rms_log10")
         if prev is not None and h is not None and prev[1] is not None and h > prev[1]:
             out.append(
-                f"the held-out gap grew at step {k} (+ {s.effect}): rms of log10 {_f(prev[1], '.4g')} -> {_f(h, '.4g')}; "
-                "the effect explains the fitted frames but not the held-out ones (overfitting, or a different cause)"
+                f"the held-out gap grew at step {k} ({_name(s)}): rms of log10 {_f(prev[1], '.4g')} -> {_f(h, '.4g')}"
+                + ("; the effect explains the fitted frames but not the held-out ones (overfitting, or a different cause)"
+                   if getattr(s, "action", "add") != "remove" else "; taking the effect out made the held-out prediction worse")
             )
         prev = (s.effect, h if h is not None else (None if prev is None else prev[1]))
     for label, res in (("base fit", d.base_result), ("final fit", d.final_result)):
@@ -136,11 +143,52 @@ def report_warnings(d: Diagnosis) -> list[str]:
                 out.append(f"{label}: {w}")
     out += [w for _, w in _column_checks(d)]
     t = getattr(d, "truth_gap", None)
+    hw = heldout_verdict(d)
+    if hw is not None and hw["worse"]:
+        out.append(hw["text"])
     if t is not None and t.get("within_20pct") is False:
         out.append(f"the final reduced chi^2 {_f(t.get('final_chi2_reduced'), '.4g')} is {_f(t.get('final_over_truth'), '.3g')} "
                    f"times the truth's own ({_f(t.get('chi2_reduced'), '.4g')}) on these frames: the path has not reached the "
                    "truth's structure (an effect the library lacks, or a dead end)")
     return out
+
+
+def heldout_verdict(d: Diagnosis) -> dict[str, Any] | None:
+    """The final model's prediction of the held-out frames against the base's and (where known) the truth's.
+
+    ``{"worse": bool, "text": str, "ratio": rms ratio to the truth}`` or None without held-out frames.  "Worse
+    than the truth" means a held-out reduced chi^2 above the truth's by more than the noise allows
+    (``3 sqrt(2 / N)``, N held-out points): then the prediction misses something the truth has.
+    """
+    if not d.path or d.path[-1].heldout is None:
+        return None
+    base_h, fin_h = d.path[0].heldout or {}, d.path[-1].heldout
+    b, f = base_h.get("rms_log10"), fin_h.get("rms_log10")
+    if f is None or not math.isfinite(f):
+        return {"worse": True, "ratio": math.nan,
+                "text": f"the held-out frames could not be predicted by the final model ({fin_h.get('error', 'no figure')})"}
+    grew = b is not None and math.isfinite(b) and f > b
+    text = (f"held-out prediction: rms of log10 {_f(b)} (base) -> {_f(f)} (final), "
+            + ("WORSE than the base" if grew else "better than the base"))
+    t = getattr(d, "truth_gap", None)
+    th = None if t is None else t.get("heldout")
+    worse, ratio = grew, math.nan
+    if th is not None and th.get("chi2_reduced") is not None:
+        n = max(int(th.get("n_points") or 1), 1)
+        tol = 3.0 * math.sqrt(2.0 / n)
+        fc, tc = fin_h.get("chi2_reduced", math.nan), float(th["chi2_reduced"])
+        ratio = f / th["rms_log10"] if th.get("rms_log10") else math.nan
+        beyond = not (math.isfinite(fc) and fc <= tc + tol)
+        worse = worse or beyond
+        text += (f"; the truth's own held-out rms of log10 is {_f(th.get('rms_log10'))} (reduced chi^2 {_f(tc)} against "
+                 f"the final model's {_f(fc)}): the final model predicts the held-out frames "
+                 + (f"WORSE than the truth by more than the noise (3 sqrt(2/N) = {tol:.3g})" if beyond
+                    else "as well as the truth, within the noise"))
+    und = fin_h.get("undetermined")
+    if und:
+        text += (f"; the prediction rests on parameters the fitted frames do not determine ({', '.join(und)}: no "
+                 "finite sigma), whose values there are their starts")
+    return {"worse": bool(worse), "text": text, "ratio": ratio}
 
 
 def _name(s: Any) -> str:
@@ -157,6 +205,9 @@ def _headline(d: Diagnosis) -> str:
     flags += "".join(f" Detected ({c.effect}, ranked first by its own signature, not by a BIC gain): "
                      f"{c.signature.get('detail', '')}." for c in d.ranking if c.ranked_by == "detection")
     truth = "" if getattr(d, "truth_gap", None) is None else f" The {truth_line(d.truth_gap)}."
+    hv = heldout_verdict(d)
+    if hv is not None:
+        truth += f" The {hv['text']}."
     if d.significant:
         return (f"The gap is most likely caused by **{d.explained_by[0]}**. Explanation path (reduced chi^2): {p}.{sides}{flags}"
                 f"{truth} {noise_line(d.gap)}.")
@@ -171,9 +222,12 @@ def truth_line(t: dict[str, Any]) -> str:
     if ratio is not None and math.isfinite(ratio):
         verdict = (f"; final / truth = {ratio:.3g} ("
                    + ("within" if abs(ratio - 1.0) <= 0.2 else "NOT within") + " 20 %)")
+    h = t.get("heldout")
+    held = "" if not h else (f"; on the held-out frames the truth's reduced chi^2 is {_f(h.get('chi2_reduced'), '.4g')}, "
+                             f"rms log10 {_f(h.get('rms_log10'), '.3g')}")
     return (f"truth's own reduced chi^2 on these frames (the generator's model, nothing fitted): "
             f"{_f(t.get('chi2_reduced'), '.4g')} (rms log10 {_f(t.get('rms_log10'), '.3g')}, "
-            f"{t.get('n_points', '?')} points); the final model's {_f(t.get('final_chi2_reduced'), '.4g')}{verdict}")
+            f"{t.get('n_points', '?')} points); the final model's {_f(t.get('final_chi2_reduced'), '.4g')}{verdict}{held}")
 
 
 def noise_line(gap: dict[str, Any]) -> str:
@@ -184,6 +238,23 @@ def noise_line(gap: dict[str, Any]) -> str:
             "chi2 and BIC are -2 ln L of the profile likelihood, chi2_reduced is not a goodness of fit"
         )
     return "noise: the data's own uncertainties (sigma not estimated)"
+
+
+#: The rules by which the path admits and keeps an effect, stated in every report (and in docs/guides/diagnosis.md).
+PATH_RULES = (
+    "An effect enters the path when its refit lowers the BIC by more than the threshold and it is admissible: "
+    "its own new parameters have a finite sigma, no weight or width of a term it added ends dead (below 1e-3 of its "
+    "start), a lobe it added is not narrower than half the angular sampling, none of its parameters ends on a bound, "
+    "it does not drive a term of the model to zero, and its signature reaches its presence threshold (or its refit "
+    "dominates every admissible one 5x).",
+    "A generic effect (a floor, a response curve) that ranks first is refitted jointly with the best specific "
+    "runners-up: when taking it out of the joint model costs less than the threshold (the specific effect explains "
+    "its signature), or the joint model needs the specific effect more, the specific effect enters first.",
+    "Every effect must pass the same test to stay: after each step the earlier effects, and at the end every effect, "
+    "are taken out in turn (the model refitted); one whose removal costs less BIC than the threshold is taken out.",
+    "A refit that fails (raises, ends non-finite, or above the model it extends) is retried once from a second start; "
+    "a refit that fails twice is reported and counted (diagnosis.json settings.failed_refits), never ranked.",
+)
 
 
 def markdown_report(d: Diagnosis) -> str:
@@ -198,6 +269,13 @@ def markdown_report(d: Diagnosis) -> str:
     if d.notes:
         lines += ["## Notes", ""] + [f"- {n}" for n in d.notes] + [""]
     lines += ["Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in d.timings.items()), ""]
+    lines += ["## Rules of the path", "", f"(BIC threshold {d.bic_threshold:g}.)", ""] + [f"- {r}" for r in PATH_RULES] + [""]
+    fr = (getattr(d, "settings", None) or {}).get("failed_refits")
+    if fr:
+        lines += [f"Failed refits: {fr.get('candidates', 0)} candidate refit(s) failed after a retry"
+                  + (f" ({', '.join(fr.get('which', []))})" if fr.get("which") else "")
+                  + f", {fr.get('retried', 0)} retried, {fr.get('fresh_start_on_path', 0)} joint refit(s) from fresh "
+                  "starts on the path failed.", ""]
     lines += ["Figures: see report.html; every number: diagnosis.json.", ""]
     return "\n".join(lines)
 
@@ -399,5 +477,7 @@ def html_report(d: Diagnosis, *, figures: bool = True) -> str:
             parts.append(f"<figure><img alt='{html.escape(caption)}' src='data:image/png;base64,{b64}'><figcaption>{html.escape(caption)}</figcaption></figure>")
     if d.notes:
         parts.append("<h2>Notes</h2><ul>" + "".join(f"<li>{html.escape(n)}</li>" for n in d.notes) + "</ul>")
+    parts.append(f"<h2>Rules of the path</h2><p>BIC threshold {d.bic_threshold:g}.</p><ul>"
+                 + "".join(f"<li>{html.escape(r)}</li>" for r in PATH_RULES) + "</ul>")
     parts.append("</body></html>")
     return "\n".join(parts)

@@ -76,6 +76,8 @@ class Candidate:
     # "warm" (refitted from the model it extends, at its optimum) or "fresh" (from the fresh starts: kept because
     # it ended lower; the engine does it where the fit moved far from its starts)
     refit_start: str = "warm"
+    # whether the refit was retried from a second start (its first attempt failed)
+    retried: bool = False
     # not serialised: the refit's state, to continue the path from it
     state: Any = field(default=None, repr=False)
 
@@ -91,6 +93,7 @@ class Candidate:
                 "flags": self.flags,
                 "ranked_by": self.ranked_by,
                 "refit_start": self.refit_start,
+                "retried": self.retried,
                 "parameters": self.parameters,
                 "delta_chi2": self.delta_chi2,
                 "delta_bic": self.delta_bic,
@@ -137,6 +140,8 @@ class Step:
                 "delta_bic": self.delta_bic,
                 "heldout_rms_log10": None if self.heldout is None else self.heldout["rms_log10"],
                 "heldout_chi2_reduced": None if self.heldout is None else self.heldout["chi2_reduced"],
+                # free parameters the fitted data do not determine on which the held-out prediction depends
+                "heldout_undetermined": None if self.heldout is None else self.heldout.get("undetermined"),
                 "zones": {k: v["chi2_reduced"] for k, v in self.zones.items()},
                 "parameters": self.parameters,
             }

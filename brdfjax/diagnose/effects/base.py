@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...core.geometry import Directions
-from ...core.render import Frame, render, sample_directions
+from ...core.render import Frame, pixel_directions, render
 from ...core.terms import (
     AbstractTerm,
     Diffraction,
@@ -302,7 +302,7 @@ def scatter_half_vectors(block: FrameData, frame: Frame, phi: float = 0.0) -> tu
     f = Frame(frame.theta_i, np.float64(phi), frame.wavelength)
     nh = jnp.asarray(block.grid.n_h, float)[None, :]
     nv = jnp.asarray(block.grid.n_v, float)[:, None]
-    dirs = sample_directions(block.arm_detector(), f, nh, nv)
+    dirs = pixel_directions(block.arm_detector(), f, nh, nv)
     h = np.asarray(dirs.half_vector(), float)
     return h[..., 0], h[..., 1], h[..., 2]
 
@@ -310,7 +310,7 @@ def scatter_half_vectors(block: FrameData, frame: Frame, phi: float = 0.0) -> tu
 def sample_ws(block: FrameData, frame: Frame) -> np.ndarray:
     nh = jnp.asarray(block.grid.n_h, float)[None, :]
     nv = jnp.asarray(block.grid.n_v, float)[:, None]
-    return np.asarray(sample_directions(block.arm_detector(), frame, nh, nv).w_s, float)
+    return np.asarray(pixel_directions(block.arm_detector(), frame, nh, nv).w_s, float)
 
 
 def smooth_z(r: np.ndarray, s: float) -> np.ndarray:

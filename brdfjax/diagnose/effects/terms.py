@@ -133,7 +133,7 @@ def turn_scatter(dirs: Directions, ax: Any, ay: Any, az: Any = 0.0, camera: Any 
 
     ``camera = (alpha, phi_ref)``: the frame's arm angle and sample rotation;
     the turn is then about the axes of the camera on that arm, as seen in the
-    sample frame (``render.sample_directions``: ``Rz(-phi_ref)`` of the
+    sample frame (``render.pixel_directions``: ``Rz(-phi_ref)`` of the
     scatter frame): ``C Rz(az) Ry(ay) Rx(ax) C^T`` with ``C = Rz(-phi_ref)
     Ry(alpha)``, so that one misaligned camera (pixel offsets m_h, m_v and a
     roll) is the same turn in every frame whatever its geometry.
@@ -147,7 +147,7 @@ def turn_scatter(dirs: Directions, ax: Any, ay: Any, az: Any = 0.0, camera: Any 
 
 
 def camera_axes(arm: Any, phi_ref: Any) -> Array:
-    """The camera's x, y, z axes (columns) in the sample frame of ``render.sample_directions``:
+    """The camera's x, y, z axes (columns) in the sample frame of ``render.pixel_directions``:
     ``Rz(-phi_ref) Ry(arm)``; ``C.T @ w`` takes a sample-frame direction into the camera's frame."""
     return Rz(-phi_ref) @ Ry(arm)
 
