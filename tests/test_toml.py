@@ -70,12 +70,12 @@ def test_write_is_atomic_and_leaves_no_temporary(tmp_path):
     assert sorted(x.name for x in p.parent.iterdir()) == ["m.toml"]
 
 
-def test_reads_back_the_same_as_the_diagnose_writer():
-    # the diagnosis's own writer (brdfjax.diagnose.engine.toml_text) until it switches to this one
-    engine = pytest.importorskip("brdfjax.diagnose.engine")
-    if not hasattr(engine, "toml_text"):
-        pytest.skip("the diagnosis writes through brdfjax.io.toml")
-    assert tomllib.loads(toml.dumps(FINAL_MODEL)) == tomllib.loads(engine.toml_text(FINAL_MODEL))
+def test_the_diagnosis_writes_its_final_model_through_the_one_writer():
+    from brdfjax.diagnose import model_config
+
+    text = model_config.toml_text(FINAL_MODEL)
+    assert tomllib.loads(text) == FINAL_MODEL
+    assert "io.toml" in model_config.toml_text.__doc__
 
 
 def test_one_toml_writer_in_the_package():
@@ -83,4 +83,4 @@ def test_one_toml_writer_in_the_package():
     root = Path(toml.__file__).resolve().parents[1]
     writers = sorted(str(p.relative_to(root)) for p in root.rglob("*.py")
                      if "def _toml_value" in p.read_text() or "def _toml_str" in p.read_text())
-    assert writers in ([], ["diagnose/engine.py"])  # the diagnosis switches when it is next edited
+    assert writers == []

@@ -74,9 +74,6 @@ from .admission import (  # noqa: F401 - the path search's rules, importable fro
 from .context import build_context, gap_measures
 from .effects import EFFECT_LIBRARY
 from .model_config import (  # noqa: F401 - the model-to-TOML writer, importable from here as before
-    _is_table,
-    _is_table_array,
-    _toml_value,
     final_model_config,
     model_terms_config,
     toml_text,

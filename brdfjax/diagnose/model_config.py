@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -14,59 +13,13 @@ from ..config import parameter_keys
 from ..core import registry
 from ..core.terms import Model, Oriented
 from ..fit.internal import as_param
+from ..io import toml
 from .results import Diagnosis
 
 
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int | np.integer):
-        return str(int(v))
-    if isinstance(v, float | np.floating):
-        x = float(v)
-        return repr(x) if math.isfinite(x) else ("nan" if math.isnan(x) else ("inf" if x > 0 else "-inf"))
-    if isinstance(v, str):
-        return json.dumps(v)  # a JSON string is a TOML basic string
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, Mapping):
-        return "{ " + ", ".join(f"{json.dumps(str(k))} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
 def toml_text(doc: Mapping[str, Any]) -> str:
-    """A TOML document of nested tables, arrays of tables and inline values.
-
-    Written here (some 20 lines) rather than taken from a TOML-writing package: the project reads TOML with the
-    standard library, and the configs it writes use only this subset.
-    """
-    lines: list[str] = []
-
-    def table(prefix: str, d: Mapping[str, Any]) -> None:
-        scalars = {k: v for k, v in d.items() if not _is_table(v) and not _is_table_array(v)}
-        if prefix and (scalars or not d):
-            lines.append(f"\n[{prefix}]")
-        lines.extend(f"{json.dumps(str(k))} = {_toml_value(v)}" for k, v in scalars.items())
-        for k, v in d.items():
-            key = f"{prefix}.{k}" if prefix else str(k)
-            if _is_table(v):
-                table(key, v)
-            elif _is_table_array(v):
-                for item in v:
-                    lines.append(f"\n[[{key}]]")
-                    lines.extend(f"{json.dumps(str(k2))} = {_toml_value(x)}" for k2, x in item.items())
-
-    table("", doc)
-    return "\n".join(lines).lstrip("\n") + "\n"
-
-
-def _is_table(v: Any) -> bool:
-    return isinstance(v, Mapping) and any(isinstance(x, Mapping) for x in v.values()) or (
-        isinstance(v, Mapping) and not v)
-
-
-def _is_table_array(v: Any) -> bool:
-    return isinstance(v, list) and bool(v) and all(isinstance(x, Mapping) for x in v)
+    """``doc`` as TOML text, through the package's one TOML writer (:func:`brdfjax.io.toml.dumps`)."""
+    return toml.dumps(doc)
 
 
 def model_terms_config(model: Model) -> tuple[dict[str, Any], dict[str, tuple[str, float]]]:
