@@ -28,7 +28,7 @@ import brdfjax as bj
 from brdfjax.core.terms import ABg, Binomial
 from brdfjax.diagnose.engine import model_terms_config
 from brdfjax.fit import fit, read_merl_inplane
-from brdfjax.io import write_json_atomic
+from brdfjax.io import toml, write_json_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 LAB = ROOT / "tests" / "data" / "satellites" / "starlink_v2mini_lab"
@@ -47,32 +47,13 @@ def read(name: str):
     return read_merl_inplane(LAB / TABLES[name][0], columns=COLUMNS, name=name)
 
 
-def _toml_value(v) -> str:
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{_key(k)} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    return repr(float(v)) if isinstance(v, float) else str(v)
-
-
-def _key(k: str) -> str:
-    return k if k.replace("_", "").isalnum() else json.dumps(k)
-
-
 def save(name: str, family: str, res, t0: float, summary: dict) -> None:
     model = res.models[0]
     terms, _ = model_terms_config(model)
     stem = f"{name}_{family}"
     res.to_json(OUT / f"{stem}.result.json")
-    lines = [f"# {stem}: model terms of the fit in {stem}.result.json (written by experiments/sky_lab_fits.py)"]
-    for tname, tcfg in terms.items():
-        lines.append(f"[terms.{tname}]")
-        lines += [f"{_key(k)} = {_toml_value(v)}" for k, v in tcfg.items()]
-    (OUT / f"{stem}.terms.toml").write_text("\n".join(lines) + "\n")
+    toml.write(OUT / f"{stem}.terms.toml", {"terms": terms},
+               header=f"{stem}: model terms of the fit in {stem}.result.json (written by experiments/sky_lab_fits.py)")
     block = res.blocks[0]
     summary.setdefault(name, {})[family] = {
         "log_rms": block.log_rms,
