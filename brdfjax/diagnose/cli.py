@@ -144,7 +144,8 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
     if cfg.data.synthetic is not None:
         synthetic_dir = cfg.resolve(cfg.data.synthetic.cache_dir) if cfg.data.synthetic.cache_dir else out / "synthetic"
     try:
-        d.final_config = final_model_config(d, read_toml(cfg.source), cfg.source.parent, sec.heldout, synthetic_dir)
+        d.final_config = final_model_config(d, read_toml(cfg.source), cfg.source.parent, sec.heldout, synthetic_dir,
+                                            nuisance_off=fit_kwargs.get("nuisance") is None)
     except (ValueError, KeyError) as e:
         d.notes.append(f"the final model is not written as a config (final_model.toml): {e}")
     d.write(out, figures=sec.figures if figures is None else figures)

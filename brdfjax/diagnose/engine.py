@@ -108,6 +108,7 @@ from .refits import (  # noqa: F401 - the refits, importable from here as before
     _zone_stats,
     truth_gap,
 )
+from .report import heldout_grew
 from .results import Candidate, Diagnosis, Step
 from .zones import find_regions, zone_masks
 
@@ -309,8 +310,7 @@ def _step(effect: str, action: str, eff: Any, state: _State, zones: Mapping[str,
               alternatives=alts)
     ref = (path[-1] if path else None) if compare is True else (compare or None)
     prev = ref.heldout if ref is not None else None
-    if h is not None and prev is not None and math.isfinite(h.get("rms_log10", math.nan)) \
-            and math.isfinite(prev.get("rms_log10", math.nan)) and h["rms_log10"] > prev["rms_log10"]:
+    if heldout_grew(prev, h):
         st.flags.append(f"the held-out rms log10 rose from {prev['rms_log10']:.4g} to {h['rms_log10']:.4g}: this step is "
                         "questioned (it may fit what the fitted frames alone show, or start a dead end)")
     if alts and alts[0]["margin"] < max(10.0, 0.1 * abs(delta_bic)):  # within 10 % of the gain: a close call
