@@ -29,6 +29,7 @@ MOVED = {
     "brdfjax.lightcurve.cli": "brdfjax.cli.lightcurve",
     "brdfjax.instrument.raw": "brdfjax.io.raw",
     "brdfjax.sample.cli": "brdfjax.sample.config",
+    "brdfjax.diagnose.cli": "brdfjax.diagnose.config",
 }
 
 __all__ = ["MOVED", "install"]

@@ -22,7 +22,7 @@ from brdfjax.fit.config import enable_config_precision, load_fit_config  # noqa:
 
 CONFIG = ROOT / "configs" / "diagnose_withheld_diffraction.toml"
 enable_config_precision(CONFIG)
-from brdfjax.diagnose.cli import DiagnoseSection, _truth_job  # noqa: E402
+from brdfjax.diagnose.config import DiagnoseSection, _truth_job  # noqa: E402
 from brdfjax.diagnose.context import gap_measures  # noqa: E402
 from brdfjax.diagnose.refits import _fit_state, _heldout_gap, truth_gap  # noqa: E402
 from brdfjax.runtime.atomic import write_json_atomic  # noqa: E402

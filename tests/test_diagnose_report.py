@@ -112,7 +112,7 @@ def test_candidate_progress_estimates_the_time_left_and_progress_lines_are_plain
 
     from rich.console import Console
 
-    from brdfjax.diagnose.cli import _CandidateProgress
+    from brdfjax.cli.diagnose import _CandidateProgress
     from brdfjax.runtime.progress import ProgressLine, make_console
 
     buf = io.StringIO()

@@ -4,7 +4,7 @@ A leaf: it parses arguments and dispatches to library code; nothing in
 brdfjax imports it.  Subcommands are entries of :data:`COMMANDS` (a name, a
 help line, a function adding its arguments and a function running it); the
 fit, diagnose, sample and capture commands live beside their packages
-(:mod:`brdfjax.cli.fit`, :mod:`brdfjax.diagnose.cli`,
+(:mod:`brdfjax.cli.fit`, :mod:`brdfjax.cli.diagnose`,
 :mod:`brdfjax.cli.sample`, :mod:`brdfjax.cli.capture`).
 
 ``brdfjax simulate [CONFIG] --out DIR [--step K] [--precision P] [--no-figures]``
@@ -151,8 +151,8 @@ COMMANDS: dict[str, Command] = {
     "diagnose": Command(
         "diagnose",
         "diagnose the gap between a base model and measured frames: where, which effect, how far it shrinks",
-        _lazy("..diagnose.cli", "add_arguments"),
-        _lazy("..diagnose.cli", "run"),
+        _lazy(".diagnose", "add_arguments"),
+        _lazy(".diagnose", "run"),
     ),
     "capture": Command(
         "capture",

@@ -26,7 +26,7 @@ fit: ``[[data.tables]]``               ``TableConfig``                          
 fit: ``[data.synthetic]``              ``SyntheticConfig``                                 ``brdfjax/fit/config.py``
 fit: ``[fit]``, ``[output]``           ``FitSection``, ``OutputConfig``                    ``brdfjax/fit/config.py``
 sample: ``[sample]``, ``.priors``      ``SampleSection``, ``PriorConfig``                  ``brdfjax/sample/config.py``
-diagnose: ``[diagnose]``               ``DiagnoseSection``                                 ``brdfjax/diagnose/cli.py``
+diagnose: ``[diagnose]``               ``DiagnoseSection``                                 ``brdfjax/diagnose/config.py``
 capture: every table                   ``CaptureConfig`` and its sections                  ``brdfjax/devices/capture.py``
 instrument TOML (synthetic camera)     ``InstrumentConfig`` (``load_instrument_config``)   ``brdfjax/instrument/synthetic.py``
 =====================================  ==================================================  =====================================

@@ -33,7 +33,7 @@ Where to find what (each module imports only those above it):
 - :mod:`~brdfjax.diagnose.engine`: :func:`diagnose` itself, the path search
   (the generic-vs-specific rule, swaps, backward elimination, the final check);
 - :mod:`~brdfjax.diagnose.model_config`: the final model as a fit config;
-- :mod:`~brdfjax.diagnose.cli`: the ``brdfjax diagnose`` command.
+- :mod:`~brdfjax.diagnose.config`: the ``[diagnose]`` table and the run of ``brdfjax diagnose``.
 """
 
 from __future__ import annotations

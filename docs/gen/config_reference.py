@@ -38,7 +38,7 @@ def _roots() -> list[tuple[str, str, list[tuple[str, type[BaseModel]]]]]:
     from brdfjax.batch import Study
     from brdfjax.config import SimulateConfig
     from brdfjax.devices.config import CaptureConfig
-    from brdfjax.diagnose.cli import DiagnoseSection
+    from brdfjax.diagnose.config import DiagnoseSection
     from brdfjax.fit.config import FitConfig
     from brdfjax.instrument.synthetic import InstrumentConfig
     from brdfjax.lightcurve.config import LightcurveConfig

@@ -1,4 +1,4 @@
-"""``brdfjax diagnose CONFIG --out DIR``: the diagnosis from a fit config with a ``[diagnose]`` table.
+"""The ``[diagnose]`` table of a fit config and the diagnosis it runs (``brdfjax diagnose CONFIG --out DIR``).
 
 The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
 ``[model]`` -- the *base* model --, ``[params]``, ``[fit]``) plus::
@@ -30,27 +30,20 @@ candidate prints ``i/n`` of its step and an estimate of the time left.
 
 from __future__ import annotations
 
-import argparse
-import re
-import time
 from pathlib import Path
 from typing import Any
 
 from pydantic import Field
 
 from ..config import ConfigError, ModelConfig, StrictModel, read_toml
-from ..fit.config import enable_config_precision, load_fit_config
+from ..fit.config import load_fit_config
 from ..fit.job import build_fit_job
-from ..io import check_output_dir
 from ..runtime.choices import check_choices
-from ..runtime.cli_args import CONFIG, DIR, add_no_figures
-from ..runtime.progress import make_console
 from .effects import EFFECT_LIBRARY
 from .engine import DiagnoseInputError, diagnose, final_model_config, truth_gap
 
-__all__ = ["DiagnoseSection", "add_arguments", "run", "run_diagnose"]
+__all__ = ["DiagnoseSection", "run_diagnose"]
 
-EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 
 
 class DiagnoseSection(StrictModel):
@@ -67,14 +60,6 @@ class DiagnoseSection(StrictModel):
     smooth: int = Field(3, ge=1, le=31, description="box size in points of the residual smoothing that finds the significant regions (1-31)")
     figures: bool = Field(True, description="embed the residual maps and path chart in report.html")
     truth: ModelConfig | None = Field(None, description="with [data.synthetic] only: the model that generates the synthetic data (default: [model]); the diagnosis never sees it")
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", metavar=CONFIG, help="fit config (TOML) with a [diagnose] table; the [model] is the base model")
-    p.add_argument("--out", required=True, metavar=DIR, help="output folder: diagnosis.json, report.md, report.html")
-    p.add_argument("--effects", default=None, metavar="EFFECTS",
-                   help="comma-separated candidate effects (overrides [diagnose] effects)")
-    add_no_figures(p, "report.html without figures (faster)")
 
 
 def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | None = None, figures: bool | None = None, progress: Any = None):
@@ -165,50 +150,3 @@ def _truth_job(cfg: Any, truth: ModelConfig, out: Path):
     job.params = dict(cfg.build_params())
     job.truth = None  # the diagnosis never sees the generator's truth
     return job, truth_model
-
-
-_REFIT = re.compile(r"^step (\d+): refitting with (\S+) \((\d+)/(\d+)")
-
-
-class _CandidateProgress:
-    """The engine's progress lines, each refit with ``i/n`` of its step and an estimate of the time left.
-
-    The estimate is the mean wall time of the refits finished so far (over
-    every step) times the refits left in this step; later steps, whose
-    candidates are not known yet, are not in it (the line says so).
-    """
-
-    def __init__(self, console: Any):
-        self.console = console
-        self.t_refits: list[float] = []
-        self._t_last: float | None = None
-
-    def __call__(self, msg: str) -> None:
-        now = time.perf_counter()
-        m = _REFIT.match(msg)
-        if self._t_last is not None:
-            self.t_refits.append(now - self._t_last)
-            self._t_last = None
-        if m is not None:
-            i, n = int(m.group(3)), int(m.group(4))
-            if self.t_refits:
-                left = (n - i + 1) * sum(self.t_refits) / len(self.t_refits)
-                msg += f"; ~{left:.0f} s left in this step (mean refit {sum(self.t_refits) / len(self.t_refits):.0f} s)"
-            self._t_last = now
-        self.console.print(msg, markup=False)
-
-
-def run(args: argparse.Namespace) -> int:
-    console = make_console(args.quiet, args.no_progress)
-    effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
-    t0 = time.perf_counter()
-    enable_config_precision(args.config)  # the command line, not the library, turns 64-bit JAX on
-    check_output_dir(args.out)
-    # errors: brdfjax.runtime.errors.run_command (cli.main) gives them their exit code and message
-    d = run_diagnose(
-        args.config, args.out, effects=effects, figures=False if args.no_figures else None,
-        progress=_CandidateProgress(console),
-    )
-    console.print(d.summary(), markup=False)
-    console.print(f"wrote {Path(args.out) / 'diagnosis.json'}, report.md, report.html ({time.perf_counter() - t0:.1f} s)", markup=False)
-    return EXIT_OK
