@@ -112,6 +112,7 @@ class SkyData:
     mag_err: np.ndarray  # NaN where none
     phase_deg: np.ndarray
     sun_obs_az_deg: np.ndarray  # azimuth of the observer from the Sun about body z at the satellite
+    engine: object = None  # the light-curve engine's Geometry of these rows (earthshine needs it); None after take()
 
     def __len__(self) -> int:
         return int(self.mag.shape[0])
@@ -126,7 +127,7 @@ class SkyData:
         """The same rows with other magnitudes (synthetic sets)."""
         return SkyData(self.name, self.obs, self.geometry, self.s_b, self.o_b, self.scale, self.sun_mag,
                        np.asarray(mag, float), self.mag_err if mag_err is None else np.asarray(mag_err, float),
-                       self.phase_deg, self.sun_obs_az_deg)
+                       self.phase_deg, self.sun_obs_az_deg, self.engine)
 
 
 def sky_data(name: str, obs: Observations, *, yaw_law: str = "sun_yaw", convention: str = "physical",
@@ -146,7 +147,7 @@ def sky_data(name: str, obs: Observations, *, yaw_law: str = "sun_yaw", conventi
     az = np.rad2deg(np.arctan2(o_b[:, 1], o_b[:, 0]) - np.arctan2(s_b[:, 1], s_b[:, 0]))
     az = (az + 180.0) % 360.0 - 180.0
     return SkyData(name, kept, geo, s_b, o_b, scale, sun_mag, np.asarray(kept.mag, float),
-                   np.asarray(kept.mag_err, float), geo.phase_angle_deg(), az)
+                   np.asarray(kept.mag_err, float), geo.phase_angle_deg(), az, g)
 
 
 # --- grouping for cross-validation ---------------------------------------------------------------------------
@@ -476,20 +477,33 @@ def cross_validate(problem: SkyProblem, free: np.ndarray, folds: list[np.ndarray
     """Refit on all but each held-out fold; the held-out residuals (observed - predicted) of every row.
 
     Returns ``rms``, ``bias``, ``n``, the per-row held-out ``pred`` (N,) and
-    per fold the RMS and the number of rows held out.
+    ``sigma`` (N,): the training fit's predictive sigma of each held-out row
+    (``sqrt(sigma_i^2 + s^2)`` where the row has an uncertainty, else the
+    training rows' residual RMS), the fractions of held-out rows within
+    +-0.9945 and +-1.96 of it (the Gaussian 68 and 95 % bands; the fit's own
+    parameter uncertainty is not added), and per fold the RMS and the rows.
     """
-    pred = np.full(len(problem.data), np.nan)
+    d = problem.data
+    pred = np.full(len(d), np.nan)
+    sig = np.full(len(d), np.nan)
+    has = np.isfinite(d.mag_err) & (d.mag_err > 0)
     per_fold = []
     for hold in folds:
         f = problem.fit(free, u0=u0, w=(~hold).astype(float), joint=joint)
         p = f.predict()
         pred[hold] = p[hold]
-        r = problem.data.mag[hold] - p[hold]
-        per_fold.append({"n": int(hold.sum()), "rms": float(np.sqrt(np.mean(r**2)))})
-    r = problem.data.mag - pred
+        r = d.mag - p
+        train0 = ~hold & ~has
+        s0 = np.sqrt(np.mean(r[train0] ** 2)) if train0.any() else np.nan
+        s = f.values()["scatter"]
+        sig[hold] = np.where(has, np.sqrt(np.where(has, d.mag_err, 0.0) ** 2 + s**2), s0)[hold]
+        per_fold.append({"n": int(hold.sum()), "rms": float(np.sqrt(np.mean(r[hold] ** 2)))})
+    r = d.mag - pred
     ok = np.isfinite(r)
+    z = np.abs(r[ok]) / sig[ok]
     return {"rms": float(np.sqrt(np.mean(r[ok] ** 2))), "bias": float(np.mean(r[ok])), "n": int(ok.sum()),
-            "pred": pred, "folds": per_fold}
+            "pred": pred, "sigma": sig, "coverage_68": float(np.mean(z <= 0.9945)),
+            "coverage_95": float(np.mean(z <= 1.96)), "folds": per_fold}
 
 
 # --- posterior ---------------------------------------------------------------------------------------------------
