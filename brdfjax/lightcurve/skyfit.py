@@ -238,7 +238,7 @@ class SkyFit:
         return {p.key: float(x[i]) for i, p in enumerate(self.problem.params)}
 
     def on_bound(self) -> list[str]:
-        p = 1.0 / (1.0 + np.exp(-self.u))
+        p = 0.5 * (1.0 + np.tanh(0.5 * self.u))  # the sigmoid, without overflow
         return [q.key for i, q in enumerate(self.problem.params) if self.free[i] and (p[i] < _EDGE or p[i] > 1 - _EDGE)]
 
     def predict(self, data: SkyData | None = None) -> np.ndarray:
