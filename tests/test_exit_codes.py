@@ -26,6 +26,7 @@ from brdfjax.runtime.errors import REPORT_TO, InputError, run_command
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).parent / "data"
 FIT_CFG = ROOT / "configs" / "fit_synthetic_solar_cell.toml"  # only read as far as each case needs
+OBSERVE_CFG = ROOT / "configs" / "observe_v2mini_slingshot.toml"
 
 FIT = """
 precision = "float64"
@@ -183,6 +184,10 @@ BAD_INPUTS = [
     ("sample", ["{w}/sample_prior.toml", "--out", "{w}/s4"], "prior on unknown parameter"),
     ("sample", ["{w}/sample_fixed.toml", "--out", "{w}/s5"], "prior on 'm2', which is held fixed"),
     ("sample", ["{w}/samp.toml", "--out", "{w}/garbage_chain", "--resume"], "the chain file cannot be read"),
+    # observe
+    ("observe", ["{w}/no_such.toml", "--out", "{w}/o"], "no_such.toml: observe config not found"),
+    ("observe", [str(OBSERVE_CFG), "--out", "{w}/a_file.txt"], "is a file, not a folder"),
+    ("observe", [str(OBSERVE_CFG), "--out", "/proc/x"], "cannot create anything in /proc"),
     # capture
     ("capture", ["{w}/no_such.toml", "--out", "{w}/c"], "no_such.toml"),
     ("capture", ["{w}/cap_nd.toml", "--out", "{w}/c"], "measurements[0].nd"),

@@ -95,11 +95,23 @@ def _check_05_lightcurves(r: dict) -> None:
     assert r["glint_ratio_30"] > 5
 
 
+def _check_06_sky(r: dict) -> None:
+    # every COARSE_STEP-th row of both sets (a Slingshot row or two in the Earth's shadow drop)
+    assert 1584 // COARSE_STEP - 2 <= r["slingshot_n"] <= -(-1584 // COARSE_STEP)
+    assert 2782 // COARSE_STEP - 4 <= r["score_n"] <= -(-2782 // COARSE_STEP)
+    for name in ("slingshot", "score"):
+        assert 0.3 < r[f"{name}_rms"] < 2.0
+        assert 0.0 <= r[f"{name}_coverage_68"] <= r[f"{name}_coverage_95"] <= 1.0
+        assert 0.5 < r[f"{name}_fraction_outside_lab"] <= 1.0  # the sky mostly sees these facets out of plane
+    assert r["slingshot_r"] > 0.5
+
+
 CHECKS = {
     "01_forward_model": _check_01_forward_model,
     "03_diagnosis": _check_03_diagnosis,
     "04_posterior": _check_04_posterior,
     "05_lightcurves": _check_05_lightcurves,
+    "06_sky": _check_06_sky,
 }
 
 

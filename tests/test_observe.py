@@ -166,6 +166,13 @@ def test_score_phase_angles_agree_with_satchecker():
     theirs = np.array([float(rows[int(line) - 2]["phase_angle_deg_satchecker"]) for line in sub.line[g.keep]])
     dphase = np.abs(g.phase_angle_deg() - theirs)
     assert np.median(dphase) < 0.02 and np.max(dphase) < 0.1
+    # the Earth's shadow: exactly SatChecker's 8 rows marked not illuminated (one more row is below the horizon)
+    full = sky_geometry(obs)
+    assert full.dropped == {"below_horizon": 1, "in_shadow": 8, "no_position": 0}
+    lit = np.zeros(len(obs), bool)
+    lit[full.keep] = True
+    theirs_lit = np.array([r["illuminated"] == "True" for r in rows])
+    assert np.sum(~theirs_lit) == 8 and not np.any(lit & ~theirs_lit)
 
 
 # --- the authors' prediction -----------------------------------------------------------------------------------
@@ -313,9 +320,73 @@ def test_cli_exit_2_on_bad_observations(tmp_path):
     assert "bad.csv: line 2, column 'measured_ab': 'n/a' is not a number" in r.stderr
 
 
+def test_model_error_widens_the_band_where_flagged():
+    """A model's own error (RMS of ln BRDF) widens the band: by about 1.0857 sigma in magnitude for a one-facet satellite."""
+    obs = read_observations(SLINGSHOT, "slingshot").take(np.arange(0, 1584, 50))
+    facets = [FacetSpec("plate", 10.0, (0, 0, -1), ["boom"], max_theta_i_deg=10.0, in_plane=True)]
+    kw = dict(normals="lumos", convention="lumos", earth_radius=LUMOS_EARTH_RADIUS_M, draws=4000, seed=1)
+    p0 = predict_set("s", obs, facets, _authors_models(), **kw)
+    p1 = predict_set("s", obs, facets, _authors_models(), model_error={"boom": (0.1, 0.5)}, **kw)
+    w0 = p0.band[:, 3] - p0.band[:, 1]
+    w1 = p1.band[:, 3] - p1.band[:, 1]
+    assert np.all(w0 < 1e-9)  # no covariance, no uncertainty column: a line
+    sig = np.where(p1.flag_incidence[:, 0] | p1.flag_plane[:, 0], 0.5, 0.1) * 2.5 / np.log(10)
+    np.testing.assert_allclose(w1, 2 * sig, rtol=0.08)
+
+
 def test_solar_disk_changes_little_on_broad_lab_brdfs():
     obs = read_observations(SLINGSHOT, "slingshot").take(np.arange(0, 1584, 40))
     kw = dict(normals="lumos", convention="lumos", earth_radius=LUMOS_EARTH_RADIUS_M)
     p0 = predict_set("s", obs, _authors_facets(), _authors_models(), **kw)
     p1 = predict_set("s", obs, _authors_facets(), _authors_models(), disk=SunDisk.rings(3), **kw)
     assert np.max(np.abs(p0.mag - p1.mag)) < 0.01
+
+
+# --- attitude conventions --------------------------------------------------------------------------------------
+
+
+def test_sun_yaw_frame_tracking_array_and_differentiable_cant():
+    """nadir_sun_yaw: the Sun lies in the body y-z plane, lumos-sat's Earth-facing normal is body +z (nadir), an array
+    tracking about body x faces the Sun exactly; a facet's cant is differentiable (gradient = finite difference)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from brdfjax.lightcurve.attitude import lumos_normal_to_body, offset_facets
+    from brdfjax.lightcurve.engine import Attitude, Facets, Satellite, facet_flux, magnitude
+
+    obs = read_observations(SLINGSHOT, "slingshot").take(np.arange(0, 1584, 100))
+    g = sky_geometry(obs, earth_radius=LUMOS_EARTH_RADIUS_M).engine_geometry()
+    M = np.asarray(Attitude.nadir().matrix(g.r_hat, g.v_hat))
+    s_b = np.einsum("tij,ti->tj", M, np.asarray(g.s))
+    assert np.max(np.abs(s_b[:, 0])) < 1e-12 and np.all(s_b[:, 1] > 0)
+    np.testing.assert_allclose(M[:, :, 2], -np.asarray(g.r_hat), atol=1e-12)  # body z = nadir
+    np.testing.assert_array_equal(lumos_normal_to_body([0, 0, -1]), [0, 0, 1])
+    fac = Facets.build(["array", "chassis"], [10.0, 1.0], [[0, 1.0, 0], [0, 0, 1.0]], x_axis=[[1.0, 0, 0], None],
+                       tracking=[True, False])
+    _, _, n = fac.frames(jnp.asarray(s_b))
+    np.testing.assert_allclose(np.sum(np.asarray(n)[:, 0] * s_b, -1), 1.0, atol=1e-12)  # cos_i = 1 on the array
+    model = Model({"t": ABg(0.02, 1e-3, 2.0)})
+
+    def mag(cant):
+        sat = Satellite(offset_facets(fac, jnp.stack([0.0, cant]), jnp.zeros(2)), (model,), Attitude.nadir(), (0, 0))
+        return jnp.sum(magnitude(facet_flux(sat, g, SunDisk.point())["flux"][:, 1]))
+
+    c0 = 0.1
+    grad = float(eqx.filter_grad(mag)(jnp.asarray(c0)))
+    fd = float((mag(jnp.asarray(c0 + 1e-6)) - mag(jnp.asarray(c0 - 1e-6))) / 2e-6)
+    assert np.isfinite(grad) and grad != 0 and grad == pytest.approx(fd, rel=1e-5)
+
+
+def test_posterior_draws_give_the_band():
+    """A model with posterior draws (names, (S, p)) instead of a covariance: the band follows them (A log-normal with
+    sigma 0.2: the 68 % band 2 x 1.0857 x 0.2 mag wide on every row)."""
+    obs = read_observations(SLINGSHOT, "slingshot").take(np.arange(0, 1584, 80))
+    rng = np.random.default_rng(5)
+    A0 = 9.737e-5
+    draws = (("t.A",), (A0 * np.exp(0.2 * rng.standard_normal(5000)))[:, None])
+    models = {"boom": _Built(Model({"t": ABg(A0, 8.448e-6, 2.686)}), draws)}
+    facets = [FacetSpec("plate", 10.0, (0, 0, -1), ["boom"])]
+    p = predict_set("s", obs, facets, models, normals="lumos", convention="lumos", earth_radius=LUMOS_EARTH_RADIUS_M,
+                    draws=3000, seed=2)
+    np.testing.assert_allclose(p.band[:, 3] - p.band[:, 1], 2 * 0.2 * 2.5 / np.log(10), rtol=0.08)
+    np.testing.assert_allclose(p.band[:, 2], p.mag, atol=0.03)

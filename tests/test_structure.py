@@ -13,8 +13,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[1] / "brdfjax"
 #: The layers, bottom up: each folder (or top-level module) imports only itself and what it lists here.
 #: ``brdfjax`` is the package's ``__init__`` (for ``__version__``); ``reference`` is the NumPy oracle,

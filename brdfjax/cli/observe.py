@@ -20,6 +20,7 @@ import sys
 import jax
 
 from ..io import check_output_dir
+from ..lightcurve.observe_config import load_observe_config, run_observe
 
 __all__ = ["add_arguments", "run"]
 
@@ -31,8 +32,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..lightcurve.observe_config import load_observe_config, run_observe
-
     prog = "brdfjax observe"
     cfg = load_observe_config(args.config)
     check_output_dir(args.out)

@@ -6,7 +6,11 @@ the observer; :mod:`.engine` is the JAX forward model (facets, attitude, the
 solar disk, flux and magnitude), differentiable and vmappable over posterior
 draws; :mod:`.models` adds the Phong baseline, the directional albedo and
 models from fits and posteriors; :mod:`.glintmap` maps where a model glints
-against a baseline.  See the README's "Light curves".
+against a baseline.  ``brdfjax observe`` predicts real observations:
+:mod:`.skygeometry` (the geometry of observed rows without a TLE),
+:mod:`.attitude` (named attitude laws), :mod:`.photometry` (bands),
+:mod:`.earthshine`, :mod:`.observe` and :mod:`.observe_config`.  See the
+README's "Light curves" and docs/guides/sky.md.
 """
 
 from .config import LightcurveConfig as LightcurveConfig, load_lightcurve_config as load_lightcurve_config

@@ -37,12 +37,14 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..core.geometry import Directions
 from ..core.terms import Model
+from ..fit import read_cornell_brdf, read_merl_inplane, read_table
 from ..io.observations import Observations
 from ..runtime.errors import InputError
 from .attitude import lumos_normal_to_body, offset_facets
@@ -129,8 +131,6 @@ def metrics(observed: np.ndarray, predicted: np.ndarray, bands: np.ndarray | Non
 
 def lab_coverage(path: str | Path, fmt: str = "lumos-sat", columns: dict | None = None) -> tuple[float, bool]:
     """The largest incident angle (deg) of a lab table and whether every row lies in the plane of incidence."""
-    from ..fit import read_cornell_brdf, read_merl_inplane, read_table
-
     path = Path(path)
     if fmt in ("lumos-sat", "merl"):
         t = read_merl_inplane(path, columns=columns)
@@ -238,26 +238,31 @@ def _angles(w_c, w_s):
     return ti, ts, out
 
 
-def _family_flux_draws(model: Model, names: tuple[str, ...], draws: np.ndarray, w_c, w_s, wavelength: float,
-                       chunk: int = 64) -> np.ndarray:
-    """BRDF x cos_i x cos_s of ``model`` with each parameter draw, (S, T, Jm), evaluated in draw chunks."""
+@eqx.filter_jit
+def _draw_values(model: Model, names: tuple[str, ...], draws, w_c, w_s, wavelength: float):
+    """BRDF x cos_i x cos_s of ``model`` at each parameter draw (rows of ``draws``): (S, T, Jm).  One compilation per
+    model structure and shape (``names`` and ``wavelength`` static)."""
     cos = jnp.maximum(w_c[..., 2], 0.0) * jnp.maximum(w_s[..., 2], 0.0)
     dirs = Directions.from_vectors(w_c, w_s)
 
-    @jax.jit
-    def one_chunk(p):
-        def one(pp):
-            m = model.with_params(dict(zip(names, [pp[i] for i in range(len(names))]))) if names else model
-            return m(dirs, wavelength) * cos
-        return jax.lax.map(one, p) if p.shape[0] > 0 else jnp.zeros((0,) + cos.shape)
+    def one(pp):
+        m = model.with_params({n: pp[i] for i, n in enumerate(names)}) if names else model
+        return m(dirs, wavelength) * cos
 
-    out = []
+    return jax.lax.map(one, draws, batch_size=16)
+
+
+def _family_flux_draws(model: Model, names: tuple[str, ...], draws: np.ndarray, w_c, w_s, wavelength: float,
+                       block: int = 128) -> np.ndarray:
+    """:func:`_draw_values` with the draws padded to a multiple of ``block`` (fewer distinct shapes to compile)."""
     S = draws.shape[0]
-    pad = (-S) % chunk
+    if S == 0:
+        return np.zeros((0,) + tuple(w_c.shape[:-1]))
+    pad = (-S) % block
     d = np.concatenate([draws, np.repeat(draws[-1:], pad, 0)]) if pad else draws
-    for k in range(0, d.shape[0], chunk):
-        out.append(np.asarray(one_chunk(jnp.asarray(d[k:k + chunk]))))
-    return np.concatenate(out)[:S]
+    if d.shape[1] == 0:
+        d = np.zeros((d.shape[0], 1))
+    return np.asarray(_draw_values(model, tuple(names), jnp.asarray(d), w_c, w_s, float(wavelength)))[:S]
 
 
 def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: dict[str, "object"],
@@ -268,7 +273,8 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
                 result_paths: dict[str, Path] | None = None, out_of_plane_deg: float = 5.0,
                 incidence_margin_deg: float = 1.0, min_flux_fraction: float = 0.1,
                 min_altitude_deg: float = 0.0, earthshine_albedo: float | None = None,
-                earthshine_grid: tuple[int, int] = (32, 64)) -> SetPrediction:
+                earthshine_grid: tuple[int, int] = (32, 64),
+                model_error: dict[str, tuple[float, float]] | None = None) -> SetPrediction:
     """Predict one observation set (see the module docstring).
 
     ``models``: model name -> object with ``.model`` (a Model) and ``.draws``
@@ -277,7 +283,11 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     the light of a Lambertian Earth of that albedo (:mod:`.earthshine`, on an
     ``earthshine_grid`` of polar x azimuthal elements); the band's draws scale
     each facet's direct flux by the nominal (direct + earthshine) / direct
-    ratio.
+    ratio.  ``model_error``: model name -> (inside, outside) RMS of ln BRDF:
+    each draw multiplies a facet's flux by ``exp(sigma z)`` (z normal, per
+    draw, row and facet), sigma the model's error inside the lab's geometry
+    (its fit's log-RMS) or outside it (e.g. its log-RMS on a withheld
+    incidence), by the facet's flag on that row.
     """
     geo = sky_geometry(obs, yaw_law=yaw_law, earth_radius=earth_radius, min_altitude_deg=min_altitude_deg)
     kept = obs.take(geo.keep)
@@ -331,12 +341,13 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     if draws > 0:
         pred.band, pred.families_drawn = _bands(sat, facets, fam_names, models, result_paths or {}, np.asarray(w_c),
                                                 np.asarray(w_s), np.asarray(scale), ratio, sun_mag, kept.mag_err, draws,
-                                                seed, parameter_uncertainty, model_form, wavelength)
+                                                seed, parameter_uncertainty, model_form, wavelength, model_error or {},
+                                                flag_i | flag_p)
     return pred
 
 
 def _bands(sat, facets, fam_names, models, result_paths, w_c, w_s, scale, ratio, sun_mag, mag_err, S, seed,
-           parameter_uncertainty, model_form, wavelength):
+           parameter_uncertainty, model_form, wavelength, model_error, outside):
     rng = np.random.default_rng(seed)
     J = len(facets)
     T = w_c.shape[0]
@@ -368,7 +379,11 @@ def _bands(sat, facets, fam_names, models, result_paths, w_c, w_s, scale, ratio,
         vals = np.nan_to_num(vals, nan=0.0, posinf=0.0)
         for q, j in enumerate(cols):
             use = choice[used, j] == fi
-            total[used[use]] += vals[use, :, q] * (area[j] * scale * ratio[:, j])[None, :]
+            contrib = vals[use, :, q] * (area[j] * scale * ratio[:, j])[None, :]
+            if fam in model_error:
+                sig = np.where(outside[:, j], model_error[fam][1], model_error[fam][0])  # (T,)
+                contrib = contrib * np.exp(sig[None, :] * rng.standard_normal(contrib.shape))
+            total[used[use]] += contrib
             counts.setdefault(facets[j].name, {})[fam] = int(use.sum())
     with np.errstate(divide="ignore"):
         m = sun_mag[None, :] - 2.5 * np.log10(total)

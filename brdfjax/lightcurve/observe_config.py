@@ -53,6 +53,10 @@
     n_psi = 32
     n_chi = 64
 
+    [model_error.mirror_binomial]    # the model's own error, RMS of ln BRDF (widens the band)
+    inside_log_rms = 0.79            # its fit's log-RMS
+    outside_log_rms = 1.28           # its log-RMS on a withheld incidence (experiments/sky_lab_cv.py)
+
     [bands]
     draws = 200                      # 0: no band
     seed = 0
@@ -79,6 +83,7 @@ from pydantic import Field, model_validator
 from ..config import ConfigError, StrictModel, read_toml, validate
 from ..io import check_output_dir, write_json_atomic
 from ..io.observations import FORMATS, read_observations
+from ..plotting import save_figure_atomic
 from ..runtime.atomic import atomic_output
 from .config import LCModelConfig, build_models
 from .engine import SunDisk
@@ -155,6 +160,11 @@ class EarthshineConfig(StrictModel):
     n_chi: int = Field(64, ge=8, description="azimuths of the visible cap")
 
 
+class ModelErrorConfig(StrictModel):
+    inside_log_rms: float = Field(ge=0, description="RMS of ln BRDF inside the lab's geometry (the fit's log-RMS)")
+    outside_log_rms: float = Field(ge=0, description="RMS of ln BRDF outside it (e.g. on a withheld incidence)")
+
+
 class BandsConfig(StrictModel):
     draws: int = Field(200, ge=0)
     seed: int = 0
@@ -184,6 +194,7 @@ class ObserveConfig(StrictModel):
     lab: dict[str, LabConfig] = Field(default_factory=dict)
     models: dict[str, LCModelConfig] = Field(min_length=1)
     earthshine: EarthshineConfig = Field(default_factory=EarthshineConfig)
+    model_error: dict[str, ModelErrorConfig] = Field(default_factory=dict)
     bands: BandsConfig = Field(default_factory=BandsConfig)
     flags: FlagsConfig = Field(default_factory=FlagsConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
@@ -196,6 +207,9 @@ class ObserveConfig(StrictModel):
                     raise ValueError(f"facets.{name}: unknown model '{m}'; known: {', '.join(self.models)}")
             if f.lab is not None and f.lab not in self.lab:
                 raise ValueError(f"facets.{name}.lab: unknown lab table '{f.lab}'; known: {', '.join(self.lab) or 'none'}")
+        for m in self.model_error:
+            if m not in self.models:
+                raise ValueError(f"model_error.{m}: unknown model; known: {', '.join(self.models)}")
         names = [o.name for o in self.observations]
         if len(set(names)) != len(names):
             raise ValueError(f"observations: names must differ (got {names})")
@@ -260,7 +274,8 @@ def predict_all(cfg: ObserveConfig, log=lambda s: None) -> list[SetPrediction]:
             result_paths=results, out_of_plane_deg=cfg.flags.out_of_plane_deg,
             incidence_margin_deg=cfg.flags.incidence_margin_deg, min_flux_fraction=cfg.flags.min_flux_fraction,
             min_altitude_deg=oc.min_altitude_deg, earthshine_albedo=cfg.earthshine.albedo,
-            earthshine_grid=(cfg.earthshine.n_psi, cfg.earthshine.n_chi))
+            earthshine_grid=(cfg.earthshine.n_psi, cfg.earthshine.n_chi),
+            model_error={k: (v.inside_log_rms, v.outside_log_rms) for k, v in cfg.model_error.items()})
         log(f"{oc.name}: {len(pred.mag)} rows predicted (dropped: {pred.obs.dropped})")
         out.append(pred)
     return out
@@ -288,15 +303,11 @@ def _csv(pred: SetPrediction) -> str:
 
 
 def _figures(pred: SetPrediction, out: Path) -> list[str]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..plotting import save_figure_atomic
+    from matplotlib.figure import Figure  # noqa: PLC0415 -- 0.4 s of matplotlib only when figures are drawn
 
     res = pred.observed - pred.mag
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
     ax.scatter(pred.phase_deg[~pred.flagged], res[~pred.flagged], s=4, label="inside the lab's geometry")
     ax.scatter(pred.phase_deg[pred.flagged], res[pred.flagged], s=4, c="C3", label="outside (flagged)")
     if pred.band is not None:
@@ -311,9 +322,9 @@ def _figures(pred: SetPrediction, out: Path) -> list[str]:
     names = []
     p1 = out / f"residuals_vs_phase_{pred.name}.png"
     save_figure_atomic(fig, p1, 120)
-    plt.close(fig)
     names.append(p1.name)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
     total = pred.facet_flux.sum(-1)
     frac = pred.facet_flux / np.where(total > 0, total, 1.0)[:, None]
     order = np.argsort(pred.phase_deg)
@@ -324,7 +335,6 @@ def _figures(pred: SetPrediction, out: Path) -> list[str]:
     ax.legend(fontsize=6, loc="upper left")
     p2 = out / f"facet_contribution_{pred.name}.png"
     save_figure_atomic(fig, p2, 120)
-    plt.close(fig)
     names.append(p2.name)
     return names
 

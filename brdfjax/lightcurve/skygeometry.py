@@ -45,6 +45,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..io.observations import ObservationError, Observations
@@ -163,8 +164,6 @@ class SkyGeometry:
     def engine_geometry(self, dtype=np.float64, sun_distance_factor: bool = True) -> Geometry:
         """The light-curve engine's :class:`~brdfjax.lightcurve.engine.Geometry`; without the distance factor
         (lumos-sat's convention) ``d_sun`` is set to 1 AU."""
-        import jax.numpy as jnp
-
         do = self.r_obs - self.r_sat
         d_obs = np.linalg.norm(do, axis=-1)
         r = np.linalg.norm(self.r_sat, axis=-1)
