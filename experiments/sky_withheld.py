@@ -12,6 +12,7 @@ first on the path and the path's held-out RMS (whole nights for SCORE, blocks of
 20 % of the truth's own RMS; a null trial passes when the path is empty.
 
     PYTHONPATH=$PWD python experiments/sky_withheld.py [--trials 3] [--nulls 6] [--rows 300]
+    PYTHONPATH=$PWD python experiments/sky_withheld.py --sizes --trials 4   # each effect's size at the rows, no fit
 
 Writes experiments/results/sky_withheld.json.
 """
@@ -118,6 +119,35 @@ def trial(which: str, effect: str | None, rows: int, seed: int, log) -> dict:
             "zones_first_step": res["path"][0]["zones"][:3] if res["path"] else []}
 
 
+def effect_sizes(rows: int, seeds, log) -> list[dict]:
+    """How much each withheld effect changes the noiseless magnitudes at the real rows (no fit): RMS and the 90th
+    percentile of |truth - base| (mag), and for earthshine its share of the flux."""
+    out = []
+    for seed in seeds:
+        which = ("slingshot", "score")[seed % 2]
+        d, _ = geometry(which, rows, seed)
+        facets, models = facets_and_models()
+        P = SkyProblem.build(d, facets, models, normals="lumos")
+        add_effects(P, earth_radius=6378000.0 if which == "slingshot" else 6378137.0)
+        base = P.predict(P.u0())
+        per, _ = P.flux(P.x_of_u(P.u0()))
+        direct = np.asarray(per).sum(-1)
+        for eff, vals in EFFECTS.items():
+            u = P.u0()
+            for k, v in vals.items():
+                u[P.index(k)] = P.params[P.index(k)].to_u(v)
+            dm = np.abs(P.predict(u) - base)
+            row = {"set": which, "seed": seed, "effect": eff, "rms_mag": float(np.sqrt(np.mean(dm**2))),
+                   "p90_mag": float(np.percentile(dm, 90))}
+            if eff == "earthshine":
+                es = 0.3 * np.sum(P._es_unit * np.asarray([f.area for f in facets])[None, :], -1)
+                row["flux_share_p50_p90"] = [float(x) for x in np.percentile(es / direct, [50, 90])]
+            out.append(row)
+            log(f"{which:9s} seed {seed} {eff:20s} |truth - base| RMS {row['rms_mag']:.4f} mag, p90 {row['p90_mag']:.4f}"
+                + (f", flux share p50/p90 {row['flux_share_p50_p90']}" if "flux_share_p50_p90" in row else ""))
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--trials", type=int, default=3)
@@ -126,8 +156,14 @@ def main(argv=None) -> int:
     ap.add_argument("--effects", default=",".join(EFFECTS))
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--out", default=str(ROOT / "experiments/results/sky_withheld.json"))
+    ap.add_argument("--sizes", action="store_true", help="only measure each effect's size at the rows (no diagnosis)")
     a = ap.parse_args(argv)
     out = Path(a.out)
+    if a.sizes:
+        data = json.loads(out.read_text()) if out.exists() else {}
+        data["effect_sizes"] = effect_sizes(a.rows, range(a.first_seed, a.first_seed + a.trials), print)
+        write_json_atomic(out, data)
+        return 0
     done = json.loads(out.read_text())["trials"] if out.exists() else []
     seen = {(t["set"], t["withheld"], t["seed"]) for t in done}
     seeds = range(a.first_seed, a.first_seed + a.trials)
@@ -149,7 +185,8 @@ def main(argv=None) -> int:
             s["passed"] += t["pass"]
             s["named_first"] += ((t["named"] == t["withheld"].split("@")[0]) if t["withheld"]
                                  else (t["named"] is None))
-        write_json_atomic(out, json.loads(json.dumps({"summary": summary, "trials": done,
+        old = json.loads(out.read_text()) if out.exists() else {}
+        write_json_atomic(out, json.loads(json.dumps({**old, "summary": summary, "trials": done,
                                                       "elapsed_s_this_run": time.perf_counter() - t0}, default=float)))
     return 0
 

@@ -49,9 +49,10 @@ import optimistix as optx
 
 from ..core.geometry import Directions
 from ..core.terms import Model
+from ..fit import read_merl_inplane
 from ..io.observations import Observations
 from ..runtime.errors import InputError
-from .attitude import lumos_normal_to_body
+from .attitude import lumos_normal_to_body, offset_facets
 from .engine import Attitude, Facets
 from .observe import FacetSpec
 from .photometry import band
@@ -201,8 +202,6 @@ class LabTable:
 def lab_table(family: str, path, fmt: str = "lumos-sat", columns: dict | None = None, weight: float = 1.0,
               every: int = 1) -> LabTable:
     """Read a lab table (as :func:`~brdfjax.lightcurve.observe.lab_coverage` does) into a :class:`LabTable`."""
-    from ..fit import read_merl_inplane
-
     t = read_merl_inplane(path, columns=columns)
     keep = (np.ones(len(t), bool) if t.mask is None else np.asarray(t.mask, bool)) & (np.asarray(t.brdf) > 0)
     idx = np.flatnonzero(keep)[::every]
@@ -352,8 +351,6 @@ class SkyProblem:
                 cant = cant.at[p.index].set(x[i])
             elif p.kind == "yaw":
                 yaw = yaw.at[p.index].set(x[i])
-        from .attitude import offset_facets
-
         fac = offset_facets(Facets(area, base.normal, base.x_axis, base.phi_ref, base.tracking, base.side, base.names),
                             cant, yaw)
         return fac
@@ -517,7 +514,7 @@ def nuts_posterior(fit: SkyFit, n_draws: int = 300, n_warmup: int = 300, seed: i
     prior in ``u``).  Returns the draws in natural units per free parameter
     key, the acceptance rate and the divergent transitions.
     """
-    import blackjax
+    import blackjax  # optional dependency (the sample extra): imported only when a posterior is asked for
 
     prob = fit.problem
     free = np.asarray(fit.free, bool)
