@@ -140,3 +140,31 @@ def test_cross_validation_and_bad_bounds(sling):
         Param("x", "area", 5.0, 0.1, 1.0, True)
     with pytest.raises(InputError, match="no time and site"):
         night_groups(obs)
+
+
+def test_fitted_model_written_as_an_observe_config_reruns_to_the_same_numbers(tmp_path):
+    from dataclasses import replace
+
+    from brdfjax.lightcurve.config import build_models
+    from brdfjax.lightcurve.observe_config import _facet_specs, load_observe_config, predict_all
+    from brdfjax.lightcurve.skyfit import write_observe_config
+
+    src = "configs/observe_v2mini_slingshot.toml"
+    cfg = load_observe_config(src)
+    built = build_models(cfg, 550e-9)
+    facets = [replace(f, families=[next((m for m in f.families if m.endswith("_abg")), f.families[0])]) for f in _facet_specs(cfg)]
+    obs = read_observations(DATA + "slingshot_v2mini.csv", "slingshot")
+    obs = obs.take(np.arange(0, len(obs), 16))
+    d = sky_data("slingshot", obs, convention="lumos", earth_radius=6378000.0)
+    P = SkyProblem.build(d, facets, {f.families[0]: built[f.families[0]].model for f in facets}, normals="lumos",
+                         cant=["twist"], model_params={"mirror_abg": ["spec.g"]})
+    f = P.fit(P.default_free("cant.twist", "mirror_abg.spec.g"))
+    assert abs(f.values()["mirror_abg.spec.g"] - 3.117) > 0.01 and abs(f.values()["cant.twist"]) > 0.01
+    out = write_observe_config(f, src, tmp_path / "fitted.toml")
+    text = out.read_text()
+    assert "cant_deg" in text and "../tests" not in text
+    cfg2 = load_observe_config(out)
+    cfg2 = cfg2.model_copy(update={"observations": [cfg2.observations[0].model_copy(update={"every": 16})],
+                                   "bands": cfg2.bands.model_copy(update={"draws": 0})})
+    pred = predict_all(cfg2)[0]
+    assert np.max(np.abs(pred.mag - f.predict())) < 1e-9

@@ -40,17 +40,21 @@ or for sets without times contiguous blocks of rows; never single rows.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ..config.base import read_toml
 from ..core.geometry import Directions
 from ..core.terms import Model
 from ..fit import read_merl_inplane
 from ..io.observations import Observations
+from ..runtime.atomic import atomic_output
 from ..runtime.errors import InputError
 from .attitude import lumos_normal_to_body, offset_facets
 from .engine import Attitude, Facets
@@ -59,7 +63,7 @@ from .photometry import band
 from .skygeometry import SkyGeometry, sky_geometry
 
 __all__ = ["Param", "SkyData", "SkyProblem", "SkyFit", "sky_data", "group_folds", "night_groups", "block_groups",
-           "cross_validate", "nuts_posterior", "LabTable", "lab_table"]
+           "cross_validate", "nuts_posterior", "LabTable", "lab_table", "write_observe_config"]
 
 AU_M = 1.495978707e11
 _EDGE = 1e-3  # a parameter within this fraction of its range of a bound is "on the bound"
@@ -546,3 +550,88 @@ def nuts_posterior(fit: SkyFit, n_draws: int = 300, n_warmup: int = 300, seed: i
     keys = [prob.params[i].key for i in idx]
     return {"keys": keys, "draws": x[:, idx], "u_draws": full, "acceptance": float(np.mean(acc)),
             "divergent": int(np.sum(div)), "step_size": float(params["step_size"])}
+
+
+# --- the fitted model as an observe config -------------------------------------------------------------------------
+
+_PATH_KEYS = ("path", "terms_file", "fit_result", "posterior")
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float | np.floating | np.integer):
+        return repr(float(v)) if isinstance(v, float | np.floating) else str(int(v))
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _toml(data: dict, prefix: str = "") -> list[str]:
+    scal = {k: v for k, v in data.items() if not isinstance(v, dict) and not (
+        isinstance(v, list) and v and all(isinstance(x, dict) for x in v))}
+    lines = [f"{json.dumps(k)} = {_toml_value(v)}" for k, v in scal.items()]
+    for k, v in data.items():
+        name = f"{prefix}{json.dumps(k)}"
+        if isinstance(v, dict):
+            lines += ["", f"[{name}]"] + _toml(v, name + ".")
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            for x in v:
+                lines += ["", f"[[{name}]]"] + _toml(x, name + ".")
+    return lines
+
+
+def write_observe_config(fit: SkyFit, config_path, out_path) -> Path:
+    """The fitted facet model as an observe config: ``config_path`` with each facet's area, cant and yaw and each
+    refitted model's parameters replaced by the fit's values, every facet predicted by the family the fit used (no
+    alternatives; a refitted model's ``fit_result`` dropped: its covariance belongs to the lab fit), relative paths
+    made absolute, and any ``[earthshine]`` table dropped (the fit had none).  ``brdfjax observe`` on it reproduces :meth:`SkyFit.predict` (a test).  Effects of
+    :mod:`.skygap` cannot be written: a fit with any of them freed raises :class:`InputError`."""
+    prob = fit.problem
+    free_effects = [p.key for i, p in enumerate(prob.params) if p.kind == "effect" and fit.free[i]]
+    if free_effects:
+        raise InputError(f"write_observe_config: effects {free_effects} have no observe-config form")
+    src = Path(config_path)
+    data = read_toml(src, "observe config")
+
+    def absolute(node):
+        if isinstance(node, dict):
+            return {k: (str((src.parent / v).resolve()) if k in _PATH_KEYS and isinstance(v, str)
+                        and not Path(v).is_absolute() else absolute(v)) for k, v in node.items()}
+        if isinstance(node, list):
+            return [absolute(x) for x in node]
+        return node
+
+    data = absolute(data)
+    data.pop("earthshine", None)  # the problem's facets carry no earthshine (skygap's candidate is not written)
+    vals = fit.values()
+    for f in prob.facets:
+        fc = data["facets"][f.name]
+        fc["area_m2"] = vals[f"area.{f.name}"]
+        for kind in ("cant", "yaw"):
+            if f"{kind}.{f.name}" in vals:
+                fc[f"{kind}_deg"] = float(np.rad2deg(vals[f"{kind}.{f.name}"]))
+        fc["model"] = f.families[0]
+        fc["alternatives"] = []
+    changed: dict[str, dict] = {}
+    for i, p in enumerate(prob.params):
+        if p.kind == "model" and fit.free[i]:
+            changed.setdefault(p.target, {})[p.name] = vals[p.key]
+    for fam, upd in changed.items():
+        m = data["models"][fam]
+        terms = m.pop("terms", None) or read_toml(m.pop("terms_file"), f"terms file of models.{fam}")["terms"]
+        m.pop("terms_file", None)
+        m.pop("fit_result", None)
+        for name, v in upd.items():
+            term, par = name.split(".", 1)
+            terms[term].setdefault("params", {})[par] = v
+        m["terms"] = terms
+    out = Path(out_path)
+    head = f"# {src.name} with the facet model fitted to observations (brdfjax.lightcurve.skyfit.write_observe_config)"
+    with atomic_output(out) as tmp:
+        tmp.write_text("\n".join([head] + _toml(data)) + "\n", encoding="utf-8")
+    return out
