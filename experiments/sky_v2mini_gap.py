@@ -11,6 +11,7 @@ fitted extra scatter.  Coverage: the held-out rows inside the training fit's Gau
 scatter; the parameters' own uncertainty not added).
 
     PYTHONPATH=$PWD python experiments/sky_v2mini_gap.py [--sets slingshot,score] [--nuts 150]
+    PYTHONPATH=$PWD python experiments/sky_v2mini_gap.py --score-satellites   # SCORE held out by satellites
 
 Writes experiments/results/sky_v2mini_gap.json.
 """
@@ -146,14 +147,36 @@ def run_set(which: str, n_nuts: int, log) -> dict:
     return out
 
 
+def score_by_satellite(log) -> dict:
+    """SCORE held out by whole satellites (5 folds of satellite names) instead of nights: sky-only and joint fits."""
+    cfg, d, facets, models, labs = setup("score")
+    folds = group_folds(np.asarray(d.obs.extra["satellite"], str), 5, seed=0)
+    P = SkyProblem.build(d, facets, models, normals=cfg.attitude.normals, model_params=params_of(models),
+                         scatter=True, labs=labs, wavelength=cfg.wavelength_nm * 1e-9)
+    free = np.array([p.kind == "model" for p in P.params])
+    free[P.index("scatter")] = True
+    out = {"satellites": int(len(np.unique(np.asarray(d.obs.extra["satellite"], str)))), "folds": 5}
+    for name, joint in (("sky_only", 0.0), ("joint", 1.0)):
+        cv = cross_validate(P, free, folds, joint=joint)
+        out[name] = {k: cv[k] for k in ("rms", "bias", "coverage_68", "coverage_95")}
+        log(f"score held out by satellite, {name}: RMS {cv['rms']:.3f}, coverage 68 {cv['coverage_68']:.2f} "
+            f"95 {cv['coverage_95']:.2f}")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sets", default="slingshot,score")
     ap.add_argument("--nuts", type=int, default=150)
     ap.add_argument("--out", default=str(ROOT / "experiments/results/sky_v2mini_gap.json"))
+    ap.add_argument("--score-satellites", action="store_true", help="only: SCORE held out by whole satellites")
     a = ap.parse_args(argv)
     out = Path(a.out)
     res = json.loads(out.read_text()) if out.exists() else {}
+    if a.score_satellites:
+        res.setdefault("score", {})["heldout_by_satellite"] = score_by_satellite(log=lambda s: print(s, flush=True))
+        write_json_atomic(out, json.loads(json.dumps(res, default=lambda o: np.asarray(o).tolist())))
+        return 0
     for which in a.sets.split(","):
         res[which] = run_set(which, a.nuts, log=lambda s: print(s, flush=True))
         write_json_atomic(out, json.loads(json.dumps(res, default=lambda o: np.asarray(o).tolist())))
