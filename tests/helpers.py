@@ -61,6 +61,8 @@ CONFIG_CASES = {
     "diagnose": sorted(p.name for p in CONFIGS.glob("diagnose_*.toml")),
     "instrument": ["instrument_seed.toml"],
     "lightcurve": sorted(p.name for p in CONFIGS.glob("lightcurve_*.toml")),
+    "observe": sorted(p.name for p in CONFIGS.glob("observe_*.toml")),
+    "batch": sorted(p.name for p in CONFIGS.glob("batch_*.toml")),
 }
 
 

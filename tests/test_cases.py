@@ -42,3 +42,12 @@ def test_every_shipped_config_reads_and_its_model_builds(kind, name):
     if "model" in doc and kind in ("fit", "sample", "diagnose", "simulate"):
         model = build_model(str(CONFIGS / name), ModelConfig.model_validate(doc["model"]))
         assert model.params(), name
+    if kind == "observe":  # the observation files, the lab fits and the facets it names load
+        from brdfjax.lightcurve.observe_config import load_observe_config
+
+        assert load_observe_config(CONFIGS / name).facets, name
+    if kind == "batch":
+        from brdfjax.batch import load_study
+
+        study, _ = load_study(CONFIGS / name)
+        assert study.jobs, name

@@ -8,7 +8,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "experiments" / "results"
 INDEX = RESULTS / "README.md"
-HISTORY = re.compile(r"issue\d*|final|round|_new|_old|_v\d|one_trace|shared_trace|_before|_after|_fix", re.I)
+HISTORY = re.compile(r"issue\d*|final|round|_new|_old|_v\d+(?![a-z])|one_trace|shared_trace|_before|_after|_fix", re.I)
 
 
 def _rows() -> dict[str, str]:

@@ -34,7 +34,7 @@ def _weak_only(c: Candidate) -> bool:
 
 
 def _admission_flags(c: Candidate, eff: Any, before: _State, presence: bool) -> list[str]:
-    """Why a ranked candidate may not enter the path (issue 14); empty when it may.
+    """Why a ranked candidate may not enter the path; empty when it may.
 
     - its own new parameter ended on a bound (the fit pushed the effect out of its physical range, or off);
     - it drove a term of the model it extends to zero (it replaced that term rather than adding to it);

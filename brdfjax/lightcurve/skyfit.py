@@ -40,7 +40,6 @@ or for sets without times contiguous blocks of rows; never single rows.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -53,8 +52,8 @@ from ..config.base import read_toml
 from ..core.geometry import Directions
 from ..core.terms import Model
 from ..fit import read_merl_inplane
+from ..io import toml
 from ..io.observations import Observations
-from ..runtime.atomic import atomic_output
 from ..runtime.errors import InputError
 from .attitude import lumos_normal_to_body, offset_facets
 from .engine import Attitude, Facets
@@ -557,34 +556,6 @@ def nuts_posterior(fit: SkyFit, n_draws: int = 300, n_warmup: int = 300, seed: i
 _PATH_KEYS = ("path", "terms_file", "fit_result", "posterior")
 
 
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int | float | np.floating | np.integer):
-        return repr(float(v)) if isinstance(v, float | np.floating) else str(int(v))
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def _toml(data: dict, prefix: str = "") -> list[str]:
-    scal = {k: v for k, v in data.items() if not isinstance(v, dict) and not (
-        isinstance(v, list) and v and all(isinstance(x, dict) for x in v))}
-    lines = [f"{json.dumps(k)} = {_toml_value(v)}" for k, v in scal.items()]
-    for k, v in data.items():
-        name = f"{prefix}{json.dumps(k)}"
-        if isinstance(v, dict):
-            lines += ["", f"[{name}]"] + _toml(v, name + ".")
-        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
-            for x in v:
-                lines += ["", f"[[{name}]]"] + _toml(x, name + ".")
-    return lines
-
-
 def write_observe_config(fit: SkyFit, config_path, out_path) -> Path:
     """The fitted facet model as an observe config: ``config_path`` with each facet's area, cant and yaw and each
     refitted model's parameters replaced by the fit's values, every facet predicted by the family the fit used (no
@@ -631,7 +602,5 @@ def write_observe_config(fit: SkyFit, config_path, out_path) -> Path:
             terms[term].setdefault("params", {})[par] = v
         m["terms"] = terms
     out = Path(out_path)
-    head = f"# {src.name} with the facet model fitted to observations (brdfjax.lightcurve.skyfit.write_observe_config)"
-    with atomic_output(out) as tmp:
-        tmp.write_text("\n".join([head] + _toml(data)) + "\n", encoding="utf-8")
-    return out
+    return toml.write(out, data, header=f"{src.name} with the facet model fitted to observations "
+                      "(brdfjax.lightcurve.skyfit.write_observe_config)")
