@@ -55,12 +55,12 @@ import numpy as np  # noqa: E402
 import brdfjax as bj  # noqa: E402
 from brdfjax.core.detector import Detector  # noqa: E402
 from brdfjax.core.render import Frame  # noqa: E402
-from brdfjax.fit import fit, read_frame_data  # noqa: E402
+from brdfjax.fit import fit, prepare, read_frame_data  # noqa: E402
 from brdfjax.fit._nuisance import NuisanceOptions  # noqa: E402
 from brdfjax.instrument.nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES  # noqa: E402
 from brdfjax.instrument.reduce import ReductionError, reduce_measurement_set  # noqa: E402
 from brdfjax.instrument.synthetic import InstrumentConfig, SyntheticInstrument  # noqa: E402
-from brdfjax.sample import Prior, sample  # noqa: E402
+from brdfjax.sample import Emcee, Prior, sample  # noqa: E402
 
 FREE = ("m1", "rho_s1", "rho_s3", "c")
 GROUPS = {"shape": ("m1", "c"), "weights": ("rho_s1", "rho_s3")}
@@ -154,8 +154,8 @@ def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = Fals
             centre = {k: r.value(k) for k in GROUPS["weights"]}
             priors = ({k: Prior.log_uniform(centre[k] / 100, centre[k] * 100) for k in GROUPS["weights"]}
                       if log_weights_prior else None)
-            post = sample(model, [frame], spec, start=r, fit_kwargs={"nuisance": nuis}, n_steps=sample_steps,
-                          seed=i, figures=False, predictive_draws=0, priors=priors)
+            post = sample(prepare(model, [frame], spec, nuisance=nuis), priors, start=r,
+                          sampler=Emcee(n_steps=sample_steps), seed=i, figures=False, predictive_draws=0)
             iv = {k: {"i68": post.interval(k, 0.68), "i95": post.interval(k, 0.95)} for k in FREE}
             out["sampled"] = {"of": label, "prior": "log_uniform weights" if log_weights_prior else "flat",
                               **({"prior_centre": "fit optimum", "prior_bounds": {k: [centre[k] / 100, centre[k] * 100]

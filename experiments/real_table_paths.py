@@ -25,7 +25,7 @@ jax.config.update("jax_enable_x64", True)
 
 import brdfjax as bj  # noqa: E402
 from brdfjax.diagnose import diagnose  # noqa: E402
-from brdfjax.fit import read_cornell_brdf, read_merl_inplane  # noqa: E402
+from brdfjax.fit import prepare, read_cornell_brdf, read_merl_inplane  # noqa: E402
 from brdfjax.runtime.atomic import write_json_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,8 +54,7 @@ def main(argv=None) -> int:
         model = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.1), rho_s=0.5, **index, **bj.SEED_FORM), "diffuse": bj.Lambertian(0.05)})
         params = {"spec.alpha": "auto", "spec.rho_s": "auto", "diffuse.rho_d": "auto"}
         t0 = time.perf_counter()
-        d = diagnose(model, table, params, effects=EFFECTS, max_steps=args.max_steps,
-                     fit_kwargs={"resolution_check": False})
+        d = diagnose(prepare(model, table, params, resolution_check=False), effects=EFFECTS, max_steps=args.max_steps)
         wall = time.perf_counter() - t0
         doc = d.to_dict()
         row = {

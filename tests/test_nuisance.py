@@ -17,7 +17,7 @@ import pytest
 
 import brdfjax as bj
 from brdfjax.config import ConfigError
-from brdfjax.fit import fit, render_noisy_frames
+from brdfjax.fit import fit, prepare, render_noisy_frames
 from brdfjax.fit._common import FitInputError
 from brdfjax.fit._nuisance import (
     FrameSystematics,
@@ -27,7 +27,7 @@ from brdfjax.fit._nuisance import (
     systematics_from_attrs,
 )
 from brdfjax.instrument.uncertainty import optical_density_uncertainty
-from brdfjax.sample import SampleError, sample
+from brdfjax.sample import NUTS, Emcee, SampleError, sample
 
 LN10 = math.log(10.0)
 MODEL = bj.Model(
@@ -163,10 +163,11 @@ def test_nuts_killed_mid_write_resumes_bit_identically(tmp_path):
 def test_nuts_resumes_bit_identically_with_diagnostics(frames, tmp_path):
     opts = NuisanceOptions(nonlinearity=False, flux=False)
     start = fit(MODEL, frames, SPEC, nuisance=opts)
-    kw = dict(start=start, sampler="nuts", n_chains=2, n_warmup=40, seed=7, figures=False, fit_kwargs={"nuisance": opts})
-    full = sample(MODEL, frames, SPEC, n_steps=20, out_dir=tmp_path / "full", **kw)
-    part = sample(MODEL, frames, SPEC, n_steps=8, out_dir=tmp_path / "part", **kw)
-    resumed = sample(MODEL, frames, SPEC, n_steps=20, out_dir=tmp_path / "part", resume=True, **kw)
+    lik = prepare(MODEL, frames, SPEC, nuisance=opts)
+    kw = dict(start=start, seed=7, figures=False)
+    full = sample(lik, sampler=NUTS(n_chains=2, n_warmup=40, n_steps=20), out_dir=tmp_path / "full", **kw)
+    part = sample(lik, sampler=NUTS(n_chains=2, n_warmup=40, n_steps=8), out_dir=tmp_path / "part", **kw)
+    resumed = sample(lik, sampler=NUTS(n_chains=2, n_warmup=40, n_steps=20), out_dir=tmp_path / "part", resume=True, **kw)
     assert full.chain.shape == (20, 2, 4)
     assert np.array_equal(resumed.chain[:8], part.chain) and np.array_equal(resumed.chain, full.chain)
     assert np.array_equal(resumed.log_prob, full.log_prob)
@@ -197,8 +198,8 @@ def test_samplers_move_the_weights_as_logarithms_from_the_fit_covariance():
     f = dataclasses.replace(f, brdf=np.asarray(f.brdf) * 10**-DELTA, systematics=_syst("4.0+3.0", "4.0+1.0", 0.0))
     opts = NuisanceOptions(nonlinearity=False, flux=False)
     start = fit(model, [f], {"rho_d": 0.9}, nuisance=opts)
-    res = sample(model, [f], {"rho_d": 0.9}, start=start, n_walkers=16, n_steps=500, seed=3, figures=False,
-                 fit_kwargs={"nuisance": opts})
+    lik = prepare(model, [f], {"rho_d": 0.9}, nuisance=opts)
+    res = sample(lik, start=start, sampler=Emcee(n_walkers=16, n_steps=500), seed=3, figures=False)
     post = res.posterior
     assert res.summary["sampled_as_log"] == ["rho_d"] and res.summary["start"].startswith("fit covariance")
     x = res.chain[-1]

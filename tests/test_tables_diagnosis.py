@@ -14,7 +14,7 @@ import pytest
 
 import brdfjax as bj
 from brdfjax.diagnose import diagnose
-from brdfjax.fit import read_cornell_brdf, read_merl_inplane
+from brdfjax.fit import prepare, read_cornell_brdf, read_merl_inplane
 
 REAL = Path(__file__).resolve().parent / "data" / "real"
 PHYSICAL = {"second_lobe", "shadowing", "distribution_shape", "angular_sampling"}
@@ -35,7 +35,7 @@ def test_real_table_diagnosis_names_a_physical_effect_first(file, index):
     table = table.select(slice(None, None, STEP))
     model = bj.Model(terms={"spec": bj.Specular(bj.GGX(0.1), rho_s=0.5, **index, **bj.SEED_FORM), "diffuse": bj.Lambertian(0.05)})
     params = {"spec.alpha": "auto", "spec.rho_s": "auto", "diffuse.rho_d": "auto"}
-    d = diagnose(model, table, params, effects=EFFECTS, max_steps=1, fit_kwargs={"resolution_check": False})
+    d = diagnose(prepare(model, table, params, resolution_check=False), effects=EFFECTS, max_steps=1)
     print(f"\n{file}:\n{d.summary()}")
     for c in d.ranking:
         print(f"  ranked {c.effect}: delta BIC {c.delta_bic:.1f}, signature {c.signature.get('score')}, {c.note}")

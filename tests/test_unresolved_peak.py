@@ -11,7 +11,7 @@ import pytest
 import brdfjax as bj
 from brdfjax.diagnose import diagnose
 from brdfjax.diagnose.report import markdown_report
-from brdfjax.fit import Param, TableData, fit
+from brdfjax.fit import Param, TableData, fit, prepare
 from brdfjax.fit.internal import lobe_fwhm
 
 M_TRUE, RHO_TRUE = 0.000526, 0.5  # Beckmann slope width: an in-plane FWHM of 0.10 deg at 30 deg incidence
@@ -57,8 +57,8 @@ def test_fit_reports_width_and_weight_not_determined_with_a_range_holding_the_tr
 
 
 def test_diagnosis_ranks_angular_sampling_and_says_the_peak_is_unresolved(table):
-    d = diagnose(_model(0.02), table, PARAMS, effects=["angular_sampling", "offset_normal_peak"],
-                 fit_kwargs={"resolution_check": False}, max_steps=1)
+    d = diagnose(prepare(_model(0.02), table, PARAMS, resolution_check=False),
+                 effects=["angular_sampling", "offset_normal_peak"], max_steps=1)
     ranked = {c.effect: c for c in d.ranking}
     assert "angular_sampling" in ranked
     c = ranked["angular_sampling"]
