@@ -31,8 +31,9 @@ STEPS = [
     ("fit", ["fit", "configs/fit_synthetic_solar_cell.toml", "--out", "{out}/fit"]),
     ("sample", ["sample", "configs/sample_synthetic_solar_cell.toml", "--out", "{out}/sample"]),
     ("diagnose", ["diagnose", "configs/diagnose_withheld_diffraction.toml", "--out", "{out}/diagnose"]),
-    ("capture", ["capture", "configs/capture_simulated.toml", "--out", "{out}/cap"]),
-    ("reduce", ["reduce", "{out}/cap/manifest.toml", "--out", "{out}/cap/reduced", "--correct-nonlinearity"]),
+    # the README's paths: configs/fit_captured.toml reads runs/cap/reduced
+    ("capture", ["capture", "configs/capture_simulated.toml", "--out", "runs/cap"]),
+    ("reduce", ["reduce", "runs/cap/manifest.toml", "--out", "runs/cap/reduced", "--correct-nonlinearity"]),
     ("fit_captured", ["fit", "configs/fit_captured.toml", "--out", "{out}/cap/fit"]),
     ("lightcurve", ["lightcurve", "configs/lightcurve_box_wing.toml", "--out", "{out}/lightcurve"]),
 ]
@@ -48,6 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     cache = Path(tempfile.mkdtemp(prefix="brdfjax-tour-cache-"))
     env = {**os.environ, "BRDFJAX_CACHE_DIR": str(cache), "PYTHONPATH": str(ROOT)}
     only = None if args.only is None else set(args.only.split(","))
+    cap = ROOT / "runs" / "cap"
+    if cap.exists():  # a capture there already: kept aside, never overwritten
+        aside = cap.with_name(f"cap.before-tour-{int(time.time())}")
+        cap.rename(aside)
+        print(f"moved the existing {cap} to {aside}")
     rows = []
     t_all = time.perf_counter()
     for name, words in STEPS:
