@@ -26,8 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.geometry import Directions
-from .engine import Geometry, Satellite
+from .engine import Geometry, Satellite, facet_brdf, to_facet_frames
 from .ephemeris import AU_M, EARTH_RADIUS_M
 
 __all__ = ["earthshine_flux"]
@@ -67,25 +66,9 @@ def _chunk_terms(sat: Satellite, g: Geometry, albedo, n_psi: int, n_chi: int, ea
     o_b = jnp.einsum("tij,ti->tj", M, g.o)
     x, y, nf = sat.facets.frames(s_b)  # (T, J, 3)
 
-    def to_facet(v):  # (T, ..., 3) -> (T, J, ..., 3)
-        extra = v.ndim - 2
-        ex = (slice(None), slice(None)) + (None,) * extra
-        vv = v[:, None]
-        return jnp.stack([jnp.sum(vv * x[ex], -1), jnp.sum(vv * y[ex], -1), jnp.sum(vv * nf[ex], -1)], -1)
-
-    w_i = to_facet(w_b)  # (T, J, K, 3)
-    w_s = to_facet(o_b)  # (T, J, 3)
-    J = len(sat.facets.names)
-    f = [None] * J
-    for m, model in enumerate(sat.models):
-        idx = [j for j in range(J) if sat.model_of[j] == m]
-        if not idx:
-            continue
-        ii = np.asarray(idx)
-        vals = model(Directions.from_vectors(w_i[:, ii], w_s[:, ii][:, :, None, :]), wavelength)
-        for q, j in enumerate(idx):
-            f[j] = vals[:, q]
-    fv = jnp.stack(f, 1)  # (T, J, K)
+    w_i = to_facet_frames(w_b, x, y, nf)  # (T, J, K, 3)
+    w_s = to_facet_frames(o_b, x, y, nf)  # (T, J, 3)
+    fv = facet_brdf(sat, w_i, w_s, wavelength)  # (T, J, K)
     integral = jnp.sum(fv * jnp.maximum(w_i[..., 2], 0.0) * weight[:, None, :], -1)
     scale = jnp.square(AU_M / g.d_sun) / jnp.square(g.d_obs)
     return sat.facets.area * integral * jnp.maximum(w_s[..., 2], 0.0) * scale[:, None]

@@ -346,6 +346,29 @@ def shadow_mask(r_sat: Array, r_norm: Array, dirs: Array, earth_radius: float = 
     return jnp.where((b < 0) & (miss_sq < earth_radius**2), 0.0, 1.0)
 
 
+def to_facet_frames(v: Array, x: Array, y: Array, n: Array) -> Array:
+    """Body-frame vectors ``v`` (T, ..., 3) in each facet's frame (axes ``x, y, n``: (T, J, 3)): (T, J, ..., 3)."""
+    ex = (slice(None), slice(None)) + (None,) * (v.ndim - 2)
+    vv = v[:, None]
+    return jnp.stack([_dot(vv, x[ex]), _dot(vv, y[ex]), _dot(vv, n[ex])], -1)
+
+
+def facet_brdf(sat: Satellite, w_i: Array, w_s: Array, wavelength: float) -> Array:
+    """Each facet's BRDF (T, J, K) at incident directions ``w_i`` (T, J, K, 3) and the scattered ``w_s`` (T, J, 3),
+    in facet frames; the facets sharing a model are evaluated in one call."""
+    J = len(sat.facets.names)
+    f = [None] * J
+    for m, model in enumerate(sat.models):
+        idx = [j for j in range(J) if sat.model_of[j] == m]
+        if not idx:
+            continue
+        ii = np.asarray(idx)
+        vals = model(Directions.from_vectors(w_i[:, ii], w_s[:, ii][:, :, None, :]), wavelength)  # (T, Jm, K)
+        for q, j in enumerate(idx):
+            f[j] = vals[:, q]
+    return jnp.stack(f, 1)
+
+
 def _facet_terms(sat: Satellite, g: Geometry, disk: SunDisk, wavelength: float, earth_radius: float):
     """Per-facet flux (T, J) in units of E_sun(1 AU) and the centre-ray angles (T, J) for one chunk."""
     nodes = disk.directions(g.s)  # (T, K, 3)
@@ -356,27 +379,10 @@ def _facet_terms(sat: Satellite, g: Geometry, disk: SunDisk, wavelength: float, 
     o_b = jnp.einsum("tij,ti->tj", M, g.o)
     x, y, n = sat.facets.frames(s_b)  # (T, J, 3)
 
-    def to_facet(v):  # v (T, ..., 3) body -> facet frames (T, J, ..., 3)
-        extra = v.ndim - 2
-        ex = (slice(None), slice(None)) + (None,) * extra
-        vv = v[:, None]
-        return jnp.stack([_dot(vv, x[ex]), _dot(vv, y[ex]), _dot(vv, n[ex])], -1)
-
-    w_i = to_facet(nodes_b)  # (T, J, K, 3)
-    w_s = to_facet(o_b)  # (T, J, 3)
-    w_c = to_facet(s_b)
-    J = len(sat.facets.names)
-    f = [None] * J
-    for m, model in enumerate(sat.models):
-        idx = [j for j in range(J) if sat.model_of[j] == m]
-        if not idx:
-            continue
-        ii = np.asarray(idx)
-        dirs = Directions.from_vectors(w_i[:, ii], w_s[:, ii][:, :, None, :])
-        vals = model(dirs, wavelength)  # (T, Jm, K)
-        for q, j in enumerate(idx):
-            f[j] = vals[:, q]
-    fv = jnp.stack(f, 1)  # (T, J, K)
+    w_i = to_facet_frames(nodes_b, x, y, n)  # (T, J, K, 3)
+    w_s = to_facet_frames(o_b, x, y, n)  # (T, J, 3)
+    w_c = to_facet_frames(s_b, x, y, n)
+    fv = facet_brdf(sat, w_i, w_s, wavelength)  # (T, J, K)
     cos_i = jnp.maximum(w_i[..., 2], 0.0)
     cos_s = jnp.maximum(w_s[..., 2], 0.0)
     wts = jnp.asarray(disk.weights, fv.dtype)
