@@ -15,12 +15,14 @@ pixel indices (for losses and gradients).
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Literal
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike
 
 from ..runtime.export_cache import exportable
@@ -225,26 +227,39 @@ def render_sharded(
     a ``(rows, cols)`` array sharded by rows (the same values as
     :func:`render`: each pixel is computed by the same arithmetic).
     """
-    from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: PLC0415 -- only the sharded path needs them
-
     detector, grid, dtype = _prepare(detector, grid, step, roi, precision)
-    devices = list(jax.devices() if devices is None else devices)
+    devices = tuple(jax.devices() if devices is None else devices)
     n_dev = len(devices)
     n_rows = grid.n_v.size
     per_device = -(-n_rows // n_dev)
     n_v = np.asarray(grid.n_v, np.float64)
     n_v = np.concatenate([n_v, np.full(per_device * n_dev - n_rows, n_v[-1])])
-    mesh = Mesh(np.array(devices), ("rows",))
     rows = _default_rows(per_device, grid.n_h.size, chunk_pixels)
+    mesh, program = _sharded_program(devices, rows)
     args = cast((model, frame, detector), dtype)
-    n_h = jnp.asarray(grid.n_h, dtype)
-
-    def local(nv_block):
-        return map_rows(_pixel_values, (*args, False), n_h, nv_block, rows)
-
-    fn = jax.jit(jax.shard_map(local, mesh=mesh, in_specs=PartitionSpec("rows"), out_specs=PartitionSpec("rows")))
     nv = jax.device_put(jnp.asarray(n_v, dtype), NamedSharding(mesh, PartitionSpec("rows")))
-    return fn(nv)[:n_rows]
+    return program(args, jnp.asarray(grid.n_h, dtype), nv)[:n_rows]
+
+
+@functools.lru_cache(maxsize=16)
+def _sharded_program(devices: tuple, rows: int):
+    """The mesh over ``devices`` and one jitted shard_map program for it: traced once per model structure and
+    grid shape, not once per call (the model's arrays are arguments, its static parts the jit's key)."""
+    mesh = Mesh(np.array(devices), ("rows",))
+
+    @eqx.filter_jit
+    def program(args, n_h, nv):
+        dyn, static = eqx.partition(args, eqx.is_array)
+
+        def local(dyn, n_h, nv_block):
+            return map_rows(_pixel_values, (*eqx.combine(dyn, static), False), n_h, nv_block, rows)
+
+        spec = PartitionSpec("rows")
+        return jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(), PartitionSpec(), spec), out_specs=spec)(
+            dyn, n_h, nv
+        )
+
+    return mesh, program
 
 
 def _geometry_values(args, n_h_row, n_v):
