@@ -24,6 +24,7 @@ from ..config.base import check_choice
 from ..core.terms import Model
 from ..io.blocks import FrameData, TableData
 from ._common import FitInputError
+from ._prepare import _as_blocks
 from ._residuals import LOSSES
 
 __all__ = ["Likelihood", "prepare", "LIKELIHOOD_OPTIONS"]
@@ -93,20 +94,6 @@ class Likelihood:
         return int(sum(int(b.check_usable().sum()) for b in self.blocks))
 
 
-def _as_blocks(data: Data | Sequence[Data]) -> tuple[Data, ...]:
-    if isinstance(data, FrameData | TableData):
-        return (data,)
-    if isinstance(data, str | bytes) or not isinstance(data, Sequence):
-        raise FitInputError(f"data must be a FrameData, a TableData or a sequence of them, got {type(data).__name__}")
-    blocks = tuple(data)
-    if not blocks:
-        raise FitInputError("data is empty: give at least one FrameData or TableData")
-    bad = [f"{i}: {type(b).__name__}" for i, b in enumerate(blocks) if not isinstance(b, FrameData | TableData)]
-    if bad:
-        raise FitInputError(f"data must hold FrameData or TableData blocks; not so at {', '.join(bad)}")
-    return blocks
-
-
 def _check(lik: Likelihood) -> None:
     if not isinstance(lik.model, Model):
         raise FitInputError(f"model must be a brdfjax Model (a named sum of terms), got {type(lik.model).__name__}")
@@ -144,6 +131,6 @@ def prepare(
             check_choice("likelihood option", name, LIKELIHOOD_OPTIONS)
         except ValueError as e:
             raise FitInputError(f"{e} (the solver and its options are given to fit(), not to the likelihood)") from None
-    lik = Likelihood(model, _as_blocks(data), dict(params or {}), **options)
+    lik = Likelihood(model, tuple(_as_blocks(data)), dict(params or {}), **options)
     _check(lik)
     return lik
