@@ -27,8 +27,8 @@ fit: ``[data.synthetic]``              ``SyntheticConfig``                      
 fit: ``[fit]``, ``[output]``           ``FitSection``, ``OutputConfig``                    ``brdfjax/fit/config.py``
 sample: ``[sample]``, ``.priors``      ``SampleSection``, ``PriorConfig``                  ``brdfjax/sample/config.py``
 diagnose: ``[diagnose]``               ``DiagnoseSection``                                 ``brdfjax/diagnose/config.py``
-capture: every table                   ``CaptureConfig`` and its sections                  ``brdfjax/devices/capture.py``
-instrument TOML (synthetic camera)     ``InstrumentConfig`` (``load_instrument_config``)   ``brdfjax/instrument/synthetic.py``
+capture: every table                   ``CaptureConfig`` and its sections                  ``brdfjax/devices/config.py``
+instrument TOML (synthetic camera)     ``InstrumentConfig`` (``load_instrument_config``)   ``brdfjax/instrument/config.py``
 =====================================  ==================================================  =====================================
 
 The simulate config's layout is in :mod:`brdfjax.config.simulate`, the fit
