@@ -40,7 +40,7 @@ _EXPORTS: dict[str, tuple[str, str | None]] = {
     "Directions": (".core.geometry", "Directions"),
     "direction": (".core.geometry", "direction"),
     "zenith_azimuth": (".core.geometry", "zenith_azimuth"),
-    "Frame": (".core.conditions", "Frame"),
+    "Conditions": (".core.conditions", "Conditions"),
     "OUTPUTS": (".core.render", "OUTPUTS"),
     "evaluate_pixels": (".core.render", "evaluate_pixels"),
     "pixel_directions": (".core.render", "pixel_directions"),
@@ -76,6 +76,10 @@ _DEPRECATED: dict[str, tuple[str, str]] = {
 
 def __getattr__(name: str) -> Any:
     """Import a public name (or a subpackage, ``bj.fit``) on first use and keep it on the package."""
+    if name == "Frame":  # the measurement conditions' old name (a "frame" is an image everywhere else)
+        warnings.warn("brdfjax.Frame is deprecated: use bj.Conditions (the measurement conditions: theta_i, phi_ref, "
+                      "wavelength)", DeprecationWarning, stacklevel=2)
+        return importlib.import_module(".core.conditions", __name__).Conditions
     if name in _DEPRECATED:  # not kept on the package: every use warns
         warnings.warn(f"brdfjax.{name} is deprecated: use {_DEPRECATED[name][1]}", DeprecationWarning, stacklevel=2)
         return getattr(importlib.import_module(".core.render", __name__), _DEPRECATED[name][0])
@@ -105,7 +109,7 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from .core import distributions as distributions, shadowing as shadowing
-    from .core.conditions import Frame as Frame
+    from .core.conditions import Conditions as Conditions
     from .core.detector import Detector as Detector, PixelGrid as PixelGrid, incident_direction as incident_direction
     from .core.distributions import (
         GGX as GGX,

@@ -19,7 +19,7 @@ import numpy as np
 # matplotlib (about 0.4 s to import) is imported by the functions that draw (_mpl): a command that writes
 # no figure (``brdfjax fit --no-figures``, a batch worker, a reduction without plots) never loads it.
 from .core.detector import Detector, PixelGrid
-from .core.render import Frame
+from .core.render import Conditions
 from .core.terms import Diffraction, Lambertian, OffsetNormal
 from .io import atomic_output
 
@@ -180,7 +180,7 @@ def plot_frame(
     brdf: Any,
     grid: PixelGrid,
     detector: Detector,
-    frame: Frame,
+    frame: Conditions,
     path: str | os.PathLike,
     title: str | None = None,
     *,

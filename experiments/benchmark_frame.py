@@ -1,7 +1,7 @@
 """Benchmark: one full solar-cell frame with the jit-compiled JAX core vs the NumPy float64 oracle.
 
 What is timed
-    ``bj.render(bj.solar_cell(), bj.Frame.from_degrees(theta_i), bj.Detector.seed())``
+    ``bj.render(bj.solar_cell(), bj.Conditions.from_degrees(theta_i), bj.Detector.seed())``
     -- the seed's three-term solar-cell model (Chapter VI, §6.4 parameters) on
     every pixel of the seed's 3296 x 2472 detector (``--step k`` keeps every
     k-th pixel for quick runs) -- against
@@ -186,7 +186,7 @@ def _worker_jax(args) -> dict:
     if args.chunk_pixels is None:
         args.chunk_pixels = render_default_chunk()
     model = bj.solar_cell()
-    frame = bj.Frame.from_degrees(args.theta_i)
+    frame = bj.Conditions.from_degrees(args.theta_i)
     detector = bj.Detector.seed()
 
     def run():
@@ -258,7 +258,7 @@ def _worker_duel(args) -> dict:
 
     import brdfjax as bj
 
-    model, frame, detector = bj.solar_cell(), bj.Frame.from_degrees(args.theta_i), bj.Detector.seed()
+    model, frame, detector = bj.solar_cell(), bj.Conditions.from_degrees(args.theta_i), bj.Detector.seed()
     theta_i = np.deg2rad(args.theta_i)
     out = np.empty(tuple(-(-n // args.step) for n in detector.shape), np.float32)
     t0 = time.perf_counter()

@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     det = bj.Detector.seed(shape=shape, pixel_pitch=5.5e-6 * k, pixel_pitch_v=5.5e-6 * k)
     cfg = InstrumentConfig() if k == 1 else InstrumentConfig().coarse(k)
     ins = SyntheticInstrument(det, cfg, seed=2024)
-    frame = bj.Frame.from_degrees(args.theta_i)
+    frame = bj.Conditions.from_degrees(args.theta_i)
     model = bj.solar_cell()
     base_rss = _status_kib("VmRSS")
 

@@ -67,7 +67,7 @@ from brdfjax.io import frame_attrs, write_frame_exr
 t_imp = time.perf_counter() - t0
 det = bj.Detector.seed()
 grid = det.grid(1)
-frame = bj.Frame.from_degrees(60.0, 0.0, 632.8)
+frame = bj.Conditions.from_degrees(60.0, 0.0, 632.8)
 model = bj.solar_cell()
 S.simulate_frame(model, frame, det, grid, "float32", "ti60")
 t = time.perf_counter(); res = S.simulate_frame(model, frame, det, grid, "float32", "ti60"); t_render = time.perf_counter() - t

@@ -53,11 +53,11 @@ ROOT = Path(__file__).resolve().parents[1]
 SECTIONS = ("tests", "render", "sharded", "fit", "memory")
 #: The test files whose checks run JAX numerics (on the default backend: the accelerator when there is one).
 NUMERIC_TESTS = (
-    "tests/test_core_numerics.py", "tests/test_core_geometry.py", "tests/test_core_terms.py",
-    "tests/test_fresnel_microfacet.py", "tests/test_shadowing.py", "tests/test_shadowing_mixture.py",
-    "tests/test_radiometry.py", "tests/test_kernel.py", "tests/test_fit_jacobian.py", "tests/test_cases.py",
-)  # not tests/test_sharding.py: it runs on two forced host (CPU) devices; the sharded section covers the accelerator
-SMALL_TESTS = ("tests/test_radiometry.py", "tests/test_core_geometry.py")
+    "tests/core/test_core_numerics.py", "tests/core/test_core_geometry.py", "tests/core/test_core_terms.py",
+    "tests/core/test_fresnel_microfacet.py", "tests/core/test_shadowing.py", "tests/core/test_shadowing_mixture.py",
+    "tests/instrument/test_radiometry.py", "tests/core/test_kernel.py", "tests/fit/test_fit_jacobian.py", "tests/project/test_cases.py",
+)  # not tests/core/test_sharding.py: it runs on two forced host (CPU) devices; the sharded section covers the accelerator
+SMALL_TESTS = ("tests/instrument/test_radiometry.py", "tests/core/test_core_geometry.py")
 FIT_CONFIG = ROOT / "configs" / "fit_synthetic_solar_cell.toml"
 RELATIVE_FLOOR = 1e-3
 THETA_I_DEG = 20.0
@@ -110,7 +110,7 @@ def section_render(args) -> dict:
     import brdfjax as bj
     from brdfjax import reference
 
-    model, frame, det = bj.solar_cell(), bj.Frame.from_degrees(THETA_I_DEG), bj.Detector.seed()
+    model, frame, det = bj.solar_cell(), bj.Conditions.from_degrees(THETA_I_DEG), bj.Detector.seed()
     k = args.ref_step  # compare on every k-th pixel of the rendered grid
     t0 = time.perf_counter()
     ref = reference.solar_cell_frame(np.deg2rad(THETA_I_DEG), step=args.step * k)
@@ -144,7 +144,7 @@ def section_sharded(args) -> dict:
 
     import brdfjax as bj
 
-    model, frame, det = bj.solar_cell(), bj.Frame.from_degrees(THETA_I_DEG), bj.Detector.seed()
+    model, frame, det = bj.solar_cell(), bj.Conditions.from_degrees(THETA_I_DEG), bj.Detector.seed()
     devices = jax.devices()
     box: dict = {}
 

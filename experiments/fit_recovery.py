@@ -118,7 +118,7 @@ def measure(out: Path, seed: int, bin_: int, step: int) -> list[Path]:
     sig = beam_signature(beam, ins.measure_background(beam.attrs), correct_nonlinearity=True)
     del beam
     for ti, path in zip(THETA_I, paths):
-        frame = bj.Frame.from_degrees(ti, 0.0)
+        frame = bj.Conditions.from_degrees(ti, 0.0)
         brdf = ins.render_brdf(MODEL, frame)
         nd = choose_nd_filters(lambda s, b=brdf, f=frame: ins.sample_flux(b, f, s), ins)
         st = ins.measure_sample(brdf, frame, nd, sample=f"ti{ti:g}")
@@ -154,7 +154,7 @@ def truth_masks(paths: list[Path], bin_: int) -> list[np.ndarray]:
     for ti, p in zip(THETA_I, paths):
         red = read_reduced_frame(p)
         step = int(red.attrs["step"])
-        expected = ins.expected_brdf(ins.render_brdf(MODEL, bj.Frame.from_degrees(ti, 0.0)))[::step, ::step]
+        expected = ins.expected_brdf(ins.render_brdf(MODEL, bj.Conditions.from_degrees(ti, 0.0)))[::step, ::step]
         out.append(np.asarray(expected, float) > NEB_FACTOR * np.asarray(red.extra["noise_equivalent_brdf"], float))
     return out
 
@@ -238,7 +238,7 @@ def print_recovery(res, rows, checks) -> None:
 
 
 def robustness(reference, frames, n_starts: int, seed: int = 2026) -> dict:
-    """Random starts around the reference optimum (module docstring of tests/test_fit_solar_cell.py)."""
+    """Random starts around the reference optimum (module docstring of tests/fit/test_fit_solar_cell.py)."""
     x = {k: reference.value(k) for k in NAMES}
     phis = [reference.value(f"phi_ref[{f.name}]") for f in frames]
     m2, dth = x["m2"], x["dtheta"]

@@ -79,7 +79,7 @@ def ramp_measurement(config: InstrumentConfig, seed: int, shape=(48, 256), decad
     """A ramp target measured by the instrument: (stack, background, expected light in sDC)."""
     det = bj.Detector.seed(shape=shape, pixel_pitch=44e-6, pixel_pitch_v=44e-6)
     ins = SyntheticInstrument(det, config, seed=seed)
-    frame = bj.Frame.from_degrees(20.0)
+    frame = bj.Conditions.from_degrees(20.0)
     ramp = np.broadcast_to(10 ** np.linspace(*decades, shape[1]), shape).astype(np.float32)
     st = ins.measure_sample(ramp, frame, "3.0")
     bg = ins.measure_background(st.attrs)

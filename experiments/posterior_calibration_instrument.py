@@ -54,7 +54,7 @@ import numpy as np  # noqa: E402
 
 import brdfjax as bj  # noqa: E402
 from brdfjax.core.detector import Detector  # noqa: E402
-from brdfjax.core.render import Frame  # noqa: E402
+from brdfjax.core.render import Conditions  # noqa: E402
 from brdfjax.fit import fit, prepare, read_frame_data  # noqa: E402
 from brdfjax.fit._nuisance import NuisanceOptions  # noqa: E402
 from brdfjax.instrument.nd import ND_3_TOLERANCE, SEED_ND_TOLERANCES  # noqa: E402
@@ -104,7 +104,7 @@ def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = Fals
     inst = DrawnNDInstrument(det, cfg, seed=i, nd_offsets=offsets)
     folder = work / f"r{i}"
     t0 = time.perf_counter()
-    manifest = inst.measure_set(folder / "raw", model, {"ti20": Frame.from_degrees(20.0, 0.0, 632.8)})
+    manifest = inst.measure_set(folder / "raw", model, {"ti20": Conditions.from_degrees(20.0, 0.0, 632.8)})
     (path,) = reduce_measurement_set(manifest, folder / "reduced", merge="weighted", correct_nonlinearity=True)
     t_data = time.perf_counter() - t0
     R = float(np.asarray(det.distance))
@@ -115,7 +115,7 @@ def realise(i: int, work: Path, uniform: bool, step: int, footprint: bool = Fals
     # the same shapes and reuses the compiled program (a new point count would recompile, ~1 min on the busy box).
     global _REF_MASK
     if _REF_MASK is None:
-        truth_img = np.asarray(bj.render(model, Frame.from_degrees(20.0, 0.0, 632.8), frame.arm_detector(), grid=frame.grid))
+        truth_img = np.asarray(bj.render(model, Conditions.from_degrees(20.0, 0.0, 632.8), frame.arm_detector(), grid=frame.grid))
         _REF_MASK = np.asarray(frame.mask) & (truth_img > 1.0)
     usable = np.asarray(frame.usable())
     lost = int((_REF_MASK & ~usable).sum())

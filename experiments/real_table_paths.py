@@ -3,7 +3,7 @@ library defaults (``fresh_top = 3``, so the two-path rule can run): which path i
 and what the second path costs.
 
 For each shipped real table (``tests/data/real``: MERL aluminium, Cornell Krylon blue and Cayman; every
-``--step``-th row) the plain one-lobe + Lambertian base of ``tests/test_tables_diagnosis.py`` is diagnosed with
+``--step``-th row) the plain one-lobe + Lambertian base of ``tests/diagnose/test_tables_diagnosis.py`` is diagnosed with
 the table-applicable library, ``max_steps`` effects at most.  Without sigma there is no noise level to stop at,
 so every path that took a fresh-start refit is compared with the warm path (``fresh_top = 0``); the second path
 starts from the first one's base fit and first-step warm refits.  Printed and written per dataset: the kept

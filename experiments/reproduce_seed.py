@@ -54,7 +54,7 @@ def count_local_maxima(values: np.ndarray) -> int:
     return int(np.sum(rising & not_falling_after))
 
 
-def diffraction_maxima(model: bj.Model, frame: bj.Frame, detector: bj.Detector, precision: str) -> tuple[int, int]:
+def diffraction_maxima(model: bj.Model, frame: bj.Conditions, detector: bj.Detector, precision: str) -> tuple[int, int]:
     """Maxima of the diffraction term on ``n_h = 0`` from the centre to the top edge, with/without 2 cos(theta_i)."""
     _, _, v_min, _ = detector.index_range
     roi = (0, 0, v_min, 0)  # centre column, top edge .. centre (the endpoints are not maxima)

@@ -69,7 +69,7 @@ wavelength_nm = 550.0
 convention = "{convention}"
 {bands}
 [sun]
-disk = "point"          # the lab BRDFs are degrees wide: the solar disk changes < 0.01 mag (tests/test_observe.py)
+disk = "point"          # the lab BRDFs are degrees wide: the solar disk changes < 0.01 mag (tests/lightcurve/test_observe.py)
 
 [attitude]
 law = "nadir_sun_yaw"   # lumos-sat's brightness frame: the Sun's azimuth in the body y-z plane

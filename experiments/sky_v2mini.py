@@ -2,7 +2,7 @@
 
 1. The authors' lumos-sat model (Kandula 2025; coefficients in tests/data/satellites/README.md) on the Slingshot
    set, with and without their empirical Phong offset term (fitted to observations): their reported RMS 0.777 /
-   R 0.753 recomputed (tests/test_observe.py checks each row against lumos-sat to 1e-6 mag).
+   R 0.753 recomputed (tests/lightcurve/test_observe.py checks each row against lumos-sat to 1e-6 mag).
 2. brdfjax's own fits of the five lab tables (experiments/sky_lab_fits.py; no observation in any fit) predicting
    both sets with each family on every facet, and the shipped configs (binomial predicts; ABg and GGX widen the
    band: model-form spread), with band coverage overall and on the rows flagged outside the lab's geometry.

@@ -107,7 +107,7 @@ TABLE_ONLY = ("angular_sampling",)
 #: frames' lobe (m ~ 2e-4 rad, within 0.23 deg of the mirror direction) is G2 = 1 to float rounding: on
 #: frames the base refitted to the truth's own chi^2 (measured: 0.995 against 0.994, and 1.004 against
 #: 1.004 in a two-effect trial), a withheld effect no method can find.  On tables it shows only on a
-#: rough lobe towards grazing incidence (tests/test_tables_round_trip.py); the last theta_i is held out.
+#: rough lobe towards grazing incidence (tests/io/test_tables_round_trip.py); the last theta_i is held out.
 WIDE_TABLE = {"shadowing": {"m_range": (0.15, 0.2), "theta_i_deg": (40.0, 70.0, 80.0, 82.0)}}
 
 

@@ -13,7 +13,7 @@ import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 # The CLI turns on JAX's persistent compilation cache in the user's cache folder; tests that call
-# brdfjax.cli.main in this process leave it alone (tests/test_compile_cache.py turns it on in a subprocess).
+# brdfjax.cli.main in this process leave it alone (tests/runtime/test_compile_cache.py turns it on in a subprocess).
 os.environ.setdefault("BRDFJAX_NO_CACHE", "1")
 
 import jax  # noqa: E402

@@ -62,7 +62,7 @@ import numpy as np
 from pydantic import Field, PrivateAttr, field_validator
 
 from ..core.detector import Detector, PixelGrid
-from ..core.render import Frame, Precision
+from ..core.render import Conditions, Precision
 from ..core.terms import Model
 from .base import ConfigError, StrictModel, read_toml, validate
 from .model import ModelConfig, build_model, describe_model
@@ -245,12 +245,12 @@ class SimulateConfig(StrictModel):
     def roi(self) -> tuple[int, int, int, int] | None:
         return None if self.grid.roi is None else tuple(self.grid.roi)  # type: ignore[return-value]
 
-    def build_frames(self) -> list[tuple[str, Frame]]:
-        """``(stem, Frame)`` for every ``[[frames]]`` entry, in order."""
+    def build_frames(self) -> list[tuple[str, Conditions]]:
+        """``(stem, Conditions)`` for every ``[[frames]]`` entry, in order."""
         out = []
         for i, f in enumerate(self.frames):
             try:
-                frame = Frame.from_degrees(f.theta_i_deg, f.phi_ref_deg, f.wavelength_nm)
+                frame = Conditions.from_degrees(f.theta_i_deg, f.phi_ref_deg, f.wavelength_nm)
             except ValueError as e:
                 raise ConfigError(self.source, [(f"frames[{i}]", str(e))]) from None
             out.append((f.stem, frame))

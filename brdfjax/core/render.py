@@ -1,6 +1,6 @@
 """Evaluate models over detector frames: vmapped over pixels, jit-compiled, chunked.
 
-The measurement conditions (:class:`~brdfjax.core.conditions.Frame`: incidence,
+The measurement conditions (:class:`~brdfjax.core.conditions.Conditions`: incidence,
 the sample's rotation, wavelength) come from :mod:`brdfjax.core.conditions`.
 :func:`render` is the one entry: it evaluates a model on
 every pixel of a :class:`~brdfjax.core.detector.PixelGrid` (the full array, every
@@ -26,13 +26,13 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike
 
 from ..runtime.export_cache import exportable
-from .conditions import Frame
+from .conditions import Conditions
 from .detector import Detector, PixelGrid
 from .geometry import Directions
 from .terms import AbstractTerm, Model
 
 __all__ = [
-    "Frame",
+    "Conditions",
     "OUTPUTS",
     "pixel_directions",
     "sample_directions",
@@ -50,7 +50,7 @@ Precision = Literal["float32", "float64"]
 OUTPUTS: tuple[str, ...] = ("brdf", "terms", "theta_s", "phi_s", "omega")
 
 
-def pixel_directions(detector: Detector, frame: Frame, n_h: ArrayLike, n_v: ArrayLike) -> Directions:
+def pixel_directions(detector: Detector, frame: Conditions, n_h: ArrayLike, n_v: ArrayLike) -> Directions:
     """Pixel directions in the sample frame (scatter frame rotated by ``-phi_ref`` about z)."""
     dirs = detector.directions(n_h, n_v, frame.theta_i)
     return dirs.rotated_z(-frame.phi_ref)
@@ -61,7 +61,7 @@ sample_directions = pixel_directions
 
 
 def evaluate_pixels(
-    model: AbstractTerm, frame: Frame, detector: Detector, n_h: ArrayLike, n_v: ArrayLike
+    model: AbstractTerm, frame: Conditions, detector: Detector, n_h: ArrayLike, n_v: ArrayLike
 ) -> Array:
     """BRDF (sr^-1) at pixel indices ``n_h, n_v`` (any broadcastable shapes); differentiable."""
     return model(pixel_directions(detector, frame, n_h, n_v), frame.wavelength)
@@ -152,7 +152,7 @@ def _prepare(detector: Detector | None, grid: PixelGrid | None, step: int, roi, 
 
 def render(
     model: AbstractTerm,
-    frame: Frame,
+    frame: Conditions,
     detector: Detector | None = None,
     *,
     step: int = 1,
@@ -208,7 +208,7 @@ def render(
 
 def render_sharded(
     model: AbstractTerm,
-    frame: Frame,
+    frame: Conditions,
     detector: Detector | None = None,
     *,
     step: int = 1,
@@ -273,7 +273,7 @@ def _geometry_values(args, n_h_row, n_v):
 
 
 def render_geometry(
-    frame: Frame,
+    frame: Conditions,
     detector: Detector | None = None,
     *,
     step: int = 1,
@@ -309,7 +309,7 @@ def _frame_values(args, n_h_row, n_v):
 
 def render_frame(
     model: AbstractTerm,
-    frame: Frame,
+    frame: Conditions,
     detector: Detector | None = None,
     *,
     step: int = 1,

@@ -51,7 +51,7 @@ How it is computed (:func:`lambda_table`):
   slopes are the exact derivatives ``dI/dmu = -integral_{x > mu} P22`` (the
   same quadrature); beyond the ends ``ln I`` continues linearly in ``ln nu``
   (``I -> I(0) = E[x+]`` below, a power law above).
-* Accuracy, measured against the closed forms (``tests/test_shadowing.py``):
+* Accuracy, measured against the closed forms (``tests/core/test_shadowing.py``):
   the tabulated Lambda of Beckmann and GGX agrees with the exact one to a
   relative 2e-6 (or an absolute 1e-9) from normal incidence to 89.9 deg for
   widths 2e-4 to 1.

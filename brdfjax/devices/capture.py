@@ -22,7 +22,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from ..config import ConfigError
 from ..core.detector import Detector
-from ..core.render import Frame
+from ..core.render import Conditions
 from ..instrument.nd import stack_od
 from ..instrument.synthetic import EFFECTS, load_instrument_config
 from ..io import geometry_attrs, toml
@@ -289,7 +289,7 @@ class _Runner:
               shape: tuple[int, int]) -> RawAttrs:
         b = self.bench
         det = bench_detector(b, self.alignment, shape)
-        frame = Frame(m.theta_i, m.phi_ref, b.wavelength)
+        frame = Conditions(m.theta_i, m.phi_ref, b.wavelength)
         return RawAttrs(
             kind=kind, optical_density=round(stack_od(nd), 10), nd_filters=nd,
             **geometry_attrs(det, frame, theta_c=m.theta_c), black_level=black, full_scale=full_scale,

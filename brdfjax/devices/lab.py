@@ -1,7 +1,7 @@
 """Adapters from pylablib's Thorlabs classes onto the bench interfaces (``pip install brdfjax[lab]``).
 
 **Untested on physical hardware.**  Each adapter is a thin mapping, tested
-(``tests/test_devices.py``) against pylablib 1.4's own classes with their
+(``tests/devices/test_devices.py``) against pylablib 1.4's own classes with their
 transport replaced: :class:`pylablib.devices.Thorlabs.KinesisMotor` talking
 the APT protocol byte for byte to an emulated controller through a custom
 pylablib comm backend, :class:`pylablib.devices.Thorlabs.PM160` talking SCPI

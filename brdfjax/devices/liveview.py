@@ -30,7 +30,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from ..core.render import Frame, render_geometry
+from ..core.render import Conditions, render_geometry
 from ..instrument.nd import stack_od
 from ..instrument.radiometry import brdf_from_flux
 from ..io import atomic_output
@@ -122,7 +122,7 @@ class LiveView:
         det = bench_detector(bench, alignment, shape, np.asarray(theta_c, dtype=np.float64))
         grid = det.grid(self._step)
         f64 = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
-        frame = Frame(f64(m.theta_i), f64(m.phi_ref), f64(bench.wavelength))
+        frame = Conditions(f64(m.theta_i), f64(m.phi_ref), f64(bench.wavelength))
         if self._geom is None:
             g = render_geometry(frame, det, grid=grid, precision="float32")
             self._geom = (np.asarray(g["theta_s"], np.float64), np.asarray(g["omega"], np.float64))

@@ -38,7 +38,7 @@ import equinox as eqx
 import numpy as np
 
 from ..core.detector import Detector
-from ..core.render import Frame
+from ..core.render import Conditions
 from ..instrument.nd import ND_STACKS, parse_nd_filters
 from ..instrument.synthetic import (
     InstrumentConfig,
@@ -160,7 +160,7 @@ class SimulatedBench:
                 raise DeviceError(f"simulated arm at {math.degrees(self.theta_c):.3f} deg: no sample frame there")
             # Arrays, not Python floats: jitted code would recompile for every new angle.
             f64 = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
-            frame = Frame(f64(self.theta_i), f64(self.phi_ref), f64(self.wavelength))
+            frame = Conditions(f64(self.theta_i), f64(self.phi_ref), f64(self.wavelength))
             key = (self.theta_i, self.phi_ref, self.theta_c, self.vertical)
             ins.detector = det.at(f64(self.theta_c))
             if key not in self._brdf_cache:

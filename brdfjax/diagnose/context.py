@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 from ..core.geometry import Directions
-from ..core.render import Frame, render, render_geometry
+from ..core.render import Conditions, render, render_geometry
 from ..core.terms import Model
 from ..fit import FitResult, FrameData, Param, TableData
 from ..fit.internal import as_param
@@ -58,11 +58,11 @@ class Context:
     def block_model(self, k: int) -> Model:
         return self.result.models[k] if self.result.models else self.model
 
-    def block_frame(self, k: int) -> Frame:
+    def block_frame(self, k: int) -> Conditions:
         b = self.blocks[k]
         if self.result.frames and self.result.frames[k] is not None:
             return self.result.frames[k]
-        return Frame(b.theta_i, b.phi_ref, b.wavelength)
+        return Conditions(b.theta_i, b.phi_ref, b.wavelength)
 
     def frames(self) -> list[int]:
         return [k for k, b in enumerate(self.blocks) if isinstance(b, FrameData)]

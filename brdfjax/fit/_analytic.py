@@ -14,7 +14,7 @@ has no cheap closed form:
   ``dh_y = -h_x``); only ``sinc'`` comes from a forward pass.
 
 :func:`term_columns` returns None for anything else (the caller's generic forward mode then does it).
-``tests/test_fit_speed.py`` checks every column against ``jax.jacfwd`` to 1e-10 (float64).
+``tests/fit/test_fit_speed.py`` checks every column against ``jax.jacfwd`` to 1e-10 (float64).
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ import numpy as np
 
 from ..core.distributions import GGX, Beckmann, BeckmannAniso, GGXAniso
 from ..core.geometry import Directions
-from ..core.render import Frame, pixel_directions
+from ..core.render import Conditions, pixel_directions
 from ..core.terms import Diffraction, Lambertian, Model, OffsetNormal, Oriented, Specular
 from ..instrument.synthetic import convolve_footprint
 from ..io.blocks import FrameData, TableData
@@ -320,7 +320,7 @@ def init_solar_cell(
     data = []
     for p in per:
         fr = p["frame"]
-        frame = Frame(np.float64(p["theta_i"]), np.float64(p["phi_ref"]), np.float64(fr.wavelength))
+        frame = Conditions(np.float64(p["theta_i"]), np.float64(p["phi_ref"]), np.float64(fr.wavelength))
         # the whole grid (one compiled shape for every frame of a joint fit), then the usable pixels
         tv = _grid_term_values(shape, frame, fr)
         for k in units:
@@ -342,7 +342,7 @@ def _term_values_jit(model, frame, detector, n_h, n_v):
     return model.term_values(pixel_directions(detector, frame, n_h[None, :], n_v[:, None]), frame.wavelength)
 
 
-def _grid_term_values(model: Model, frame: Frame, fr: FrameData) -> dict[str, np.ndarray]:
+def _grid_term_values(model: Model, frame: Conditions, fr: FrameData) -> dict[str, np.ndarray]:
     tv = _term_values_jit(model, frame, fr.arm_detector(), np.asarray(fr.grid.n_h, float), np.asarray(fr.grid.n_v, float))
     return {k: np.asarray(v, np.float64) for k, v in tv.items()}
 
@@ -397,7 +397,7 @@ def _directions_of(blk: FrameData | TableData) -> tuple[Directions, np.ndarray, 
         wl = np.broadcast_to(np.asarray(blk.wavelength, np.float64), ok.shape)[ok]
         return Directions.from_angles(*ang), wl, d
     rows, cols = np.nonzero(ok)
-    frame = Frame(np.float64(blk.theta_i), np.float64(blk.phi_ref), np.float64(blk.wavelength))
+    frame = Conditions(np.float64(blk.theta_i), np.float64(blk.phi_ref), np.float64(blk.wavelength))
     dirs = pixel_directions(blk.arm_detector(), frame, np.asarray(blk.grid.n_h, float)[cols], np.asarray(blk.grid.n_v, float)[rows])
     return dirs, np.full(d.shape, float(blk.wavelength)), d
 
@@ -623,7 +623,7 @@ def init_specular_peak(
     units: dict[str, list[np.ndarray]] = {sname: [], **({lname: []} if lname else {})}
     data = []
     for fr in frames:
-        frame = Frame(np.float64(fr.theta_i), np.float64(fr.phi_ref), np.float64(fr.wavelength))
+        frame = Conditions(np.float64(fr.theta_i), np.float64(fr.phi_ref), np.float64(fr.wavelength))
         tv = _grid_term_values(shape, frame, fr)
         ok = fr.check_usable()
         for name in units:

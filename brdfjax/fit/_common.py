@@ -8,7 +8,7 @@ from ..runtime.errors import FitInputError
 
 __all__ = ["FitInputError", "natural_unit", "to_natural", "FRAME_PARAMETERS"]
 
-#: Frame parameters that a fit may free, with their units (per frame by default).
+#: Conditions parameters that a fit may free, with their units (per frame by default).
 FRAME_PARAMETERS: dict[str, str] = {"theta_i": "rad", "phi_ref": "rad"}
 
 

@@ -159,7 +159,7 @@ def frame_data_from_reduced(
             f"{owner}: no '{channel}' channel (sigma = {sigma!r}); a fit needs each pixel's relative uncertainty. "
             + (f"This frame has: {', '.join(have)}; pass that sigma (config: [data] sigma)." if have else
                "This frame has no uncertainty channel at all: write 'sigma_rel' (relative, 1-sigma, per pixel) "
-               "with the frame (README: Frame files).")
+               "with the frame (README: Conditions files).")
         )
     if not (np.isfinite(sigma_floor) and sigma_floor >= 0):
         raise FitInputError(f"{owner}: sigma_floor must be a non-negative number, got {sigma_floor!r}")

@@ -33,7 +33,7 @@ Stacked frames (``FrameStack``) are done under one ``vmap`` (one copy of the
 program for every frame).  Problems this does not cover (a free ``theta_i``,
 directions not precomputed, a template that is not a ``Model``, stacked
 frames whose free parameters differ in kind) fall back to ``jacfwd``:
-:func:`supports` says which.  ``tests/test_fit_jacobian.py`` checks the result
+:func:`supports` says which.  ``tests/fit/test_fit_jacobian.py`` checks the result
 against ``jax.jacfwd`` to 1e-10 (float64) with and without a footprint.
 """
 

@@ -18,7 +18,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from ..core.fft import fast_len
 from ..core.geometry import Directions
-from ..core.render import Frame, cast, resolve_dtype
+from ..core.render import Conditions, cast, resolve_dtype
 from ..core.terms import Model
 from ..io.blocks import FrameData, TableData
 from ._auto_init import get_initializer
@@ -201,7 +201,7 @@ def _directions(detector, theta_i: float, n_h: np.ndarray, n_v: np.ndarray) -> D
     return Directions(w_i, *(np.asarray(a).reshape(-1, 3) for a in (d.w_s, d.w_sum)))
 
 
-def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Frame, floor: float, use_footprint: bool,
+def _frame_block(b: FrameData, usable: np.ndarray, template: Model, frame: Conditions, floor: float, use_footprint: bool,
                  box_shape: tuple[int, int] | None = None, fixed_theta_i: bool = False, plain: bool = False):
     brdf = np.asarray(b.brdf, np.float64)
     sigma = np.broadcast_to(np.asarray(b.sigma_rel, np.float64), brdf.shape)
@@ -338,7 +338,7 @@ def prepare(
         template = template_for_block(model, layout, i)
         fl = _floor(b, u, floor)
         if isinstance(b, FrameData):
-            frame = frame_for_block(Frame(b.theta_i, b.phi_ref, b.wavelength), layout, i)
+            frame = frame_for_block(Conditions(b.theta_i, b.phi_ref, b.wavelength), layout, i)
             fixed = not any(e.base == "theta_i" and i in e.blocks for e in layout.free)
             box = boxes.get(tuple(np.shape(b.footprint))) if b.footprint is not None else None
             built.append(_frame_block(b, u, template, frame, fl, use_footprint, box, fixed, plain=moving))

@@ -46,7 +46,7 @@ from jaxtyping import Array
 
 from ..core.detector import Detector
 from ..core.geometry import Directions, Rz
-from ..core.render import Frame, evaluate_pixels
+from ..core.render import Conditions, evaluate_pixels
 from ..core.terms import AbstractTerm, Model
 from ..runtime.export_cache import exportable
 from ._jacobian import residuals_and_jacobian as structured_residuals_and_jacobian, supports as structured_supports
@@ -62,7 +62,7 @@ PAD_MULTIPLE = 256
 Values = dict[str, Array]
 
 
-def _apply(template: AbstractTerm, frame: Frame | None, model_values: Values, frame_values: Values):
+def _apply(template: AbstractTerm, frame: Conditions | None, model_values: Values, frame_values: Values):
     model = template.with_params(model_values) if model_values else template
     if frame is not None:
         if "theta_i" in frame_values:
@@ -109,7 +109,7 @@ class FrameBlock(eqx.Module):
     """One detector frame: the usable pixels (or the whole grid when a footprint is convolved)."""
 
     template: AbstractTerm
-    frame: Frame
+    frame: Conditions
     detector: Detector
     n_h: Array  # (n,) pixel columns of the points, or (cols,) of the grid with a footprint
     n_v: Array  # (n,) pixel rows of the points, or (rows,) of the grid with a footprint
@@ -147,7 +147,7 @@ class FrameBlock(eqx.Module):
     kernel_v: Array | None = None  # (kr,)
     kernel_h: Array | None = None  # (kc,)
 
-    def point_values(self, model: AbstractTerm, frame: Frame) -> Array:
+    def point_values(self, model: AbstractTerm, frame: Conditions) -> Array:
         """The model at the evaluation points: the usable points, or the support (or grid) with a footprint."""
         if self.dirs is not None:
             return model(self.dirs.rotated(Rz(-frame.phi_ref)), frame.wavelength)
@@ -193,10 +193,10 @@ class FrameBlock(eqx.Module):
             out = jax.lax.map(one, cols.T).T
         return out.reshape(out.shape[:1] + values.shape[1:]).astype(values.dtype)
 
-    def model_values(self, model: AbstractTerm, frame: Frame) -> Array:
+    def model_values(self, model: AbstractTerm, frame: Conditions) -> Array:
         return self.convolve(self.point_values(model, frame))
 
-    def residuals(self, model: AbstractTerm, frame: Frame, soften: Array) -> Array:
+    def residuals(self, model: AbstractTerm, frame: Conditions, soften: Array) -> Array:
         return _log_residuals(self.model_values(model, frame), self, soften)
 
 
@@ -389,7 +389,7 @@ class Problem(eqx.Module):
         fv = {name: jnp.stack([jnp.asarray(p[1].get(name, 0.0), x.dtype) for p in per]) for name in names}
         return mv, fv
 
-    def block_inputs(self, v: Array) -> list[tuple[AbstractTerm, Frame | None]]:
+    def block_inputs(self, v: Array) -> list[tuple[AbstractTerm, Conditions | None]]:
         """Each block's model and frame with the free parameters at ``v``."""
         x = self.natural(v)
         out = []
@@ -627,7 +627,7 @@ def template_for_block(model: Model, layout: Layout, k: int) -> Model:
     return model.with_params(values) if values else model
 
 
-def frame_for_block(frame: Frame, layout: Layout, k: int) -> Frame:
+def frame_for_block(frame: Conditions, layout: Layout, k: int) -> Conditions:
     entries = [(e.base, e.kind, e.blocks, e.value) for e in layout.fixed]
     entries += [(e.base, e.kind, e.blocks, e.x0) for e in layout.free]
     for base, kind, blocks, x in entries:

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..core.detector import Detector
-from ..core.render import Frame, render
+from ..core.render import Conditions, render
 from ..core.terms import AbstractTerm
 from ..io.blocks import FrameData
 
@@ -48,7 +48,7 @@ def render_noisy_frames(
     rng = np.random.default_rng(seed)
     out = []
     for ti, ph in zip(theta_i_deg, phis):
-        frame = Frame.from_degrees(ti, float(ph), wavelength_nm)
+        frame = Conditions.from_degrees(ti, float(ph), wavelength_nm)
         truth = np.asarray(render(model, frame, det, grid=grid, precision=precision), np.float64)
         noisy = truth * np.exp(noise_rel * rng.standard_normal(truth.shape))
         out.append(

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..config import ConfigError
 from ..core.detector import Detector
-from ..core.render import Frame
+from ..core.render import Conditions
 from ..core.terms import Model
 from ..instrument.reduce import ReductionError, reduce_measurement_set
 from ..instrument.synthetic import SyntheticInstrument, load_instrument_config
@@ -121,7 +121,7 @@ def synthesize_step(cfg: FitConfig, model: Model, folder: Path, notes: list[str]
             return paths, w_px
     folder.mkdir(parents=True, exist_ok=True)
     instrument = SyntheticInstrument(det, inst_cfg, seed=s.seed)
-    frames = {n: Frame.from_degrees(t, p, s.wavelength_nm) for n, t, p in zip(names, s.theta_i_deg, phis)}
+    frames = {n: Conditions.from_degrees(t, p, s.wavelength_nm) for n, t, p in zip(names, s.theta_i_deg, phis)}
     manifest = instrument.measure_set(folder / "raw", model, frames)
     r = cfg.data.reduce
     reduce_measurement_set(manifest, reduced_dir, merge=r.merge, step=r.step, **_reduce_options(r))

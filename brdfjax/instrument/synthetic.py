@@ -104,7 +104,7 @@ import equinox as eqx
 import numpy as np
 
 from ..core.detector import Detector
-from ..core.render import Frame, render, render_geometry
+from ..core.render import Conditions, render, render_geometry
 from ..core.terms import AbstractTerm
 from ..io.header import geometry_attrs
 from ..io.raw import (
@@ -220,7 +220,7 @@ class SyntheticInstrument:
         return self.detector.shape
 
     # -- attributes ------------------------------------------------------------------------------
-    def raw_attrs(self, kind: str, nd_filters: str, frame: Frame, sample: str, *, theta_c: float | None = None) -> RawAttrs:
+    def raw_attrs(self, kind: str, nd_filters: str, frame: Conditions, sample: str, *, theta_c: float | None = None) -> RawAttrs:
         """The raw file attributes of a ``kind`` measurement of ``frame`` through ``nd_filters``.
 
         The geometry is the frame header (:func:`brdfjax.io.header.geometry_attrs`)
@@ -259,7 +259,7 @@ class SyntheticInstrument:
             return brdf
         return convolve_footprint(brdf, footprint_kernel(self.config.footprint.w_px))
 
-    def render_brdf(self, model: AbstractTerm, frame: Frame, *, precision: str = "float32") -> np.ndarray:
+    def render_brdf(self, model: AbstractTerm, frame: Conditions, *, precision: str = "float32") -> np.ndarray:
         """The model's BRDF on every pixel of the (true) detector, sr^-1, float32 ``(n_v, n_h)``.
 
         With a spectral source (``config.source``) the average over its wavelengths.
@@ -273,7 +273,7 @@ class SyntheticInstrument:
             out += w * np.asarray(render(model, f, self.detector, precision=precision), dtype=np.float64)
         return out.astype(np.float32)
 
-    def sample_flux(self, brdf: np.ndarray, frame: Frame, nd_filters: str) -> np.ndarray:
+    def sample_flux(self, brdf: np.ndarray, frame: Conditions, nd_filters: str) -> np.ndarray:
         """Light rate on every pixel of a sample measurement, counts/s, float32 (steps 1-3 of the module doc)."""
         brdf = np.asarray(brdf)
         if brdf.shape != self.shape:
@@ -382,7 +382,7 @@ class SyntheticInstrument:
     def measure_sample(
         self,
         brdf: AbstractTerm | np.ndarray,
-        frame: Frame,
+        frame: Conditions,
         nd_filters: str,
         *,
         sample: str = "",
@@ -399,7 +399,7 @@ class SyntheticInstrument:
 
     def measure_beam(self, nd_filters: str = SEED_BEAM_FILTERS, *, wavelength: float = 632.8e-9) -> RawStack:
         """A beam signature: the focused beam straight onto the array, no sample, ``theta_c = 0``."""
-        frame = Frame(0.0, 0.0, wavelength)
+        frame = Conditions(0.0, 0.0, wavelength)
         flux = self.beam_flux(nd_filters)
         return self.stack(flux, self.raw_attrs("beam", nd_filters, frame, "beam signature", theta_c=0.0))
 
@@ -420,7 +420,7 @@ class SyntheticInstrument:
         self,
         folder: str | Path,
         model: AbstractTerm,
-        frames: Mapping[str, Frame],
+        frames: Mapping[str, Conditions],
         *,
         nd_filters: str | None = None,
         beam_filters: str | None = None,
@@ -465,7 +465,7 @@ class SyntheticInstrument:
     def write_set(
         self,
         folder: str | Path,
-        samples: Mapping[str, tuple[AbstractTerm | np.ndarray, Frame, str]],
+        samples: Mapping[str, tuple[AbstractTerm | np.ndarray, Conditions, str]],
         *,
         beam_filters: str = SEED_BEAM_FILTERS,
         wavelength: float = 632.8e-9,
@@ -475,7 +475,7 @@ class SyntheticInstrument:
         """Write a measurement set (beam + background, each sample + background, ``manifest.toml``).
 
         ``samples`` maps a sample name (file stem) to ``(model or BRDF frame,
-        Frame, nd_filters)``; ``calibration`` goes into the manifest's
+        Conditions, nd_filters)``; ``calibration`` goes into the manifest's
         ``[calibration]`` table.  Files are written one at a time
         (atomically), ``progress(done, total, file name)`` after each; returns the manifest path.
         """

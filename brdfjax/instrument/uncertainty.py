@@ -39,7 +39,7 @@ differentiated with :func:`jax.grad` to get the sensitivities of ``ln f_r`` to
 misalignment terms are the differences between the nominal mapping and a
 misaligned one (Eq 105, 109), scaled by the same Eq 45 sensitivities (seed
 §4.4-4.5).  An independent analytic implementation of Eq 99-104 and 107-108
-lives in ``tests/test_uncertainty.py`` and checks this to 1e-6.
+lives in ``tests/instrument/test_uncertainty.py`` and checks this to 1e-6.
 
 As in the seed, the terms of Eq 71 are combined as if independent, although
 ``theta_s`` and ``Omega_d`` both depend on ``R`` and ``d``.

@@ -10,7 +10,7 @@ row screening and the export of a table.
 the measurement-set manifest, with the format's specification.
 
 :mod:`brdfjax.io.header`: the frame header -- the one mapping of a Detector
-and a Frame to file attributes and back (simulated, reduced and raw frames).
+and a Conditions to file attributes and back (simulated, reduced and raw frames).
 :mod:`brdfjax.io.exr`: one rendered or reduced frame as a single-part OpenEXR
 file (:class:`ExrFrame`).
 :mod:`brdfjax.io.toml`: the one TOML writer (``dumps``, ``write``; reading is :mod:`tomllib`).

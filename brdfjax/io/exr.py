@@ -10,7 +10,7 @@ Channels (rows = n_v, top row = most negative n_v; columns = n_h):
 ========== ======= ====================================================
 
 Header attributes (the geometry ones are the frame header of
-:mod:`brdfjax.io.header`, the one place that maps a Detector and a Frame to
+:mod:`brdfjax.io.header`, the one place that maps a Detector and a Conditions to
 them and back): the angles ``theta_i``, ``theta_c``, ``phi_ref``, ``roll``,
 ``yaw``, ``pitch`` (rad), the lengths ``wavelength``, ``R``, ``pixel_pitch``,
 ``pixel_pitch_v`` (m) and the offsets ``m_h``, ``m_v`` (pixels) are stored as

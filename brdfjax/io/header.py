@@ -1,4 +1,4 @@
-"""The frame header: a :class:`~brdfjax.Detector` and a :class:`~brdfjax.Frame` <-> EXR attributes, both ways.
+"""The frame header: a :class:`~brdfjax.Detector` and a :class:`~brdfjax.Conditions` <-> EXR attributes, both ways.
 
 This is the one place that knows how a measurement's geometry is written into
 a file header and read back.  Every writer goes through
@@ -11,7 +11,7 @@ The attributes (SI units, radians; stored as doubles by :mod:`brdfjax.io.exr`
 and :mod:`brdfjax.io.raw`), in the order they are written:
 
 ================= ====== ==============================================================
-``theta_i``       rad    incidence angle (:class:`Frame`)
+``theta_i``       rad    incidence angle (:class:`Conditions`)
 ``theta_c``       rad    the detector arm's angle (:meth:`Detector.arm_angle`: ``theta_i``
                          when the detector is centred on the peak)
 ``phi_ref``       rad    sample rotation about its normal
@@ -39,7 +39,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..core.detector import Detector
-from ..core.render import Frame
+from ..core.render import Conditions
 
 __all__ = [
     "GEOMETRY_ATTRS",
@@ -71,7 +71,7 @@ GEOMETRY_ATTRS: dict[str, str] = {
 MISALIGNMENT_ATTRS: tuple[str, ...] = ("roll", "yaw", "pitch", "m_h", "m_v")
 
 
-def geometry_attrs(detector: Detector, frame: Frame, *, theta_c: Any = None) -> dict[str, float]:
+def geometry_attrs(detector: Detector, frame: Conditions, *, theta_c: Any = None) -> dict[str, float]:
     """The geometry attributes of ``detector`` measuring ``frame``, as Python floats (in file order).
 
     ``theta_c`` (rad) overrides the arm angle, which is otherwise
@@ -92,7 +92,7 @@ def geometry_attrs(detector: Detector, frame: Frame, *, theta_c: Any = None) -> 
 
 def frame_attrs(
     detector: Detector,
-    frame: Frame,
+    frame: Conditions,
     *,
     step: int,
     roi: tuple[int, int, int, int],
@@ -163,6 +163,6 @@ def detector_from_attrs(
     )
 
 
-def frame_from_attrs(attrs: Mapping[str, Any]) -> Frame:
-    """The :class:`Frame` (``theta_i``, ``phi_ref``, ``wavelength``) a header describes."""
-    return Frame(float(attrs["theta_i"]), float(attrs["phi_ref"]), float(attrs["wavelength"]))
+def frame_from_attrs(attrs: Mapping[str, Any]) -> Conditions:
+    """The :class:`Conditions` (``theta_i``, ``phi_ref``, ``wavelength``) a header describes."""
+    return Conditions(float(attrs["theta_i"]), float(attrs["phi_ref"]), float(attrs["wavelength"]))

@@ -141,7 +141,7 @@ import numpy as np
 import OpenEXR  # the official bindings (3.x API)
 
 from ..core.detector import Detector
-from ..core.render import Frame
+from ..core.render import Conditions
 from ..runtime.errors import InputError
 from . import atomic_output, toml
 from .header import GEOMETRY_ATTRS, detector_from_attrs, frame_from_attrs
@@ -344,8 +344,8 @@ class RawAttrs:
         """The :class:`brdfjax.Detector` of this measurement for an ``(n_v, n_h)`` array (the arm at ``theta_c``)."""
         return detector_from_attrs(self.geometry(), shape, follow_peak=False)
 
-    def frame(self) -> Frame:
-        """The :class:`brdfjax.Frame` (theta_i, phi_ref, wavelength) of this measurement."""
+    def frame(self) -> Conditions:
+        """The :class:`brdfjax.Conditions` (theta_i, phi_ref, wavelength) of this measurement."""
         return frame_from_attrs(self.geometry())
 
 

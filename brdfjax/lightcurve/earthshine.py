@@ -17,7 +17,7 @@ polar rings by ``n_chi`` azimuths about the sub-satellite point, with area
 ``R^2 sin(psi) dpsi dchi``; unlit and hidden elements weigh nothing.  Facets
 do not shadow one another and the Earth is not shadowed by the satellite (as
 lumos-sat).  lumos-sat integrates the lit part of the same cap on its own
-grid; tests/test_observe.py compares the two.
+grid; tests/lightcurve/test_observe.py compares the two.
 """
 
 from __future__ import annotations

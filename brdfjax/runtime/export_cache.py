@@ -31,7 +31,7 @@ On when the persistent compilation cache is on (the CLI's default; files in
 ``<cache>/export``); off with the cache, or alone with ``BRDFJAX_NO_EXPORT=1``.
 A file that cannot be read is replaced.  A dependency edited in place without a new version number is not
 seen: delete ``<cache>/export`` (or set ``BRDFJAX_NO_EXPORT=1``) after such an edit.  Exported calls give the numbers of
-the plain call (``tests/test_export_cache.py`` checks a fit to every bit).
+the plain call (``tests/runtime/test_export_cache.py`` checks a fit to every bit).
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ class FrameResult:
     """One rendered frame in memory: ``(rows, cols)`` NumPy arrays of the grid and timings."""
 
     stem: str
-    frame: Any  # brdfjax.Frame
+    frame: Any  # brdfjax.Conditions
     grid: Any  # brdfjax.PixelGrid
     brdf: np.ndarray  # sr^-1
     terms: dict[str, np.ndarray]  # sr^-1, each term of the model

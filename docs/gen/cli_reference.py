@@ -2,7 +2,7 @@
 
 ``python docs/gen/cli_reference.py`` prints the page; the mkdocs hook
 (``docs/gen/hooks.py``) renders it at build time as ``reference/cli.md``.
-:func:`undocumented` lists every flag without a help text (``tests/test_docs.py``
+:func:`undocumented` lists every flag without a help text (``tests/project/test_docs.py``
 fails on any).
 """
 

@@ -4,7 +4,7 @@
 it at build time as ``reference/config.md``.  Every key is listed with its
 unit (from the key's unit suffix, ``theta_i_deg`` -> deg), its default and its
 description; :func:`undocumented` lists the keys without a description
-(``tests/test_docs.py`` fails on any).
+(``tests/project/test_docs.py`` fails on any).
 """
 
 from __future__ import annotations

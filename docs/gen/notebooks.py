@@ -4,7 +4,7 @@
 ``docs/tutorials/<name>.ipynb`` (ignored by git; the mkdocs hook calls
 :func:`build` before the site is built).  Each notebook's cell tagged
 ``parameters`` (it defines ``STEP``, the decimation of full frames) is set
-to ``STEP = K``, as ``tests/test_notebooks.py`` does; the committed notebooks
+to ``STEP = K``, as ``tests/project/test_notebooks.py`` does; the committed notebooks
 stay without outputs.  ``BRDFJAX_DOCS_EXECUTE=0`` copies them unexecuted.
 """
 

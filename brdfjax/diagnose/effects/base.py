@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...core.geometry import Directions
-from ...core.render import Frame, pixel_directions, render
+from ...core.render import Conditions, pixel_directions, render
 from ...core.terms import (
     AbstractTerm,
     Diffraction,
@@ -187,7 +187,7 @@ def drop_missing(params: Mapping[str, Any], model: Model) -> dict[str, Any]:
 
 
 
-def block_values(block: Any, model: Model, frame: Frame | None) -> np.ndarray:
+def block_values(block: Any, model: Model, frame: Conditions | None) -> np.ndarray:
     """Model BRDF on a block's points (frames: the whole grid, convolved with the block's footprint)."""
     if isinstance(block, FrameData):
         img = np.asarray(render(model, frame, block.arm_detector(), grid=block.grid, precision=precision_name()), float)
@@ -297,9 +297,9 @@ def best_by_linear_chi2(ctx: Context, candidates, make) -> tuple[float, Any, flo
     return z, best, dchi2
 
 
-def scatter_half_vectors(block: FrameData, frame: Frame, phi: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def scatter_half_vectors(block: FrameData, frame: Conditions, phi: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Half-vector components on a frame's grid in the frame rotated by ``-phi`` about the normal (rad)."""
-    f = Frame(frame.theta_i, np.float64(phi), frame.wavelength)
+    f = Conditions(frame.theta_i, np.float64(phi), frame.wavelength)
     nh = jnp.asarray(block.grid.n_h, float)[None, :]
     nv = jnp.asarray(block.grid.n_v, float)[:, None]
     dirs = pixel_directions(block.arm_detector(), f, nh, nv)
@@ -307,7 +307,7 @@ def scatter_half_vectors(block: FrameData, frame: Frame, phi: float = 0.0) -> tu
     return h[..., 0], h[..., 1], h[..., 2]
 
 
-def sample_ws(block: FrameData, frame: Frame) -> np.ndarray:
+def sample_ws(block: FrameData, frame: Conditions) -> np.ndarray:
     nh = jnp.asarray(block.grid.n_h, float)[None, :]
     nv = jnp.asarray(block.grid.n_v, float)[:, None]
     return np.asarray(pixel_directions(block.arm_detector(), frame, nh, nv).w_s, float)

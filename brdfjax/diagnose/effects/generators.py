@@ -45,7 +45,7 @@ from ... import reference as ref
 from ...core.detector import Detector
 from ...core.distributions import Beckmann, BeckmannAniso
 from ...core.geometry import Directions
-from ...core.render import Frame, render
+from ...core.render import Conditions, render
 from ...core.terms import SEED_FORM, Diffraction, Lambertian, Model, OffsetNormal, Specular
 from ...fit import FrameData, Param, TableData, read_frame_data
 from ...instrument import SyntheticInstrument, reduce_measurement_set
@@ -466,7 +466,7 @@ def synthesize(scenario: Scenario, seed: int = 0, out_dir: str | Path | None = N
     grid = sc.nominal_detector.grid(sc.step, sc.roi)
     out = []
     for i, (ti, phi, wl) in enumerate(sc.frames):
-        frame = Frame(np.float64(ti), np.float64(phi), np.float64(wl))
+        frame = Conditions(np.float64(ti), np.float64(phi), np.float64(wl))
         img = np.asarray(render(sc.truth_model, frame, sc.detector, grid=grid, precision="float64"), np.float64)
         img = _apply_instrument(img, sc)
         noisy = img * np.exp(sc.noise_rel * rng.standard_normal(img.shape))
@@ -481,7 +481,7 @@ def synthesize(scenario: Scenario, seed: int = 0, out_dir: str | Path | None = N
 def _synth_instrument(sc: Scenario, seed: int, out_dir: str | Path | None) -> list[FrameData]:
     folder = Path(tempfile.mkdtemp(prefix="brdfjax_fx_")) if out_dir is None else Path(out_dir)
     ins = SyntheticInstrument(sc.detector, sc.instrument, seed=seed, nominal_detector=sc.nominal_detector)
-    frames = {f"f{i}": Frame(np.float64(ti), np.float64(phi), np.float64(wl)) for i, (ti, phi, wl) in enumerate(sc.frames)}
+    frames = {f"f{i}": Conditions(np.float64(ti), np.float64(phi), np.float64(wl)) for i, (ti, phi, wl) in enumerate(sc.frames)}
     manifest = ins.measure_set(folder / "raw", sc.truth_model, frames, beam_filters=SEED_BEAM_FILTERS,
                                wavelength=sc.frames[0][2])
     paths = reduce_measurement_set(manifest, folder / "reduced")
