@@ -70,7 +70,9 @@ def build(family: str, f: np.ndarray, index: dict, abg_fit=None):
         return (bj.Model(terms={"spec": ABg(peak * 1e-3, 1e-3, 2.0), "diffuse": lam}),
                 {"spec.A": "free", "spec.B": "free", "spec.g": "free", "diffuse.rho_d": "free"})
     if family == "abg2":
-        return (bj.Model(terms={"spec": ABg(peak * 1e-4, 1e-4, 2.0), "halo": ABg(1e-3, 1e-2, 2.0), "diffuse": lam}),
+        # a narrow core where ABg starts and a wide halo at the table's median level (A / B = median)
+        med = float(np.median(f))
+        return (bj.Model(terms={"spec": ABg(peak * 1e-3, 1e-3, 2.0), "halo": ABg(med * 0.05, 0.05, 2.0), "diffuse": lam}),
                 {"spec.A": "free", "spec.B": "free", "spec.g": "free", "halo.A": "free", "halo.B": "free",
                  "halo.g": "free", "diffuse.rho_d": "free"})
     if family == "phong":
@@ -108,7 +110,7 @@ def _log_ratio(res, table, rows: np.ndarray) -> np.ndarray:
     return np.log(np.maximum(pred, 1e-300)) - np.log(np.asarray(table.brdf, float)[rows])
 
 
-def run_table(name: str, out: dict) -> None:
+def run_table(name: str, out: dict, steepest_only: bool = False) -> None:
     table = read(name)
     index = TABLES[name][1]
     ti = np.round(np.degrees(np.asarray(table.theta_i, float)), 1)
@@ -116,12 +118,12 @@ def run_table(name: str, out: dict) -> None:
     f = np.asarray(table.brdf, float)
     angles = sorted(set(ti[base]))
     entry = out.setdefault(name, {"incidences_deg": [float(a) for a in angles], "families": {}})
-    folds = ["full"] + [f"without_{a:g}" for a in angles]
+    folds = ["full"] + ([f"without_{max(angles):g}"] if steepest_only else [f"without_{a:g}" for a in angles])
     abg_fits: dict[str, object] = {}
     for fam in FAMILIES:
         fe = entry["families"].setdefault(fam, {"folds": {}})
         for fold in folds:
-            done = fold in fe["folds"]
+            done = fold in fe["folds"] and "error" not in fe["folds"][fold]
             need_abg = fam == "abg" and fold not in entry["families"].get("binomial", {}).get("folds", {})
             if done and not need_abg:
                 continue
@@ -176,13 +178,15 @@ def summarise(name: str, entry: dict) -> None:
         held = [v for k, v in fo.items() if k.startswith("without_")]
         fe["steepest_log_rms"] = fo[steep]["heldout_log_rms"]
         fe["steepest_log_bias"] = fo[steep]["heldout_log_bias"]
-        fe["loio_log_rms"] = float(np.sqrt(sum(v["heldout_sq_sum"] for v in held) / sum(v["heldout_n"] for v in held)))
+        if len(held) == len(entry["incidences_deg"]):
+            fe["loio_log_rms"] = float(np.sqrt(sum(v["heldout_sq_sum"] for v in held) / sum(v["heldout_n"] for v in held)))
         fe["in_sample_log_rms"] = fo["full"]["train_log_rms"]
         scores[fam] = fe["steepest_log_rms"]
     entry["chosen_any"] = min(scores, key=scores.get)
     sym = {k: v for k, v in scores.items() if k in SYMMETRIC}
     entry["chosen"] = min(sym, key=sym.get)
-    entry["chosen_loio"] = min(sym, key=lambda k: entry["families"][k]["loio_log_rms"])
+    loio = {k: entry["families"][k]["loio_log_rms"] for k in sym if "loio_log_rms" in entry["families"][k]}
+    entry["chosen_loio"] = min(loio, key=loio.get) if len(loio) == len(sym) else None
     w = {k: 1.0 / v**2 for k, v in sym.items()}
     tot = sum(w.values())
     entry["average_weights"] = {k: v / tot for k, v in sorted(w.items(), key=lambda kv: -kv[1])}
@@ -194,9 +198,12 @@ def main(argv: list[str]) -> None:
     fresh = "--fresh" in argv
     names = [a for a in argv if not a.startswith("--")] or list(TABLES)
     out = {} if fresh or not RESULTS.exists() else json.loads(RESULTS.read_text())
-    for name in names:
-        print(name, flush=True)
-        run_table(name, out)
+    # first every table's full fit and its steepest-incidence fold (the choice), then the other folds
+    for steepest_only in (True, False):
+        for name in names:
+            print(name, "(steepest incidence withheld)" if steepest_only else "(every incidence withheld in turn)",
+                  flush=True)
+            run_table(name, out, steepest_only)
 
 
 if __name__ == "__main__":
