@@ -4,9 +4,13 @@ Per facet the predicting family is chosen without any observation (experiments/s
 experiments/results/sky_lab_extrapolation.json): among the families whose out-of-plane shape follows from the
 in-plane tables by symmetry (ABg, two ABg lobes, Phong, GGX/Beckmann microfacet with a fixed or fitted index,
 spike + halo; not the binomial, whose powers of V = beta . beta0 are fitted on collinear in-plane pairs only),
-the one that best predicts the table's withheld steepest incidence (75 deg) from the other three.  The next two
-families by that score are its alternatives (model-form spread); every model carries its error in the band:
-inside the lab's geometry its full fit's log-RMS, outside its log-RMS on the withheld slice.
+the one that best predicts the table's steepest *distinct* incidence withheld from the others: three of the five
+tables repeat a scan at several incidences value for value (the mirror film's four slices are one scan; A700's
+41.4, 60 and 75 deg; LRB50XL2's 60 and 75 deg), and withholding a copy tests only shift-invariance in the angle
+from specular.  A table with a single distinct scan (the mirror film) carries no incidence information: it takes
+ABg, the Harvey-Shack direction-cosine scaling of smooth-surface scatter.  The next two families by the same score
+are its alternatives (model-form spread); every model carries its error in the band: inside the lab's geometry
+its full fit's log-RMS, outside its log-RMS on the withheld slice.
 
 :func:`config_text` also writes variants (one family on every facet, the choice by leave-one-incidence-out, a
 model-averaged facet with weights from the extrapolation scores) for experiments/sky_v2mini.py.
@@ -17,6 +21,7 @@ model-averaged facet with weights from the extrapolation scores) for experiments
 from __future__ import annotations
 
 import json
+import textwrap
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,13 +58,30 @@ def ranked(entry: dict, symmetric_only: bool = True, key: str = "steepest_log_rm
     return sorted(fams, key=fams.get)
 
 
+def _score(entry: dict, fam: str) -> float:
+    """A family's extrapolation score: its held-out log-RMS on the fold that chooses (the steepest distinct incidence
+    withheld), else on the withheld steepest slice."""
+    from sky_lab_extrapolation import _choice_fold
+
+    key = _choice_fold(entry)
+    fo = entry["families"][fam].get("folds", {})
+    if key and key in fo and "heldout_log_rms" in fo[key]:
+        return fo[key]["heldout_log_rms"]
+    return entry["families"][fam]["steepest_log_rms"]
+
+
 def shipped_choice(cv: dict) -> dict[str, tuple[str, list[str], list[float] | None]]:
-    """table -> (model, alternatives, weights): the best symmetric family by the withheld steepest incidence, the next
-    two as alternatives, no averaging."""
+    """table -> (model, alternatives, weights): the family chosen in sky_lab_extrapolation.json (the best symmetric
+    family on the steepest distinct incidence withheld; the prior family where a table has one distinct scan), the
+    next two by the same score as alternatives, no averaging."""
+    from sky_lab_extrapolation import SYMMETRIC
+
     out = {}
     for t in LAB:
-        r = ranked(cv[t])
-        out[t] = (r[0], r[1:3], None)
+        e = cv[t]
+        fams = [f for f in e["families"] if f in SYMMETRIC and "steepest_log_rms" in e["families"][f]]
+        rest = sorted((f for f in fams if f != e["chosen"]), key=lambda f: _score(e, f))
+        out[t] = (e["chosen"], rest[:2], None)
     return out
 
 
@@ -90,13 +112,15 @@ def ranked_choice(cv: dict, symmetric_only: bool, key: str) -> dict[str, tuple[s
 def config_text(key: str, cv: dict, choice: dict, draws: int = 200, why: str | None = None) -> str:
     """The observe config of set ``key`` with ``choice`` (table -> (model, alternatives, weights))."""
     what, convention, bands, obs = SETS[key]
-    why = why or ", ".join(
-        f"{t}: {FAMILY_TEXT[m]} (withheld 75-deg log-RMS {cv[t]['families'][m]['steepest_log_rms']:.2f})"
-        for t, (m, _, _) in choice.items())
+    why = why or "; ".join(f"{t}: {FAMILY_TEXT[m]}" + (f" ({cv[t]['chosen_reason']})" if m == cv[t].get("chosen") else "")
+                           for t, (m, _, _) in choice.items())
+    why = "\n# ".join(textwrap.wrap(why, 114))
     s = f'''# Starlink V2 Mini: the {what} predicted from brdfjax's own fits of the five lab tables
 # (experiments/sky_lab_extrapolation.py: eight families per table; no observation enters any fit or choice).
 # Per facet the predicting family is, among the families whose out-of-plane shape follows from in-plane data by
-# symmetry, the one that best predicts the table's withheld steepest incidence (75 deg) from the other three:
+# symmetry, the one that best predicts the table's steepest distinct incidence withheld from the others (a slice
+# that repeats a shallower scan value for value tests nothing; a table with one distinct scan takes ABg, whose
+# direction-cosine shift invariance is the Harvey-Shack scaling of smooth-surface scatter):
 # {why}.
 # The next two families by that score give the model-form spread; [model_error] widens the band by each model's
 # log-RMS (inside the lab's geometry: its full fit's; outside: its log-RMS on the withheld slice).  Facets and
@@ -167,7 +191,7 @@ fit_result = "v2mini/{t}_{fam}.result.json"
 
 [model_error.{t}_{fam}]
 inside_log_rms = {e["in_sample_log_rms"]:.4f}
-outside_log_rms = {e["steepest_log_rms"]:.4f}
+outside_log_rms = {_score(cv[t], fam):.4f}
 
 '''
     s += '''[models.boom_abg_authors]

@@ -61,6 +61,34 @@ FAMILIES = ("abg", "abg2", "phong", "ggx", "ggx_n", "beckmann_n", "spike_halo", 
 SYMMETRIC = ("abg", "abg2", "phong", "ggx", "ggx_n", "beckmann_n", "spike_halo")
 
 
+def copied_slices(table, rtol: float = 1e-6, share: float = 0.9) -> dict[float, float]:
+    """Incidence slices that repeat a shallower one: ``{incidence: the incidence it copies}``.
+
+    Two slices are the same scan when at least ``share`` of the BRDF values at equal signed offsets from the specular
+    direction (1-deg bins) agree to ``rtol``.  A copied slice carries no information about how the BRDF changes with
+    incidence, so withholding it tests nothing but shift-invariance in the angle from specular.
+    """
+    ti = np.round(np.degrees(np.asarray(table.theta_i, float)), 1)
+    ts = np.degrees(np.asarray(table.theta_s, float))
+    ps = np.degrees(np.asarray(table.phi_s, float))
+    f = np.asarray(table.brdf, float)
+    signed = np.where(np.abs(ps) > 90, ts, -ts)  # forward (specular) side positive
+    curves = {}
+    for a in sorted(set(ti)):
+        s = ti == a
+        curves[float(a)] = dict(zip(np.round(signed[s] - a).astype(int).tolist(), f[s]))
+    out: dict[float, float] = {}
+    angles = sorted(curves)
+    for j, a in enumerate(angles):
+        for b in angles[:j]:
+            common = [k for k in curves[a] if k in curves[b]]
+            same = sum(np.isclose(curves[a][k], curves[b][k], rtol=rtol) for k in common)
+            if common and same >= share * len(common):
+                out[a] = out.get(b, b)
+                break
+    return out
+
+
 def build(family: str, f: np.ndarray, index: dict, abg_fit=None):
     """(model, params) of ``family`` started from the table's values ``f`` (``abg_fit`` starts the binomial)."""
     peak = float(np.quantile(f, 0.999))
@@ -118,7 +146,13 @@ def run_table(name: str, out: dict, steepest_only: bool = False) -> None:
     f = np.asarray(table.brdf, float)
     angles = sorted(set(ti[base]))
     entry = out.setdefault(name, {"incidences_deg": [float(a) for a in angles], "families": {}})
+    copies = copied_slices(table)
+    entry["copied_slices"] = {f"{a:g}": b for a, b in copies.items()}
+    distinct = [a for a in angles if a not in copies]
     folds = ["full"] + ([f"without_{max(angles):g}"] if steepest_only else [f"without_{a:g}" for a in angles])
+    if len(distinct) > 1 and max(angles) in copies:
+        # the steepest slice repeats a shallower one: withhold the steepest distinct scan and its copies instead
+        folds.append(f"without_distinct_{max(distinct):g}")
     abg_fits: dict[str, object] = {}
     for fam in FAMILIES:
         fe = entry["families"].setdefault(fam, {"folds": {}})
@@ -127,8 +161,13 @@ def run_table(name: str, out: dict, steepest_only: bool = False) -> None:
             need_abg = fam == "abg" and fold not in entry["families"].get("binomial", {}).get("folds", {})
             if done and not need_abg:
                 continue
-            train = base.copy() if fold == "full" else base & (ti != float(fold.split("_")[1]))
-            test = None if fold == "full" else base & ~train
+            if fold.startswith("without_distinct_"):
+                a = float(fold.rsplit("_", 1)[1])
+                train = base & (ti != a) & ~np.isin(ti, [c for c, src in copies.items() if src == a])
+                test = base & (ti == a)
+            else:
+                train = base.copy() if fold == "full" else base & (ti != float(fold.split("_")[1]))
+                test = None if fold == "full" else base & ~train
             sub = dataclasses.replace(table, mask=train)
             t0 = time.perf_counter()
             try:
@@ -167,6 +206,44 @@ def run_table(name: str, out: dict, steepest_only: bool = False) -> None:
     write_json_atomic(RESULTS, out)
 
 
+#: the family a facet takes when its table has a single distinct incidence (no extrapolation test possible): ABg,
+#: whose scatter is shift-invariant in direction cosines (Harvey 1976; Harvey-Shack surface scatter theory), the
+#: established incidence scaling of scatter from smooth optical surfaces and the stray-light standard
+PRIOR_FAMILY = "abg"
+
+
+def choose(entry: dict) -> tuple[str, str]:
+    """(family, reason): the symmetric family that best predicts the steepest *distinct* incidence withheld (a copied
+    steepest slice tests nothing); with one distinct incidence only, :data:`PRIOR_FAMILY`."""
+    copies = {float(k): v for k, v in entry.get("copied_slices", {}).items()}
+    angles = entry["incidences_deg"]
+    distinct = [a for a in angles if a not in copies]
+    fams = {k: v for k, v in entry["families"].items() if k in SYMMETRIC}
+    if len(distinct) == 1:
+        return PRIOR_FAMILY, (f"every slice repeats the {distinct[0]:g}-deg scan: no incidence information; "
+                              f"prior family {PRIOR_FAMILY}")
+    if max(angles) not in copies:
+        key, what = f"without_{max(angles):g}", f"withheld {max(angles):g}-deg slice"
+    else:
+        key = f"without_distinct_{max(distinct):g}"
+        what = (f"withheld {max(distinct):g}-deg slice (the steepest distinct scan; "
+                + ", ".join(f"{a:g}" for a in angles if copies.get(a) == max(distinct)) + " deg repeat it)")
+    sc = {k: e["folds"][key]["heldout_log_rms"] for k, e in fams.items()
+          if key in e.get("folds", {}) and "heldout_log_rms" in e["folds"][key]}
+    best = min(sc, key=sc.get)
+    return best, f"best log-RMS on the {what}: {sc[best]:.2f}"
+
+
+def _choice_fold(entry: dict) -> str | None:
+    """The fold whose held-out score chooses (None: no test possible, the averaging weights use the steepest slice)."""
+    copies = {float(k) for k in entry.get("copied_slices", {})}
+    angles = entry["incidences_deg"]
+    distinct = [a for a in angles if a not in copies]
+    if len(distinct) == 1:
+        return None
+    return f"without_{max(angles):g}" if max(angles) not in copies else f"without_distinct_{max(distinct):g}"
+
+
 def summarise(name: str, entry: dict) -> None:
     """Scores per family, the choice and the averaging weights of one table."""
     steep = f"without_{max(entry['incidences_deg']):g}"
@@ -184,17 +261,56 @@ def summarise(name: str, entry: dict) -> None:
         scores[fam] = fe["steepest_log_rms"]
     entry["chosen_any"] = min(scores, key=scores.get)
     sym = {k: v for k, v in scores.items() if k in SYMMETRIC}
-    entry["chosen"] = min(sym, key=sym.get)
+    entry["chosen_by_steepest"] = min(sym, key=sym.get)
+    entry["chosen"], entry["chosen_reason"] = choose(entry)
     loio = {k: entry["families"][k]["loio_log_rms"] for k in sym if "loio_log_rms" in entry["families"][k]}
     entry["chosen_loio"] = min(loio, key=loio.get) if len(loio) == len(sym) else None
-    w = {k: 1.0 / v**2 for k, v in sym.items()}
+    key = _choice_fold(entry)
+    basis = {k: entry["families"][k]["folds"][key]["heldout_log_rms"] for k in sym
+             if key in entry["families"][k]["folds"]} if key else sym
+    w = {k: 1.0 / v**2 for k, v in (basis or sym).items()}
     tot = sum(w.values())
     entry["average_weights"] = {k: v / tot for k, v in sorted(w.items(), key=lambda kv: -kv[1])}
     print(f"{name}: steepest " + " ".join(f"{k} {v:.2f}" for k, v in scores.items()) + f" -> {entry['chosen']}"
-          f" (any family: {entry['chosen_any']}; by loio: {entry['chosen_loio']})", flush=True)
+          f" ({entry['chosen_reason']}; by the steepest slice: {entry['chosen_by_steepest']}; any family: "
+          f"{entry['chosen_any']}; by loio: {entry['chosen_loio']})", flush=True)
+
+
+def markdown(out: dict) -> str:
+    """Table rows: per table and family full-fit / withheld-steepest (bias) [/ steepest distinct] [/ leave-one-out]
+    log-RMS, and the chosen family."""
+    rows = []
+    for t, e in out.items():
+        key = _choice_fold(e)
+        cells = []
+        for fam in FAMILIES:
+            x = e["families"].get(fam, {})
+            if "steepest_log_rms" not in x:
+                cells.append("failed")
+                continue
+            c = f"{x['in_sample_log_rms']:.2f} / {x['steepest_log_rms']:.2f} ({x['steepest_log_bias']:+.2f})"
+            if key and key.startswith("without_distinct_") and key in x["folds"]:
+                c += f" / {x['folds'][key]['heldout_log_rms']:.2f}"
+            if "loio_log_rms" in x:
+                c += f" / LOIO {x['loio_log_rms']:.2f}"
+            cells.append(c)
+        rows.append(f"| {t} | " + " | ".join(cells) + f" | {e['chosen']} |")
+    return "\n".join(rows)
 
 
 def main(argv: list[str]) -> None:
+    if "--markdown" in argv:
+        print(markdown(json.loads(RESULTS.read_text())))
+        return
+    if "--summarise" in argv:
+        out = json.loads(RESULTS.read_text())
+        for name in out:
+            entry = out[name]
+            if "copied_slices" not in entry:
+                entry["copied_slices"] = {f"{a:g}": b for a, b in copied_slices(read(name)).items()}
+            summarise(name, entry)
+        write_json_atomic(RESULTS, out)
+        return
     fresh = "--fresh" in argv
     names = [a for a in argv if not a.startswith("--")] or list(TABLES)
     out = {} if fresh or not RESULTS.exists() else json.loads(RESULTS.read_text())

@@ -120,5 +120,33 @@ def main() -> None:
     print(f"wrote experiments/results/sky_v2mini.json ({res['wall_s']:.0f} s)")
 
 
+LABELS = {"shipped_config": "brdfjax shipped configs (lab-chosen families, earthshine)",
+          "model_averaged": "brdfjax, model-averaged (weights 1 / score^2)",
+          "chosen_any_family": "brdfjax, best on the 75-deg slice copies included (mirror and A700 Phong)",
+          "chosen_by_loio": "brdfjax, chosen by leave-one-incidence-out"}
+
+
+def markdown(res: dict) -> str:
+    """Table rows (Slingshot and SCORE RMS / bias / R) of every prediction in ``res``."""
+    def cell(m):
+        return f"{m['rms']:.3f} / {m['bias']:+.2f} / {m['pearson_r']:.3f}"
+
+    a = res["authors"]
+    rows = [f"| authors (with their observation-fitted offset) | {cell(a['slingshot_with_phong_offset'])} | "
+            f"{cell(a['score_with_phong_offset'])} |",
+            f"| authors, lab BRDFs only | {cell(a['slingshot_lab_only_no_offset'])} | {cell(a['score_lab_only_no_offset'])} |"]
+    b = res["brdfjax_lab_fits"]
+    for k in [k[len("slingshot_"):] for k in b if k.startswith("slingshot_") and "band_without" not in k]:
+        label = LABELS.get(k, f"brdfjax, {k[4:]} on every facet" if k.startswith("all_") else k)
+        sc = b.get(f"score_{k}")
+        rows.append(f"| {label} | {cell(b['slingshot_' + k]['all'])} | {cell(sc['all']) if sc else '-'} |")
+    return "\n".join(rows)
+
+
 if __name__ == "__main__":
-    main()
+    if "--markdown" in sys.argv:
+        import json as _json
+
+        print(markdown(_json.loads((ROOT / "experiments" / "results" / "sky_v2mini.json").read_text())))
+    else:
+        main()
