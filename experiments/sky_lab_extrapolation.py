@@ -252,7 +252,7 @@ def summarise(name: str, entry: dict) -> None:
         fo = fe["folds"]
         if any("error" in v for v in fo.values()) or steep not in fo or "full" not in fo:
             continue
-        held = [v for k, v in fo.items() if k.startswith("without_")]
+        held = [v for k, v in fo.items() if k.startswith("without_") and not k.startswith("without_distinct_")]
         fe["steepest_log_rms"] = fo[steep]["heldout_log_rms"]
         fe["steepest_log_bias"] = fo[steep]["heldout_log_bias"]
         if len(held) == len(entry["incidences_deg"]):
