@@ -250,9 +250,12 @@ def summarise(name: str, entry: dict) -> None:
     scores = {}
     for fam, fe in entry["families"].items():
         fo = fe["folds"]
-        if any("error" in v for v in fo.values()) or steep not in fo or "full" not in fo:
+        key = _choice_fold(entry) or steep
+        if any("error" in fo.get(k, {"error": 1}) for k in {"full", steep, key}):
             continue
         held = [v for k, v in fo.items() if k.startswith("without_") and not k.startswith("without_distinct_")]
+        if any("error" in v for v in held):
+            held = []
         fe["steepest_log_rms"] = fo[steep]["heldout_log_rms"]
         fe["steepest_log_bias"] = fo[steep]["heldout_log_bias"]
         if len(held) == len(entry["incidences_deg"]):

@@ -10,7 +10,7 @@
    coverage overall and on the rows flagged outside the lab's geometry.
 3. The authors' model on the SCORE rows beside ours.
 
-    PYTHONPATH=$PWD python experiments/sky_v2mini.py
+    PYTHONPATH=$PWD python experiments/sky_v2mini.py [--loio | --markdown]
 """
 
 from __future__ import annotations
@@ -60,6 +60,20 @@ def _m(pred) -> dict:
     out["fraction_outside_lab"] = float(np.mean(pred.flagged))
     out["n_dropped"] = pred.obs.dropped
     return out
+
+
+def loio_only() -> None:
+    """Add the variant chosen by leave-one-incidence-out to sky_v2mini.json (no band; the rest kept)."""
+    path = ROOT / "experiments" / "results" / "sky_v2mini.json"
+    res = json.loads(path.read_text())
+    cv = json.loads(sky_configs.CV.read_text())
+    choice = sky_configs.ranked_choice(cv, True, "loio_log_rms")
+    res.setdefault("choices", {})["chosen_by_loio"] = {t: list(choice[t][:2]) for t in choice}
+    for name in ("slingshot", "score"):
+        pred = _predict(f"{name}_loio", sky_configs.config_text(name, cv, choice, draws=0))
+        res["brdfjax_lab_fits"][f"{name}_chosen_by_loio"] = _m(pred)
+        print(f"brdfjax lab fits, {name}_chosen_by_loio: {res['brdfjax_lab_fits'][f'{name}_chosen_by_loio']['all']}")
+    write_json_atomic(path, res)
 
 
 def main() -> None:
@@ -148,5 +162,7 @@ if __name__ == "__main__":
         import json as _json
 
         print(markdown(_json.loads((ROOT / "experiments" / "results" / "sky_v2mini.json").read_text())))
+    elif "--loio" in sys.argv:
+        loio_only()
     else:
         main()
