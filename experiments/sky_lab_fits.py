@@ -11,6 +11,9 @@ uncertainties: the noise of ln BRDF is estimated).  Families:
 
 Each fit's result.json and its model's terms (a TOML table the observe config names) go to
 ``configs/v2mini/``; the log-RMS per family and incidence to ``experiments/results/sky_lab_fits.json``.
+Superseded by ``experiments/sky_lab_extrapolation.py``, which fits these three families and five more and
+writes the fits the shipped observe configs use: running this script overwrites the ABg, GGX and binomial fits
+there (with the same starts; the GGX now in the standard microfacet form, the default).
 
     PYTHONPATH=$PWD python experiments/sky_lab_fits.py [table ...]
 """

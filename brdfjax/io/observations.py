@@ -150,14 +150,19 @@ def _time(text: str, path: Path, line: int, column: str) -> np.datetime64:
 
 
 def read_observations(path: str | Path, format: str = "score", columns: dict[str, str] | None = None,
-                      band: str | None = None, delimiter: str = ",") -> Observations:
+                      band: str | None = None, delimiter: str = ",", positions: str = "observed") -> Observations:
     """Read an observation CSV (see the module docstring for formats, roles and errors).
 
     ``columns`` maps roles to the file's column names (over the format's);
     ``band`` is the band of rows without a band column (over the format's
     default).  Rows whose magnitude is empty are dropped (counted in
-    ``dropped["no_magnitude"]``).
+    ``dropped["no_magnitude"]``).  ``positions="tle"``: absolute rows need
+    no altitude, azimuth, range or height (a TLE gives them:
+    :func:`brdfjax.lightcurve.skygeometry.positions_from_tle`); those
+    columns, if mapped, are ignored.
     """
+    if positions not in ("observed", "tle"):
+        raise ObservationError(f"{path}: positions '{positions}' unknown; known: observed, tle")
     path = Path(path)
     if format not in FORMATS:
         raise ObservationError(f"{path}: unknown observation format '{format}'; known: {', '.join(FORMATS)}")
@@ -165,6 +170,11 @@ def read_observations(path: str | Path, format: str = "score", columns: dict[str
     kind = spec["kind"]
     roles = dict(spec["columns"])
     roles.update(columns or {})
+    if positions == "tle":
+        if kind != "absolute":
+            raise ObservationError(f"{path}: a TLE gives positions only to absolute rows (format '{format}' is {kind})")
+        for r in ("alt", "az", "range_km", "range_m", "sat_height"):
+            roles.pop(r, None)
     default_band = band if band is not None else spec["band"]
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
@@ -188,8 +198,8 @@ def read_observations(path: str | Path, format: str = "score", columns: dict[str
             )
         return name
 
-    required = (("time", "lat", "lon", "height", "alt", "az", "mag") if kind == "absolute"
-                else ("sun_alt", "alt", "az_diff", "sat_height", "mag"))
+    required = (("time", "lat", "lon", "height", "mag") + (("alt", "az") if positions == "observed" else ())
+                if kind == "absolute" else ("sun_alt", "alt", "az_diff", "sat_height", "mag"))
     missing = [r for r in required if roles.get(r) is None]
     if missing:
         what = {"time": "a UTC time", "lat": "the observer's latitude", "lon": "the observer's longitude",
@@ -202,7 +212,7 @@ def read_observations(path: str | Path, format: str = "score", columns: dict[str
         )
     for r in required:
         col(r)
-    if kind == "absolute" and roles.get("range_km") is None and roles.get("range_m") is None \
+    if kind == "absolute" and positions == "observed" and roles.get("range_km") is None and roles.get("range_m") is None \
             and roles.get("sat_height") is None:
         raise ObservationError(f"{path}: absolute observations need the satellite's range ('range_km' or 'range_m') "
                                "or height ('sat_height'); none is mapped")
@@ -252,7 +262,8 @@ def read_observations(path: str | Path, format: str = "score", columns: dict[str
     extra = {k: np.asarray(vals[k], object) for k in ("satellite", "instrument") if k in vals}
     return Observations(
         source=str(path), kind=kind, line=np.asarray(lines), mag=num("mag"),
-        mag_err=np.full(n, np.nan) if err is None else err, band=bands, alt_deg=num("alt"),
+        mag_err=np.full(n, np.nan) if err is None else err, band=bands,
+        alt_deg=num("alt") if "alt" in vals else np.full(n, np.nan),
         sat_height_m=np.full(n, np.nan) if "sat_height" not in vals else num("sat_height"),
         time=np.asarray(vals["time"], "datetime64[us]") if "time" in vals else None,
         lat_deg=num("lat"), lon_deg=num("lon"), height_m=num("height"), az_deg=num("az"), range_m=rng,

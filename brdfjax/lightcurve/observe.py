@@ -72,6 +72,9 @@ class FacetSpec:
     yaw_deg: float = 0.0
     max_theta_i_deg: float | None = None
     in_plane: bool = False
+    #: model averaging: one weight per family (None: the first family predicts, the band draws them evenly); the
+    #: prediction is then the weighted mean of the families' fluxes and the band draws family k with probability w_k
+    weights: tuple[float, ...] | None = None
 
 
 @dataclass
@@ -307,21 +310,33 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     fac = _facets(facets, normals)
     fam_names = sorted({m for f in facets for m in f.families})
     primary = [fam_names.index(f.families[0]) for f in facets]
-    sat = Satellite(fac, tuple(models[m].model for m in fam_names),
-                    Attitude.nadir(np.deg2rad(roll_deg), np.deg2rad(pitch_deg), np.deg2rad(yaw_deg)), tuple(primary))
+    all_models = tuple(models[m].model for m in fam_names)
+    att = Attitude.nadir(np.deg2rad(roll_deg), np.deg2rad(pitch_deg), np.deg2rad(yaw_deg))
+    sat = Satellite(fac, all_models, att, tuple(primary))
     g = geo.engine_geometry(sun_distance_factor=(convention == "physical"))
     disk = disk or SunDisk.point()
     er = geo.earth_radius
-    nominal = facet_flux(sat, g, disk, wavelength, earth_radius=er)
-    flux = np.asarray(nominal["flux"])
+    # the nominal prediction: each facet's first family, or the weighted mean of its families' fluxes (averaging)
+    weights = _family_weights(facets)
+    flux = point = es = 0.0
+    for k in range(weights.shape[0]):
+        if not weights[k].any():
+            continue
+        sat_k = sat if k == 0 else Satellite(fac, all_models, att, tuple(
+            fam_names.index(f.families[min(k, len(f.families) - 1)]) for f in facets))
+        flux = flux + weights[k] * np.asarray(facet_flux(sat_k, g, disk, wavelength, earth_radius=er)["flux"])
+        if disk.n_nodes > 1:
+            point = point + weights[k] * np.asarray(
+                facet_flux(sat_k, g, SunDisk.point(), wavelength, earth_radius=er)["flux"])
+        if earthshine_albedo is not None:
+            es = es + weights[k] * np.asarray(earthshine_flux(
+                sat_k, g, earthshine_albedo, n_psi=earthshine_grid[0], n_chi=earthshine_grid[1], earth_radius=er,
+                wavelength=wavelength))
     if disk.n_nodes > 1:
-        point = np.asarray(facet_flux(sat, g, SunDisk.point(), wavelength, earth_radius=er)["flux"])
         ratio = np.where(point > 0, flux / np.where(point > 0, point, 1.0), 1.0)
     else:
         ratio = np.ones_like(flux)
     if earthshine_albedo is not None:
-        es = np.asarray(earthshine_flux(sat, g, earthshine_albedo, n_psi=earthshine_grid[0], n_chi=earthshine_grid[1],
-                                        earth_radius=er, wavelength=wavelength))
         ratio = ratio * np.where(flux > 0, (flux + es) / np.where(flux > 0, flux, 1.0), 1.0)
         flux = flux + es
     total = flux.sum(-1)
@@ -346,6 +361,19 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     return pred
 
 
+def _family_weights(facets: list[FacetSpec]) -> np.ndarray:
+    """(K, J) weight of each facet's k-th family in the nominal prediction (rows sum to 1 per facet)."""
+    K = max(len(f.families) if f.weights is not None else 1 for f in facets)
+    W = np.zeros((K, len(facets)))
+    for j, f in enumerate(facets):
+        if f.weights is None:
+            W[0, j] = 1.0
+        else:
+            w = np.asarray(f.weights, float)
+            W[:len(w), j] = w / w.sum()
+    return W
+
+
 def _bands(sat, facets, fam_names, models, result_paths, w_c, w_s, scale, ratio, sun_mag, mag_err, S, seed,
            parameter_uncertainty, model_form, wavelength, model_error, outside):
     rng = np.random.default_rng(seed)
@@ -355,6 +383,11 @@ def _bands(sat, facets, fam_names, models, result_paths, w_c, w_s, scale, ratio,
     # which family each facet uses in each draw
     choice = np.empty((S, J), int)
     for j, f in enumerate(facets):
+        if f.weights is not None:
+            # a model-averaged facet: its families drawn with their weights (the averaged prediction's mixture)
+            w = np.asarray(f.weights, float)
+            choice[:, j] = rng.choice([fam_names.index(m) for m in f.families], size=S, p=w / w.sum())
+            continue
         opts = [fam_names.index(m) for m in (f.families if model_form else f.families[:1])]
         choice[:, j] = rng.choice(opts, size=S)
     total = np.zeros((S, T))

@@ -28,12 +28,16 @@
     band = "AB"                      # rows without a band column
     earth_radius_m = 6378000.0       # sphere of relative rows and of the shadow test
     every = 1                        # keep every n-th row
+    # tle = ["1 ...", "2 ..."]       # rows with a time and site only: positions from this TLE (SGP4)
+    # tle_max_age_days = 7.0         # refuse rows further than this from the TLE's epoch
 
     [facets.chassis]
     area_m2 = 11.7
     normal = [0.0, 0.0, -1.0]
     model = "mirror_binomial"        # the prediction's model ...
     alternatives = ["mirror_abg"]    # ... and other families fitted to the same table (model-form spread)
+    # weights = [0.6, 0.4]           # model averaging: the prediction is the weighted mean flux of model and
+    #                                # alternatives (in that order) and the band draws each with its weight
     lab = "mirror"                   # the lab table it was fitted to (coverage flags)
     cant_deg = 0.0                   # tilt of the normal about the facet's x axis
     yaw_deg = 0.0                    # turn about body z
@@ -88,6 +92,7 @@ from ..runtime.atomic import atomic_output
 from .config import LCModelConfig, build_models
 from .engine import SunDisk
 from .observe import FacetSpec, SetPrediction, lab_coverage, predict_set
+from .skygeometry import positions_from_tle
 
 __all__ = ["ObserveConfig", "load_observe_config", "run_observe"]
 
@@ -120,11 +125,19 @@ class ObservationSetConfig(StrictModel):
     earth_radius_m: float | None = Field(None, gt=6.3e6, lt=6.4e6)
     min_altitude_deg: float = Field(0.0, ge=0, lt=90)
     every: int = Field(1, ge=1)
+    tle: list[str] | None = Field(None, description="two TLE lines: the satellite's position at each row's time")
+    tle_max_age_days: float = Field(7.0, gt=0, description="the largest |row time - TLE epoch| accepted (days)")
 
     @model_validator(mode="after")
     def _format(self) -> "ObservationSetConfig":
         if self.format not in FORMATS:
             raise ValueError(f"format '{self.format}' unknown; known: {', '.join(FORMATS)}")
+        if self.tle is not None:
+            if len(self.tle) != 2:
+                raise ValueError(f"tle: expected two TLE lines, got {len(self.tle)}")
+            if FORMATS[self.format]["kind"] != "absolute":
+                raise ValueError(f"tle: a TLE gives positions only to absolute rows (time and site); format "
+                                 f"'{self.format}' has relative rows")
         return self
 
 
@@ -137,7 +150,18 @@ class ObserveFacetConfig(StrictModel):
     yaw_deg: float = 0.0
     model: str
     alternatives: list[str] = Field(default_factory=list)
+    weights: list[float] | None = Field(None, description="model averaging: a weight per model and alternative")
     lab: str | None = None
+
+    @model_validator(mode="after")
+    def _weights(self) -> "ObserveFacetConfig":
+        if self.weights is not None:
+            n = 1 + len(self.alternatives)
+            if len(self.weights) != n:
+                raise ValueError(f"weights: {len(self.weights)} given, expected {n} (model and each alternative)")
+            if any(not np.isfinite(w) or w < 0 for w in self.weights) or sum(self.weights) <= 0:
+                raise ValueError(f"weights: expected finite values >= 0 with a positive sum, got {self.weights}")
+        return self
 
 
 class LabConfig(StrictModel):
@@ -248,7 +272,7 @@ def _facet_specs(cfg: ObserveConfig) -> list[FacetSpec]:
     for name, f in cfg.facets.items():
         max_ti, in_plane = labs.get(f.lab, (None, False))
         out.append(FacetSpec(name, f.area_m2, f.normal, [f.model, *f.alternatives], f.x_axis, f.tracking, f.cant_deg,
-                             f.yaw_deg, max_ti, in_plane))
+                             f.yaw_deg, max_ti, in_plane, None if f.weights is None else tuple(f.weights)))
     return out
 
 
@@ -261,7 +285,11 @@ def predict_all(cfg: ObserveConfig, log=lambda s: None) -> list[SetPrediction]:
                                                                       limb_darkening=cfg.sun.limb_darkening)
     out = []
     for oc in cfg.observations:
-        obs = read_observations(cfg.resolve(oc.path), oc.format, oc.columns or None, oc.band)
+        obs = read_observations(cfg.resolve(oc.path), oc.format, oc.columns or None, oc.band,
+                                positions="observed" if oc.tle is None else "tle")
+        if oc.tle is not None:
+            obs = positions_from_tle(obs, *oc.tle, max_age_days=oc.tle_max_age_days,
+                                     where=f"{cfg.source}: observations '{oc.name}' tle")
         if oc.every > 1:
             obs = obs.take(np.arange(0, len(obs), oc.every))
         law = "sun_yaw" if cfg.attitude.law == "nadir_sun_yaw" else "north"

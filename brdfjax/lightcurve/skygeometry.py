@@ -35,6 +35,12 @@ Frames and signs (docs/guides/sky.md has the figures):
   frame, see :mod:`brdfjax.lightcurve.attitude`); ``"north"`` takes ``v`` =
   the local north at the satellite (absolute rows only).
 
+- **TLE rows** (time and site, no alt/az): :func:`positions_from_tle`
+  propagates a TLE with SGP4 to each row's time (TEME), turns it to ECEF by
+  the same GMST rotation and fills the row's altitude, azimuth and range;
+  the rows are then absolute rows.  A row further than ``max_age_days``
+  from the TLE's epoch is refused (SGP4's error grows by kilometres a day).
+
 Checks: rows with the satellite at or below the horizon, or with its centre
 in the Earth's shadow (a ray from the satellite to the Sun's centre hits the
 sphere of ``earth_radius``; a penumbral row counts as lit), are dropped and
@@ -50,10 +56,11 @@ import numpy as np
 
 from ..io.observations import ObservationError, Observations
 from .engine import Geometry
-from .ephemeris import AU_M, EARTH_RADIUS_M, gmst, julian_date, sun_position_teme
+from .ephemeris import AU_M, EARTH_RADIUS_M, TLEError, gmst, julian_date, parse_tle, propagate, sun_position_teme
 
 __all__ = ["YAW_LAWS", "SkyGeometryError", "SkyGeometry", "geodetic_to_ecef", "ecef_to_geodetic", "enu_basis",
-           "altaz_unit", "satellite_position", "sun_ecef", "sky_geometry", "LUMOS_EARTH_RADIUS_M"]
+           "altaz_unit", "satellite_position", "sun_ecef", "sky_geometry", "positions_from_tle",
+           "LUMOS_EARTH_RADIUS_M"]
 
 _F = 1.0 / 298.257223563
 _E2 = _F * (2 - _F)
@@ -140,6 +147,40 @@ def sun_ecef(times) -> np.ndarray:
     g = gmst(jd, fr)
     c, s = np.cos(g), np.sin(g)
     return np.stack([c * r[..., 0] + s * r[..., 1], -s * r[..., 0] + c * r[..., 1], r[..., 2]], -1)
+
+
+def positions_from_tle(obs: Observations, line1: str, line2: str, *, max_age_days: float = 7.0,
+                       where: str = "tle") -> Observations:
+    """``obs`` (absolute rows: time and site) with each row's satellite altitude, azimuth (deg) and range (m)
+    computed from a TLE (SGP4, TEME -> ECEF by GMST, topocentric ENU at the WGS84 site).
+
+    Raises :class:`~brdfjax.lightcurve.ephemeris.TLEError` (an input error) for a bad TLE, or naming the
+    file, line and epoch when a row's time is more than ``max_age_days`` from the TLE's epoch.
+    """
+    if obs.kind != "absolute" or obs.time is None:
+        raise SkyGeometryError(f"{obs.source}: a TLE gives positions only to absolute rows (a UTC time and a site)")
+    sat = parse_tle(line1, line2, where=where)
+    jd, fr = julian_date(obs.time)
+    age = (jd - sat.jdsatepoch) + (fr - sat.jdsatepochF)
+    far = np.flatnonzero(np.abs(age) > max_age_days)
+    if far.size:
+        i = int(far[np.argmax(np.abs(age[far]))])
+        epoch = np.datetime64("2000-01-01T12:00:00", "us") + np.timedelta64(
+            int(round(((sat.jdsatepoch - 2451545.0) + sat.jdsatepochF) * 86400e6)), "us")
+        raise TLEError(f"{obs.source}: line {obs.line[i]}: time {str(obs.time[i])[:19]} is {age[i]:+.1f} days from the "
+                       f"TLE's epoch {str(epoch)[:19]} ({where}); {far.size} row(s) are more than {max_age_days:g} days from it: use a "
+                       "TLE of the observations' dates (or raise tle_max_age_days)")
+    r_teme, _ = propagate(sat, jd, fr, where)
+    g = gmst(jd, fr)
+    c, s_ = np.cos(g), np.sin(g)
+    r_sat = np.stack([c * r_teme[:, 0] + s_ * r_teme[:, 1], -s_ * r_teme[:, 0] + c * r_teme[:, 1], r_teme[:, 2]], -1)
+    r_obs = geodetic_to_ecef(obs.lat_deg, obs.lon_deg, obs.height_m)
+    e, n, u = enu_basis(obs.lat_deg, obs.lon_deg)
+    d = r_sat - r_obs
+    rng = np.linalg.norm(d, axis=-1)
+    alt = np.rad2deg(np.arcsin(np.clip(np.sum(d * u, -1) / rng, -1, 1)))
+    az = np.mod(np.rad2deg(np.arctan2(np.sum(d * e, -1), np.sum(d * n, -1))), 360.0)
+    return Observations(**{**obs.__dict__, "alt_deg": alt, "az_deg": az, "range_m": rng})
 
 
 @dataclass(frozen=True)

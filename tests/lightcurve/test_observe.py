@@ -295,8 +295,12 @@ def test_cli_writes_predictions_bands_flags_and_figures(tmp_path):
     assert {"rms", "bias", "pearson_r", "scatter", "coverage_68", "coverage_95"} <= set(m)
     assert 0 <= m["coverage_68"] <= m["coverage_95"] <= 1
     assert s["metrics"]["outside_lab"]["n"] + s["metrics"].get("inside_lab", {"n": 0})["n"] == 80
-    # every facet drew among its three families
-    assert set(s["families_drawn"]["chassis_mirror"]) == {"mirror_binomial", "mirror_abg", "mirror_ggx"}
+    # every facet drew among its three families (its model and two alternatives)
+    from brdfjax.lightcurve.observe_config import load_observe_config
+
+    mirror = load_observe_config(cfg).facets["chassis_mirror"]
+    assert set(s["families_drawn"]["chassis_mirror"]) == {mirror.model, *mirror.alternatives}
+    assert len(mirror.alternatives) == 2
     lines = (out / "predictions_slingshot.csv").read_text().splitlines()
     head = lines[0].split(",")
     assert {"predicted_mag", "band_16", "band_84", "mag_chassis_mirror", "beyond_incidence_twist",
