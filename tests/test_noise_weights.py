@@ -17,7 +17,7 @@ import pytest
 
 import brdfjax as bj
 from brdfjax.fit import FrameData
-from brdfjax.fit._reweight import model_noise_weights, neighbour_mean, warm_params
+from brdfjax.fit._reweight import model_noise_weights, warm_params
 from brdfjax.fit.job import FitJob
 
 jax.config.update("jax_enable_x64", True)
@@ -28,20 +28,6 @@ def _block(shape, brdf, sigma_rel, mask=None):
     rows, cols = shape
     grid = det.grid(1, (0, cols - 1, 0, rows - 1))
     return FrameData(brdf=brdf, sigma_rel=sigma_rel, theta_i=0.3, detector=det, grid=grid, mask=mask)
-
-
-def test_neighbour_mean_excludes_the_pixel_and_unusable_neighbours():
-    v = np.arange(12.0).reshape(3, 4)
-    ok = np.ones_like(v, bool)
-    ok[0, 0] = False
-    mean, n = neighbour_mean(v, ok)
-    # centre (1, 1): neighbours 1, 2, 4, 6, 8, 9, 10 (0 unusable), not 5 itself
-    assert n[1, 1] == 7
-    assert mean[1, 1] == pytest.approx((1 + 2 + 4 + 6 + 8 + 9 + 10) / 7)
-    # corner (2, 3): neighbours 6, 7, 10
-    assert mean[2, 3] == pytest.approx((6 + 7 + 10) / 3)
-    mean, n = neighbour_mean(v, np.zeros_like(ok))
-    assert np.all(n == 0) and np.all(np.isnan(mean))
 
 
 def test_weights_at_the_reading_bias_the_log_mean_and_model_weights_do_not():
@@ -76,7 +62,7 @@ def test_weights_at_the_reading_bias_the_log_mean_and_model_weights_do_not():
     assert bias_own > 30 * se  # the reading's weights: a bias far beyond the noise
     assert abs(bias_new) < 4 * se  # the model's weights and the correction: none
     assert bias_uncorrected == pytest.approx(expected_log_bias, rel=0.15)
-    # the new sigma is the model's SNR (neighbour variance 1 over m): the cut keeps m >= 10, whatever the noise
+    # the new sigma is the model's SNR (noise 1 over m): the cut keeps m >= 10, whatever the noise
     assert np.allclose(new.sigma_rel[keep], sigma / m[keep], rtol=1e-12)
     assert np.array_equal(keep, finite & (m >= 10.0))
 

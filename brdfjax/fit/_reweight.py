@@ -9,14 +9,16 @@ synthetic solar-cell config (bin 8) that moves the diffraction band's width ``c`
 roughness ``m1`` up and the bar width ``b`` down (experiments/c_asimov.py).
 
 :func:`model_noise_weights` re-evaluates the noise part of a frame's weights at the fitted model:
-``u = sqrt(var) / m`` with ``m`` the model on the frame's grid (footprint included) and ``var`` the
-absolute noise variance ``(u_j d_j)^2`` averaged over the pixel's 8 neighbours (the variance is a smooth
-function of the light; the neighbours' noise is independent of the pixel's own), so neither the weight
-nor the ``max_sigma_rel`` cut depends on the pixel's own noise.  The data are multiplied by
-``exp(u^2 / 2)`` so that ``E[log d] = log m`` to second order (``E[log d] = log E[d] - u^2 / 2``:
--0.4 sigma on ``c`` there).  The other parts of the sigma (non-linearity, frame-wide terms,
-``sigma_floor``) are kept.  :class:`~brdfjax.fit.job.FitJob` fits once with the reading's weights,
-re-evaluates them at that fit's model and refits from its values.
+``u = sigma / m`` with ``m`` the model on the frame's grid (footprint included) and ``sigma = u_0 d`` the
+absolute noise the reduction gave the reading (``u_0`` its relative noise), so that neither the weight nor
+the ``max_sigma_rel`` cut depends on the pixel's own fluctuation through the division by ``d``.  (The
+absolute noise itself still grows with the reading where shot noise dominates, ``kappa`` between -1 and 0:
+a bias of at most ``u^2`` there, where ``u`` is small; averaging it over the neighbours instead would
+remove that too but mixes pixels of different HDR exposures near saturation, which gave weights 35 % off
+around the peaks.)  The data are multiplied by ``exp(u^2 / 2)`` so that ``E[log d] = log m`` to second
+order (``E[log d] = log E[d] - u^2 / 2``: -0.4 sigma on ``c`` there).  The other parts of the sigma
+(non-linearity, frame-wide terms, ``sigma_floor``) are kept.  :class:`~brdfjax.fit.job.FitJob` fits
+once with the reading's weights, re-evaluates them at that fit's model and refits from its values.
 """
 
 from __future__ import annotations
@@ -31,35 +33,10 @@ import numpy as np
 from ..io.blocks import FrameData
 from ._params import Param, as_param
 
-__all__ = ["NOISE_WEIGHTS", "neighbour_mean", "model_noise_weights", "warm_params"]
+__all__ = ["NOISE_WEIGHTS", "model_noise_weights", "warm_params"]
 
 #: Where the noise part of a frame's weights is evaluated: at the fitted model (a refit) or at the reading.
 NOISE_WEIGHTS = ("model", "pixel")
-
-
-def neighbour_mean(values: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The mean of ``values`` over each pixel's 8 neighbours that are ``usable`` (the pixel itself excluded).
-
-    Returns ``(mean, count)``; ``mean`` is NaN where no neighbour is usable.  Float64.
-    """
-    v = np.asarray(values, np.float64)
-    ok = np.asarray(usable, bool) & np.isfinite(v)
-    vv = np.where(ok, v, 0.0)
-    okf = ok.astype(np.float64)
-    n = np.zeros_like(vv)
-    s = np.zeros_like(vv)
-    rows, cols = v.shape
-    for dr in (-1, 0, 1):
-        for dc in (-1, 0, 1):
-            if dr == 0 and dc == 0:
-                continue
-            dst = (slice(max(0, -dr), rows - max(0, dr)), slice(max(0, -dc), cols - max(0, dc)))
-            src = (slice(max(0, dr), rows - max(0, -dr)), slice(max(0, dc), cols - max(0, -dc)))
-            n[dst] += okf[src]
-            s[dst] += vv[src]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(n > 0, s / np.where(n > 0, n, 1.0), np.nan)
-    return mean, n
 
 
 def model_noise_weights(
@@ -76,18 +53,15 @@ def model_noise_weights(
     ``data``: the frame's BRDF as read; ``u_noise``: the reduction's relative noise at each reading;
     ``sigma_other``: the rest of the relative sigma (added in quadrature; ``sigma_floor`` included);
     ``mask``: the usable pixels before any ``max_sigma_rel`` cut, which is applied again to the new sigma.
-    A pixel where the model is not positive, or whose variance has no usable neighbour, keeps the noise of
-    its reading (and its data).
+    A pixel where the model is not positive keeps the noise of its reading (and its data).
     """
     d = np.asarray(data, np.float64)
     u0 = np.asarray(u_noise, np.float64)
     m = np.asarray(model_image, np.float64)
     mask = np.asarray(mask, bool)
     with np.errstate(invalid="ignore", over="ignore"):
-        ok = mask & np.isfinite(d) & (d > 0) & np.isfinite(u0)
-        var, _ = neighbour_mean(np.square(u0 * d), ok)
-        good = ok & np.isfinite(var) & np.isfinite(m) & (m > 0)
-        u = np.where(good, np.sqrt(np.where(good, var, 0.0)) / np.where(good, m, 1.0), u0)
+        good = mask & np.isfinite(d) & (d > 0) & np.isfinite(u0) & np.isfinite(m) & (m > 0)
+        u = np.where(good, u0 * d / np.where(good, m, 1.0), u0)
         sig = np.sqrt(np.square(np.asarray(sigma_other, np.float64)) + np.square(u))
         brdf = np.where(good, d * np.exp(0.5 * np.square(np.where(good, u, 0.0))), d)
     keep = mask.copy()
