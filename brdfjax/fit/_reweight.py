@@ -15,7 +15,9 @@ the ``max_sigma_rel`` cut depends on the pixel's own fluctuation through the div
 absolute noise itself still grows with the reading where shot noise dominates, ``kappa`` between -1 and 0:
 a bias of at most ``u^2`` there, where ``u`` is small; averaging it over the neighbours instead would
 remove that too but mixes pixels of different HDR exposures near saturation, which gave weights 35 % off
-around the peaks.)  The data are multiplied by ``exp(u^2 / 2)`` so that ``E[log d] = log m`` to second
+around the peaks.)  The reduction's detection cuts (noise-equivalent BRDF, artifact floor, ``min_snr``),
+made on each reading, are made on the model too: a cut on the reading keeps the upward fluctuations at
+the faint edge of every feature.  The data are multiplied by ``exp(u^2 / 2)`` so that ``E[log d] = log m`` to second
 order (``E[log d] = log E[d] - u^2 / 2``: -0.4 sigma on ``c`` there).  The other parts of the sigma
 (non-linearity, frame-wide terms, ``sigma_floor``) are kept.  :class:`~brdfjax.fit.job.FitJob` fits
 once with the reading's weights, re-evaluates them at that fit's model and refits from its values.
@@ -47,13 +49,17 @@ def model_noise_weights(
     mask: np.ndarray,
     model_image: np.ndarray,
     max_sigma_rel: float | None = None,
+    detection: Mapping[str, Any] | None = None,
 ) -> FrameData:
     """``block`` with the noise part of its weights evaluated at ``model_image`` (module docstring).
 
     ``data``: the frame's BRDF as read; ``u_noise``: the reduction's relative noise at each reading;
     ``sigma_other``: the rest of the relative sigma (added in quadrature; ``sigma_floor`` included);
     ``mask``: the usable pixels before any ``max_sigma_rel`` cut, which is applied again to the new sigma.
-    A pixel where the model is not positive keeps the noise of its reading (and its data).
+    ``detection``: the reduction's detection cuts, made again on the model (``m`` at least the
+    ``noise_equivalent_brdf`` map, the ``artifact_floor`` and ``min_snr`` times the reading's absolute
+    noise; ``mask`` then holds the pixels before those cuts); ``None``: ``mask`` as it is.  A pixel where
+    the model is not positive keeps the noise of its reading (and its data).
     """
     d = np.asarray(data, np.float64)
     u0 = np.asarray(u_noise, np.float64)
@@ -65,6 +71,12 @@ def model_noise_weights(
         sig = np.sqrt(np.square(np.asarray(sigma_other, np.float64)) + np.square(u))
         brdf = np.where(good, d * np.exp(0.5 * np.square(np.where(good, u, 0.0))), d)
     keep = mask.copy()
+    if detection is not None:
+        with np.errstate(invalid="ignore"):
+            keep &= good
+            keep &= m >= np.asarray(detection["noise_equivalent_brdf"], np.float64)
+            keep &= m >= float(detection["artifact_floor"])
+            keep &= m >= float(detection["min_snr"]) * u0 * d
     if max_sigma_rel is not None:
         with np.errstate(invalid="ignore"):
             keep &= sig <= float(max_sigma_rel)

@@ -34,9 +34,16 @@ from ..config import ConfigError
 from ..core.detector import Detector
 from ..core.render import Frame
 from ..core.terms import Model
-from ..instrument.reduce import ReductionError, reduce_measurement_set
+from ..instrument.reduce import (
+    FLAG_BELOW_ARTIFACT_FLOOR,
+    FLAG_BELOW_NOISE,
+    FLAG_LOW_SNR,
+    ReductionError,
+    read_reduced_frame,
+    reduce_measurement_set,
+)
 from ..instrument.synthetic import SyntheticInstrument, load_instrument_config
-from ..io import atomic_output, write_json_atomic
+from ..io import ExrError, atomic_output, write_json_atomic
 from ..io.blocks import FrameData, TableData
 from ..io.raw import RawFormatError, read_manifest
 from ..io.tables import Screen, read_astm_e1392, read_cornell_brdf, read_merl_inplane, read_table
@@ -54,6 +61,9 @@ from ._reweight import model_noise_weights, warm_params
 from .config import FitConfig, FitDataConfig, ReduceConfig, TableConfig, load_fit_config
 
 __all__ = ["FitJob", "build_fit_job", "reduce_step", "synthesize_step", "run_fit"]
+
+#: The reduction's mask bits that test each pixel's own reading against a level (the refit tests the model).
+DETECTION_FLAGS = FLAG_BELOW_NOISE | FLAG_BELOW_ARTIFACT_FLOOR | FLAG_LOW_SNR
 
 
 # --- the job ----------------------------------------------------------------------------------
@@ -120,7 +130,7 @@ class FitJob:
                 continue
             img = frame_model_image(result.models[k], result.frames[k], b, use_fp)
             out.append(model_noise_weights(b, info["data"], info["u_noise"], info["sigma_other"], info["mask"], img,
-                                           info["max_sigma_rel"]))
+                                           info["max_sigma_rel"], info.get("detection")))
         return out
 
 
@@ -283,8 +293,36 @@ def _reweight_info(cfg: FitConfig, f: FrameData, path: Path, roi: Any, footprint
     with np.errstate(invalid="ignore"):
         other = np.sqrt(np.clip(np.square(sig) - np.square(u), 0.0, None))
     uncut = cfg.model_copy(update={"data": d.model_copy(update={"max_sigma_rel": None})})
-    return {"data": np.asarray(f.brdf, float), "u_noise": u, "sigma_other": other,
-            "mask": _apply_masks(uncut, f, key).mask, "max_sigma_rel": d.max_sigma_rel}
+    info = {"data": np.asarray(f.brdf, float), "u_noise": u, "sigma_other": other,
+            "mask": _apply_masks(uncut, f, key).mask, "max_sigma_rel": d.max_sigma_rel, "detection": None}
+    # The reduction's detection cuts (below the noise-equivalent BRDF, the artifact floor, min_snr) were
+    # made on each pixel's own reading: with them known, the refit makes them on the model instead.
+    try:
+        red = read_reduced_frame(path)
+        extra, attrs = dict(red.extra or {}), dict(red.attrs or {})
+        flags = _on_grid(red, f, extra["flags"]).astype(np.int64)
+        neb = _on_grid(red, f, extra["noise_equivalent_brdf"])
+        floor, min_snr = float(attrs["artifact_floor"]), float(attrs["min_snr"])
+    except (KeyError, ValueError, OSError, ExrError):
+        return info
+    structural = (flags & ~DETECTION_FLAGS) == 0
+    if roi is not None:
+        h0, h1, v0, v1 = (int(x) for x in roi)
+        nh, nv = np.asarray(f.grid.n_h), np.asarray(f.grid.n_v)
+        structural &= np.outer((nv >= v0) & (nv <= v1), (nh >= h0) & (nh <= h1))
+    info["mask"] = _apply_masks(uncut, replace(f, mask=structural), key).mask
+    info["detection"] = {"noise_equivalent_brdf": neb, "artifact_floor": floor, "min_snr": min_snr}
+    return info
+
+
+def _on_grid(reduced: Any, f: FrameData, channel: Any) -> np.ndarray:
+    """A channel of a reduced frame (its stored grid) at the points of ``f``'s grid."""
+    attrs = dict(reduced.attrs)
+    h0, _, v0, _ = (int(x) for x in attrs["roi"])
+    step = int(attrs["step"])
+    rows = (np.asarray(f.grid.n_v) - v0) // step
+    cols = (np.asarray(f.grid.n_h) - h0) // step
+    return np.asarray(channel, np.float64)[np.ix_(rows, cols)]
 
 
 def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
