@@ -115,3 +115,23 @@ def test_job_refits_with_model_weights_and_reads_the_wings_right():
     # the refit started from the first fit's values
     warm = warm_params(params, first, ["ggx"])
     assert warm["s.alpha"].value == pytest.approx(first.value("s.alpha"))
+
+
+def test_detection_cuts_are_made_on_the_model_not_the_reading():
+    """A reading under the reduction's artifact floor whose model is above it is kept, and the reverse
+    dropped; likewise for the noise-equivalent BRDF and min_snr (times the reading's absolute noise)."""
+    d = np.array([[5.0, 20.0, 50.0, 50.0, 50.0]])
+    m = np.array([[20.0, 5.0, 50.0, 50.0, 50.0]])
+    u = np.array([[0.01, 0.01, 0.01, 0.01, 0.2]])  # absolute noise 0.05, 0.2, 0.5, 0.5, 10
+    neb = np.array([[1.0, 1.0, 1.0, 60.0, 1.0]])
+    det = {"noise_equivalent_brdf": neb, "artifact_floor": 10.0, "min_snr": 6.0}
+    ones = np.ones(d.shape, bool)
+    new = model_noise_weights(_block(d.shape, d, u), d, u, np.zeros(d.shape), ones, m, detection=det)
+    # 0: reading under the floor, model above: kept; 1: the reverse: dropped; 2: kept;
+    # 3: model under its noise-equivalent BRDF: dropped; 4: model 50 < 6 x 10: dropped
+    assert new.usable().tolist() == [[True, False, True, False, False]]
+    # the structural mask stays: a pixel masked for another reason is not revived
+    masked = ones.copy()
+    masked[0, 0] = False
+    new = model_noise_weights(_block(d.shape, d, u), d, u, np.zeros(d.shape), masked, m, detection=det)
+    assert not new.usable()[0, 0]
