@@ -276,10 +276,11 @@ def _load_frames(cfg: FitConfig, work_dir: Path | None, notes: list[str], model:
 
 
 def _reweight_info(cfg: FitConfig, f: FrameData, path: Path, roi: Any, footprint: Any, key: str) -> dict | None:
-    """What :meth:`FitJob.reweighted` needs of a frame (``noise_weights = "model"``; None: nothing to do).
+    """What :meth:`FitJob.reweighted_blocks` needs of a frame (``noise_weights = "model"``; None: nothing to do).
 
     The reading's relative noise ``u_scatter_noise`` on the frame's grid, the rest of its sigma, its data
-    and its mask before the ``max_sigma_rel`` cut.  Frames without a noise channel keep their weights.
+    and its mask before the ``max_sigma_rel`` cut (and, for a brdfjax reduction, before its detection cuts,
+    with what they need).  Frames without a noise channel keep their weights.
     """
     d = cfg.data
     if d.noise_weights != "model":
