@@ -11,6 +11,7 @@ fit is the bias itself.  Variants (``--variants``):
 - ``noisy``: one noise realisation (``--seed``) as the shipped fit sees it (started at the truth; its noise
   weights re-evaluated at the first fit's model and refitted, ``[data] noise_weights = "model"``);
   ``noisypix``: the same with the weights of each pixel's own reading (``noise_weights = "pixel"``);
+- ``noisy-gain0``, ``noisypix-gain0``: the same with a camera without per-pixel gain errors;
 - ``swap``: its BRDF with the weights and mask of another realisation (``--seed`` + 1000);
 - ``gauss``: the ``f64`` light times ``1 + u N(0, 1)``, ``u`` each pixel's noise level, with weights that do
   not depend on that noise: the bias of the log residual alone (``E[log d] != log E[d]``); ``gausscorr``: the
@@ -179,6 +180,9 @@ def main(argv=None) -> int:
             extra = tuple(x for x in toks if x not in ("nocorr", "gain0") and not x.startswith("cam"))
             cfg, job = base_job(args.bin, args.seed, work / v, without=("shot_noise", "dark", "quantisation", *extra),
                                 camera_seed=cam, correct="nocorr" not in toks, gain0="gain0" in toks)
+        elif v in ("noisy-gain0", "noisypix-gain0"):
+            # the same without the camera's per-pixel gain errors: what is left besides the fixed gain map
+            cfg, job = base_job(args.bin, args.seed, work / f"noisy{args.seed}-gain0", gain0=True)
         elif v in ("noisy", "noisypix", "swap"):
             # a noisy realisation as the shipped fit sees it; "swap": its BRDF, but the weights and the mask of
             # another realisation (seed + 1000), so that neither depends on the noise of the pixel it weighs
@@ -186,17 +190,20 @@ def main(argv=None) -> int:
             if v == "swap":
                 _, other = base_job(args.bin, args.seed + 1000, work / f"noisy{args.seed + 1000}")
                 job.blocks = [replace(b, sigma_rel=o.sigma_rel, mask=o.mask) for b, o in zip(job.blocks, other.blocks)]
-            if v != "noisy":
-                job.reweight = None  # the weights as given (the reading's, or the other realisation's)
         elif v in ("gauss", "gausscorr"):
             cfg, job = base_job(args.bin, args.seed, work / f"noisy{args.seed}")
             job = noise_free(job, cfg, "f64", noise_seed=args.seed + 1, log_correct=v == "gausscorr")
         else:
             cfg, job = base_job(args.bin, args.seed, work / f"noisy{args.seed}")
             job = noise_free(job, cfg, v)
+        if not v.startswith("noisy-") and v != "noisy":
+            job.reweight = None  # the data and weights as built here: no refit at the model (it rereads the data)
         job = start_at_truth(job)
         r = job.run()
         res["variants"][v] = rep = report(job, r, t0)
+        if job.first_result is not None:  # the fit with the readings' own weights, before the refit
+            rep["pixel_weights"] = first = report(job, job.first_result, t0)
+            print(f"[{v} first fit] " + " ".join(f"{n} pull {first[n]['pull']:+.2f}" for n in WATCH), flush=True)
         print(f"[{v}] chi2_red {rep['chi2_reduced']:.4g} " + " ".join(
             f"{n}: rel {rep[n]['rel']:+.2e} pull {rep[n]['pull']:+.2f}" for n in WATCH) + f" [{rep['wall_s']:.0f} s]", flush=True)
         if args.out:
