@@ -20,6 +20,7 @@ file::
     # roi_deg = [-0.3, 1.1, -0.3, 0.3]      # the same as angles from the alignment pixel (deg)
     sigma = "auto"                          # weights: "auto" | "total" | "pixel" | "noise" (see below)
     sigma_floor = 0.0                       # relative, added in quadrature
+    # noise_weights = "model"               # noise part of the weights at the fitted model ("pixel": at the reading)
     # max_sigma_rel = 0.1                   # mask pixels less certain than this
     # min_brdf = 1.0                        # mask pixels below this BRDF (sr^-1)
     # exclude = [[10, 20, -5, 5]]           # pixel boxes to mask
@@ -130,6 +131,7 @@ from ._frames_io import SIGMA_CHOICES
 from ._nuisance import NuisanceOptions
 from ._params import SPEC_KEYS, Param, param_problems
 from ._residuals import LOSSES
+from ._reweight import NOISE_WEIGHTS
 from ._solvers import SOLVERS, get_solver
 
 __all__ = [
@@ -289,6 +291,10 @@ class FitDataConfig(StrictModel):
     )
     sigma: str = Field("auto", description=f"the per-pixel weights of frames: {quoted_choices(SIGMA_CHOICES)}")
     sigma_floor: float = Field(0.0, ge=0, description="relative uncertainty added in quadrature, >= 0")
+    noise_weights: str = Field(
+        "model", description=f"where the noise part of a frame's weights is evaluated: {quoted_choices(NOISE_WEIGHTS)} "
+        "(model: refit with it at the first fit's model, not at each pixel's own noisy reading; pixel: at the reading)",
+    )
     max_sigma_rel: float | None = Field(None, gt=0, description="mask pixels whose relative uncertainty exceeds this")
     min_brdf: float | None = Field(None, ge=0, description="mask pixels below this BRDF (sr^-1)")
     exclude: list[list[int]] = Field(default_factory=list, description="pixel boxes [h0, h1, v0, v1] to mask")
@@ -306,6 +312,11 @@ class FitDataConfig(StrictModel):
     @classmethod
     def _sigma(cls, v: str) -> str:
         return check_choice("sigma", v, SIGMA_CHOICES)
+
+    @field_validator("noise_weights")
+    @classmethod
+    def _noise_weights(cls, v: str) -> str:
+        return check_choice("noise_weights", v, NOISE_WEIGHTS)
 
     @field_validator("exclude")
     @classmethod

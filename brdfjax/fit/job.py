@@ -34,15 +34,22 @@ from ..config import ConfigError
 from ..core.detector import Detector
 from ..core.render import Conditions
 from ..core.terms import Model
-from ..instrument.reduce import ReductionError, reduce_measurement_set
+from ..instrument.reduce import (
+    FLAG_BELOW_ARTIFACT_FLOOR,
+    FLAG_BELOW_NOISE,
+    FLAG_LOW_SNR,
+    ReductionError,
+    read_reduced_frame,
+    reduce_measurement_set,
+)
 from ..instrument.synthetic import SyntheticInstrument, load_instrument_config
-from ..io import atomic_output, write_json_atomic
+from ..io import ExrError, atomic_output, write_json_atomic
 from ..io.blocks import FrameData, TableData
 from ..io.raw import RawFormatError, read_manifest
 from ..io.tables import Screen, read_astm_e1392, read_cornell_brdf, read_merl_inplane, read_table
 from ..runtime.progress import ProgressLine
 from ._common import FitInputError, natural_unit, to_natural
-from ._figures import write_figures
+from ._figures import frame_model_image, write_figures
 from ._fit import fit
 from ._frames_io import read_frame_data
 from ._likelihood import LIKELIHOOD_OPTIONS, Likelihood, prepare
@@ -50,9 +57,13 @@ from ._nuisance import NuisanceOptions, build_nuisance, check_sigma_choice
 from ._params import Param
 from ._prepare import _check_detectors, _resolve_precision, block_names
 from ._result import FitResult
+from ._reweight import model_noise_weights, warm_params
 from .config import FitConfig, FitDataConfig, ReduceConfig, TableConfig, load_fit_config
 
 __all__ = ["FitJob", "build_fit_job", "reduce_step", "synthesize_step", "run_fit"]
+
+#: The reduction's mask bits that test each pixel's own reading against a level (the refit tests the model).
+DETECTION_FLAGS = FLAG_BELOW_NOISE | FLAG_BELOW_ARTIFACT_FLOOR | FLAG_LOW_SNR
 
 
 # --- the job ----------------------------------------------------------------------------------
@@ -69,6 +80,10 @@ class FitJob:
     config: FitConfig | None = None
     notes: list[str] = field(default_factory=list)
     truth: dict[str, float] | None = None  # synthetic data: the model's parameters (stored units)
+    # per block: what a refit with the noise weights at the fitted model needs (config noise_weights =
+    # "model"; brdfjax.fit._reweight), None for a block that keeps its weights; None: no refit
+    reweight: list[dict | None] | None = None
+    first_result: FitResult | None = None  # after run() with a reweighting: the fit with the readings' weights
 
     def likelihood(self) -> Likelihood:
         """The config's :class:`~brdfjax.fit.Likelihood` (what ``fit``, ``sample`` and ``diagnose`` take)."""
@@ -81,8 +96,42 @@ class FitJob:
 
     def run(self, progress: Any = None):
         """``brdfjax.fit.fit(self.likelihood(), ...)`` with the config's solver (``progress``: see
-        :func:`~brdfjax.fit.fit`)."""
-        return fit(self.likelihood(), progress=progress, **self.solver_options())
+        :func:`~brdfjax.fit.fit`).
+
+        With frames whose noise weights are to be evaluated at the model (``reweight``; the config's
+        ``[data] noise_weights = "model"``): the first fit's weights are re-evaluated at its model
+        (:func:`~brdfjax.fit._reweight.model_noise_weights`), the blocks replaced by the reweighted ones (so
+        that a later ``likelihood()`` uses them) and the fit repeated from the first one's values; the
+        result says so in a note of its ``noise``.
+        """
+        result = fit(self.likelihood(), progress=progress, **self.solver_options())
+        if not self.reweight or not any(self.reweight):
+            return result
+        first = self.first_result = result
+        self.blocks = self.reweighted_blocks(first)
+        self.reweight = None
+        names = block_names(self.blocks)
+        lik = self.likelihood().with_params(warm_params(self.params, first, names))
+        result = fit(lik, progress=progress, **self.solver_options())
+        result.noise["reweighted"] = (
+            f"noise weights evaluated at the model of a first fit (chi2_red {first.chi2_reduced:.4g}, "
+            f"{first.n_iterations} steps) and refitted"
+        )
+        return result
+
+    def reweighted_blocks(self, result: Any) -> list[FrameData | TableData]:
+        """The blocks with the noise part of each frame's weights evaluated at ``result``'s model."""
+        use_fp = bool(self.fit_kwargs.get("use_footprint", True))
+        out: list[FrameData | TableData] = []
+        for k, b in enumerate(self.blocks):
+            info = self.reweight[k] if self.reweight and k < len(self.reweight) else None
+            if info is None or not isinstance(b, FrameData):
+                out.append(b)
+                continue
+            img = frame_model_image(result.models[k], result.frames[k], b, use_fp)
+            out.append(model_noise_weights(b, info["data"], info["u_noise"], info["sigma_other"], info["mask"], img,
+                                           info["max_sigma_rel"], info.get("detection")))
+        return out
 
 
 def _fingerprint(obj: Any) -> str:
@@ -215,15 +264,66 @@ def _load_frames(cfg: FitConfig, work_dir: Path | None, notes: list[str], model:
     frames = []
     for key, path in entries:
         try:
-            f0 = read_frame_data(path, step=d.step, footprint_w_px=footprint, sigma=d.sigma, sigma_floor=d.sigma_floor)
+            opts = dict(footprint_w_px=footprint, sigma=d.sigma, sigma_floor=d.sigma_floor)
+            f0 = read_frame_data(path, step=d.step, **opts)
             roi = _roi_pixels(cfg, f0)
-            f = f0 if roi is None else read_frame_data(
-                path, step=d.step, roi=roi, footprint_w_px=footprint, sigma=d.sigma, sigma_floor=d.sigma_floor
-            )
+            f = f0 if roi is None else read_frame_data(path, step=d.step, roi=roi, **opts)
         except FitInputError as e:
             raise ConfigError(str(cfg.source), [(key, str(e))]) from None
         frames.append(_apply_masks(cfg, f, key))
+        info.setdefault("reweight", []).append(_reweight_info(cfg, f, path, roi, footprint, key))
     return frames, info
+
+
+def _reweight_info(cfg: FitConfig, f: FrameData, path: Path, roi: Any, footprint: Any, key: str) -> dict | None:
+    """What :meth:`FitJob.reweighted_blocks` needs of a frame (``noise_weights = "model"``; None: nothing to do).
+
+    The reading's relative noise ``u_scatter_noise`` on the frame's grid, the rest of its sigma, its data
+    and its mask before the ``max_sigma_rel`` cut (and, for a brdfjax reduction, before its detection cuts,
+    with what they need).  Frames without a noise channel keep their weights.
+    """
+    d = cfg.data
+    if d.noise_weights != "model":
+        return None
+    try:
+        fn = read_frame_data(path, step=d.step, roi=roi, footprint_w_px=footprint, sigma="noise", sigma_floor=0.0)
+    except FitInputError:
+        return None
+    u = np.broadcast_to(np.asarray(fn.sigma_rel, float), f.shape)
+    sig = np.broadcast_to(np.asarray(f.sigma_rel, float), f.shape)
+    with np.errstate(invalid="ignore"):
+        other = np.sqrt(np.clip(np.square(sig) - np.square(u), 0.0, None))
+    uncut = cfg.model_copy(update={"data": d.model_copy(update={"max_sigma_rel": None})})
+    info = {"data": np.asarray(f.brdf, float), "u_noise": u, "sigma_other": other,
+            "mask": _apply_masks(uncut, f, key).mask, "max_sigma_rel": d.max_sigma_rel, "detection": None}
+    # The reduction's detection cuts (below the noise-equivalent BRDF, the artifact floor, min_snr) were
+    # made on each pixel's own reading: with them known, the refit makes them on the model instead.
+    try:
+        red = read_reduced_frame(path)
+        extra, attrs = dict(red.extra or {}), dict(red.attrs or {})
+        flags = _on_grid(red, f, extra["flags"]).astype(np.int64)
+        neb = _on_grid(red, f, extra["noise_equivalent_brdf"])
+        floor, min_snr = float(attrs["artifact_floor"]), float(attrs["min_snr"])
+    except (KeyError, ValueError, OSError, ExrError):
+        return info
+    structural = (flags & ~DETECTION_FLAGS) == 0
+    if roi is not None:
+        h0, h1, v0, v1 = (int(x) for x in roi)
+        nh, nv = np.asarray(f.grid.n_h), np.asarray(f.grid.n_v)
+        structural &= np.outer((nv >= v0) & (nv <= v1), (nh >= h0) & (nh <= h1))
+    info["mask"] = _apply_masks(uncut, replace(f, mask=structural), key).mask
+    info["detection"] = {"noise_equivalent_brdf": neb, "artifact_floor": floor, "min_snr": min_snr}
+    return info
+
+
+def _on_grid(reduced: Any, f: FrameData, channel: Any) -> np.ndarray:
+    """A channel of a reduced frame (its stored grid) at the points of ``f``'s grid."""
+    attrs = dict(reduced.attrs)
+    h0, _, v0, _ = (int(x) for x in attrs["roi"])
+    step = int(attrs["step"])
+    rows = (np.asarray(f.grid.n_v) - v0) // step
+    cols = (np.asarray(f.grid.n_h) - h0) // step
+    return np.asarray(channel, np.float64)[np.ix_(rows, cols)]
 
 
 def _load_table(cfg: FitConfig, i: int, t: TableConfig) -> TableData:
@@ -354,7 +454,9 @@ def build_fit_job(cfg: FitConfig, *, work_dir: str | os.PathLike | None = None) 
     truth = None
     if cfg.data.synthetic is not None:
         truth = {k: float(np.asarray(v)) for k, v in model.params().items()}
-    job = FitJob(model, blocks, dict(cfg.build_params()), fit_kwargs, cfg, notes, truth)
+    reweight = info.pop("reweight", [])
+    reweight = reweight + [None] * len(tables) if any(reweight) else None
+    job = FitJob(model, blocks, dict(cfg.build_params()), fit_kwargs, cfg, notes, truth, reweight)
     job.notes.extend(f"{k}: {v}" for k, v in info.items())
     return job
 
