@@ -44,7 +44,7 @@ from dataclasses import replace  # noqa: E402
 
 import brdfjax.fit.job as job_mod  # noqa: E402
 from brdfjax.core.detector import Detector  # noqa: E402
-from brdfjax.core.render import Frame, render  # noqa: E402
+from brdfjax.core.render import Conditions, render  # noqa: E402
 from brdfjax.fit._params import Param  # noqa: E402
 from brdfjax.fit.config import load_fit_config  # noqa: E402
 from brdfjax.fit.job import build_fit_job  # noqa: E402
@@ -109,7 +109,7 @@ def noise_free(job, cfg, how: str, noise_seed=None, log_correct=False):
     w = inst.config.footprint.w_px
     blocks = []
     for b in job.blocks:
-        frame = Frame(b.theta_i, b.phi_ref, b.wavelength)
+        frame = Conditions(b.theta_i, b.phi_ref, b.wavelength)
         if how == "f64":
             img = np.asarray(render(job.model, frame, det, precision="float64"), np.float64)
             img = _conv64(img, footprint_kernel(w))

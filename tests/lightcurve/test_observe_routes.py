@@ -21,7 +21,7 @@ from brdfjax.lightcurve.skygeometry import LUMOS_EARTH_RADIUS_M, positions_from_
 
 jax.config.update("jax_enable_x64", True)
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SLINGSHOT = ROOT / "tests" / "data" / "satellites" / "observations" / "slingshot_v2mini.csv"
 # the synthetic TLE of configs/lightcurve_box_wing.toml (epoch 2026-12-01 00:00 UTC)
 TLE = ("1 99001U 26001A   26335.00000000  .00000000  00000-0  00000-0 0  9997",

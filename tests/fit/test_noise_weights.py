@@ -89,7 +89,7 @@ def test_job_refits_with_model_weights_and_reads_the_wings_right():
     truth = bj.Model(terms={"s": bj.Specular(bj.GGX(0.004), rho_s=60.0, n=1.5)})
     det = bj.Detector.seed()
     grid = det.grid(40, (-1200, 1200, -1200, 1200))  # 61 x 61 points out to ~2.5 lobe widths
-    frame = bj.Frame.from_degrees(20.0, 0.0, 632.8)
+    frame = bj.Conditions.from_degrees(20.0, 0.0, 632.8)
     m = np.asarray(bj.render(truth, frame, det, grid=grid, precision="float64"), np.float64)
     sigma = float(m.max()) / 300.0  # SNR 300 at the peak, under 10 in the outer wings
     rng = np.random.default_rng(4)
