@@ -7,7 +7,6 @@ The path search (:mod:`brdfjax.diagnose.engine`) builds on these; the admission 
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import time
@@ -235,6 +234,14 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
 
     new, err = attempt(ext.params, kw)
     why = _refit_failure(new, base_gap, err)
+    rejected = ""
+    if (why is not None and err is None and not any(as_param(k, v).free for k, v in new_params.items())
+            and ext.blocks is not None and new.result.converged and math.isfinite(float(new.result.chi2))):
+        # a data-side change with no free parameter of its own (a footprint at its scanned width) cannot be
+        # fitted back to its null: a converged refit above the model it extends is the data rejecting the
+        # effect, not a failed refit (ranked with its negative gain)
+        why, rejected = None, ("the data reject it: the converged refit ends above the model it extends, and no "
+                               "free parameter of its own can take it back to its null; ")
     if why is not None:
         opts = dict(kw.get("solver_options") or {})
         solver = kw.get("solver", "levenberg_marquardt")
@@ -252,7 +259,7 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
             c.wall_s = time.perf_counter() - t0
             return c
     else:
-        ext_note = ext.note
+        ext_note = rejected + ext.note
     g = gap_measures(new.result)
     c.n_new = int(ext.n_new)
     c.note = ext_note
@@ -264,27 +271,6 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     c.state = new
     c.wall_s = time.perf_counter() - t0
     return c
-
-
-def _nested(chosen: set[str], library: Mapping[str, Any]) -> set[str]:
-    """The effects that those in ``chosen`` reduce to (``Effect.nests``): refitted with them, so that the BIC
-    can take the simpler one where the extra parameter stays neutral."""
-    return {n for e in chosen for n in getattr(library[e], "nests", ()) if n in library}
-
-
-def _candidate_copy(c: Candidate) -> Candidate:
-    """A copy of ``c`` that later changes to ``c`` (flags, a fresh-start refit, its state's context) leave alone."""
-    out = copy.copy(c)
-    out.flags, out.parameters = list(c.flags), dict(c.parameters)
-    out.state = copy.copy(c.state)
-    return out
-
-
-def _restore_candidate(c: Candidate, saved: Candidate) -> None:
-    """Fill ``c`` with a copy of ``saved`` (a :func:`_candidate_copy`), as if its refit had just run."""
-    fresh = _candidate_copy(saved)
-    for f in dataclasses.fields(Candidate):
-        setattr(c, f.name, getattr(fresh, f.name))
 
 
 def _without(state: _State, effect: str, base: _State, library: Mapping[str, Any]) -> _State:
@@ -490,15 +476,4 @@ def _params_report(result: FitResult) -> dict[str, Any]:
     """Every parameter of a fit (free and held), in natural units: ``{value, sigma, unit, free, initial}``."""
     return {k: p.natural() for k, p in result.parameters.items()}
 
-
-def _extend_state(state: _State, effect: str, library: Mapping[str, Any]) -> _State:
-    """``state`` (with its context) extended by ``effect`` and refitted (warm start)."""
-    ext = library[effect].extend(state.ctx)
-    blocks = list(ext.blocks) if ext.blocks is not None else state.blocks
-    new_params = {k: v for k, v in ext.params.items() if k not in state.params}
-    old = state.model.terms
-    added = tuple(n for n in ext.model.terms if n not in old)
-    term_only = bool(added) and ext.blocks is None and all(ext.model.terms.get(n) is t for n, t in old.items())
-    return _fit_state(ext.model, blocks, ext.params, {**state.fit_kwargs, **dict(ext.fit_kwargs)}, state.effects + (effect,),
-                      {**state.starts, effect: new_params}, {**state.added_terms, effect: added if term_only else None})
 
