@@ -50,7 +50,7 @@ class DiagnoseSection(StrictModel):
 
     effects: list[str] | None = Field(None, description="candidate effects by name (brdfjax.diagnose.EFFECT_LIBRARY); default: the whole library")
     heldout: list[str] = Field(default_factory=list, description="block names (frames or tables) predicted by each model of the path, never fitted")
-    bic_threshold: float = Field(10.0, description="BIC gain an effect needs to enter the path (and that a removal or swap must beat)")
+    bic_threshold: float = Field(10.0, description="BIC gain an effect needs to enter, and the BIC cost of its removal it needs to stay")
     max_steps: int = Field(4, ge=0, le=12, description="the most effects the greedy path adds (0-12)")
     pair_top: int = Field(3, ge=1, description="at each step the best admissible single effects are also refitted in pairs, jointly")
     fresh_top: int = Field(3, ge=0, description="0: warm refits only; otherwise, where the fit a candidate extends moved far from its starts, the candidate is refitted from the fresh start too")

@@ -20,26 +20,20 @@
    BIC_with`` (``BIC = chi2 + k ln N``, ``k`` free parameters, ``N`` points)
    are *decreases*: positive means the effect explains part of the gap.  The
    ranking is by ``delta_bic``;
-5. HOW FAR: forward selection with backward elimination: the best
-   *admissible* effect is added when its BIC gain exceeds ``bic_threshold``
-   (a candidate whose refit failed or ended above the model it extends is
-   ``failed`` and never ranked; one whose new parameter ends on a bound, that
-   drives a term of the model to zero, or whose signature is below its
-   presence threshold is ranked but flagged and not added); a generic best
-   (a floor, a response curve) is compared with the best specific runner-up
-   on their joint refit, and the one the joint model needs more enters first;
-   the chosen model is refitted jointly from fresh starts as well (the lower
-   chi^2 is kept); then every earlier effect on the path is tried out again
-   and removed when the BIC without it is within ``bic_threshold``.  The
-   previous step's runners-up and the candidates with the strongest
-   signatures in the new residual (``path_pool`` of each) are re-tried on the
-   extended model, and so on until the gain is not significant, the reduced
-   chi^2 is within the noise (``1 + 3 sqrt(2/dof)``, data with sigma), or
-   ``max_steps`` (``Diagnosis.stop_reason`` says which).  A step after which
-   the held-out gap grows is flagged.  Every step records the global gap (``chi2_reduced``,
-   ``rms_log10``), the per-zone reduced chi^2 on the base's zones, and, when
-   ``heldout_blocks`` are given, the prediction gap on them (the fitted model
-   evaluated, nothing refitted, at the held-out frames' nominal conditions).
+5. HOW FAR: the search of :mod:`brdfjax.diagnose.search` on :class:`FrameProblem`: at each step every
+   applicable candidate is refitted added to the current set (the signature orders the work, it excludes
+   nothing); the ``pair_top`` best admissible ones are also refitted in pairs; an effect whose own terms end
+   dead, undetermined or on a bound never enters; a generic effect (a floor, a response curve) does not
+   enter where a specific one explains its residual on their joint refit; the best single or pair enters
+   when it gains more than ``bic_threshold`` (a pair only when it beats its better member by that much); after
+   every step each effect of the set is taken out in turn (the model refitted) and one whose removal costs
+   less than ``bic_threshold`` is taken out.  The search stops when nothing passes the threshold, the reduced
+   chi^2 is within the noise (``1 + 3 sqrt(2/dof)``, data with sigma), or after ``max_steps``
+   (``Diagnosis.stop_reason`` says which).  A step after which the held-out gap grows is flagged.  Every
+   step records the global gap (``chi2_reduced``, ``rms_log10``), the per-zone reduced chi^2 on the base's
+   zones, and, when ``heldout_blocks`` are given, the prediction gap on them (the fitted model evaluated,
+   nothing refitted, at the held-out frames' nominal conditions).  Every trial (failed ones included) is in
+   ``settings.trials``; failed refits are counted in ``settings.failed_refits``.
 
 The engine never sees a generator's truth: only the blocks and the library.
 """
