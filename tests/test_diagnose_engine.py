@@ -142,6 +142,10 @@ def test_backward_elimination_takes_a_redundant_effect_out():
         d.path[2].parameters["floor.rho_d"]["value"])
     assert doc["explained_by_side"] == {"material": ["late_floor"], "instrument": []}
     assert "remove" in [s["action"] for s in doc["path"]]
+    # every trial of the search is recorded: the removal was a refit of the set without the wide lobe
+    trials = doc["settings"]["trials"]
+    assert any(t["effects"] == ["late_floor"] and t["ok"] for t in trials)
+    assert doc["settings"]["failed_refits"]["candidates"] == sum(1 for t in trials if not t["ok"]) == 0
 
 
 class _QuietFloor(type(EFFECT_LIBRARY["lambertian"])):

@@ -82,7 +82,7 @@ from .refits import (  # noqa: F401 - truth_gap and the refit budget, importable
     truth_gap,
 )
 from .report import heldout_grew
-from .results import Candidate, Diagnosis, Step
+from .results import Candidate, Diagnosis, Step, finite_or_none
 from .search import Trial, search
 from .zones import find_regions, zone_masks
 
@@ -487,6 +487,8 @@ def diagnose(
             eff = mv.effects[-1]
             path.append(_step(eff, "add", library[eff], st, zones, heldout, blocks, gain, path, notes_,
                               alts if len(mv.effects) == 1 else []))
+            if path[-1].heldout is not None:
+                mv.trial.heldout = finite_or_none(path[-1].heldout.get("rms_log10"))
             if f.polish_failed:
                 fresh_failed += 1
                 path[-1].flags.append("the joint refit from fresh starts failed (counted in settings.failed_refits); "
@@ -495,6 +497,8 @@ def diagnose(
             (e,) = mv.effects
             st = problem._ctx(mv.trial.state.state)
             path.append(_step(e, "remove", library[e], st, zones, heldout, blocks, mv.gain, path, list(mv.notes), []))
+            if path[-1].heldout is not None:
+                mv.trial.heldout = finite_or_none(path[-1].heldout.get("rms_log10"))
     final = result.final.state.state
     final = problem._ctx(final)
     for s_ in path:
@@ -540,7 +544,7 @@ def diagnose(
             "n_trials": len(result.trials),
             "trials": [{"effects": list(t.effects), "ok": t.ok, "failure": t.failure,
                         "bic": t.bic if math.isfinite(t.bic) else None, "chi2_reduced": t.chi2_reduced,
-                        "n_params": t.n_params, "flags": {k: v for k, v in t.flags.items() if v}} for t in result.trials],
+                        "n_params": t.n_params, "heldout_rms_log10": t.heldout, "flags": {k: v for k, v in t.flags.items() if v}} for t in result.trials],
             "failed_refits": {
                 "candidates": n_failed,
                 "which": failed_names,
