@@ -256,6 +256,22 @@ class FrameProblem:
                     fctx, moved = started
                     self._say(f"refitting with {e} from the fresh start as well (the fit moved far from its starts)")
                     _refit_fresh(c, self._lib[e], fctx, moved, st, self._zones, gap0, self._T)
+            if c.status != "ranked" and self._fresh and len(add) == 1:
+                # the warm refit failed twice (warm start, second start): a third start, from the fresh starts,
+                # where the fit it extends moved far from them
+                started = self._start(st)
+                if started is not None:
+                    fctx, moved = started
+                    self._say(f"the refit with {e} failed; refitting from the fresh start")
+                    alt = Candidate(e, c.title, "ranked", signature=c.signature)
+                    _refit_effect(alt, self._lib[e], fctx, st, self._zones, gap0)
+                    if alt.status == "ranked":
+                        alt.refit_start, alt.retried = "fresh", True
+                        alt.note = (f"the warm refit failed ({c.note[:240]}); refitted from the fresh start (the fit "
+                                    f"had moved far: {', '.join(moved[:3])}): {alt.note}")
+                        c = alt
+                    else:
+                        c.note += f"; from the fresh start: {alt.note[:240]}"
             if c.status != "ranked":
                 return self._failed(effects, c.note, c)
             before = st
