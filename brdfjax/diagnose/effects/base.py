@@ -328,9 +328,14 @@ def smooth_z(r: np.ndarray, s: float) -> np.ndarray:
     x = np.arange(-half, half + 1)
     k = np.exp(-0.5 * (x / s) ** 2)
 
+    def same(v, kern):
+        # "full" cut to the input's length: np.convolve's "same" returns the longer of the two, so a kernel
+        # longer than a frame's side (8 rows at step 16) changed the map's shape
+        return np.convolve(v, kern, mode="full")[half:half + v.size]
+
     def conv(a, kern):
-        a = np.apply_along_axis(lambda v: np.convolve(v, kern, mode="same"), 0, a)
-        return np.apply_along_axis(lambda v: np.convolve(v, kern, mode="same"), 1, a)
+        a = np.apply_along_axis(same, 0, a, kern)
+        return np.apply_along_axis(same, 1, a, kern)
 
     num = conv(r0, k)
     den = np.sqrt(conv(ok.astype(float), k * k))
