@@ -26,6 +26,7 @@ Results go to ``--out`` (JSON, written atomically after every trial); a
 rerun skips the trials already there (resumable).  ``--quick``: one trial per
 effect, two null and two two-effect trials.  ``--shard i/n`` runs a slice
 (parallel workers), ``--summarize A.json B.json`` merges them.
+``--mixed-two``: the two-effect trials pair an instrument effect with a material one.
 ``--runtime``: one diagnosis of a single 4x-decimated frame against the full
 library, timed (target < 10 min on the 2-core CPU).
 
