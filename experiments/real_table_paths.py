@@ -1,12 +1,11 @@
-"""The diagnosis's whole path on the real goniometer tables (no uncertainties: sigma estimated), with the
-library defaults (``fresh_top = 3``, so the two-path rule can run): which path is kept, what the other reached,
-and what the second path costs.
+"""The diagnosis's whole search on the real goniometer tables (no uncertainties: sigma estimated), with the
+library defaults: which explanation the search keeps and what it costs.  (``paths_compared`` is None since the
+search replaced the two greedy paths; the key is kept so that older result files read alike.)
 
 For each shipped real table (``tests/data/real``: MERL aluminium, Cornell Krylon blue and Cayman; every
 ``--step``-th row) the plain one-lobe + Lambertian base of ``tests/diagnose/test_tables_diagnosis.py`` is diagnosed with
-the table-applicable library, ``max_steps`` effects at most.  Without sigma there is no noise level to stop at,
-so every path that took a fresh-start refit is compared with the warm path (``fresh_top = 0``); the second path
-starts from the first one's base fit and first-step warm refits.  Printed and written per dataset: the kept
+the table-applicable library, ``max_steps`` steps at most.  Without sigma there is no noise level to stop at.
+Printed and written per dataset: the kept
 path, both paths' final ``-2 ln L``-based BIC and estimated ``sigma_ln``, and the timings.
 
     python experiments/real_table_paths.py [--json experiments/results/real_table_paths.json]

@@ -26,6 +26,7 @@ Results go to ``--out`` (JSON, written atomically after every trial); a
 rerun skips the trials already there (resumable).  ``--quick``: one trial per
 effect, two null and two two-effect trials.  ``--shard i/n`` runs a slice
 (parallel workers), ``--summarize A.json B.json`` merges them.
+``--mixed-two``: the two-effect trials pair an instrument effect with a material one.
 ``--runtime``: one diagnosis of a single 4x-decimated frame against the full
 library, timed (target < 10 min on the 2-core CPU).
 
@@ -123,9 +124,18 @@ def trial_list(args: argparse.Namespace, names: list[str]) -> list[dict[str, Any
             others.append({"id": f"null:{k}", "kind": "null", "effects": []})
         if k < n_two:
             pool = [e for e in names if e not in TABLE_ONLY and e not in WIDE_TABLE]
-            pair = sorted(rng.choice(len(pool), size=2, replace=False))
-            while frozenset({pool[pair[0]], pool[pair[1]]}) in fx.EXCLUSIVE:  # a pair one scenario cannot hold
+            if getattr(args, "mixed_two", False):
+                # an instrument effect paired with a material one
+                inst = [e for e in pool if getattr(fx.EFFECT_LIBRARY[e], "side", "material") == "instrument"]
+                mat = [e for e in pool if e not in inst]
+                pool = inst + mat
+                pair = [int(rng.integers(len(inst))), len(inst) + int(rng.integers(len(mat)))]
+                while frozenset({pool[pair[0]], pool[pair[1]]}) in fx.EXCLUSIVE:
+                    pair = [int(rng.integers(len(inst))), len(inst) + int(rng.integers(len(mat)))]
+            else:
                 pair = sorted(rng.choice(len(pool), size=2, replace=False))
+                while frozenset({pool[pair[0]], pool[pair[1]]}) in fx.EXCLUSIVE:  # a pair one scenario cannot hold
+                    pair = sorted(rng.choice(len(pool), size=2, replace=False))
             others.append({"id": f"two:{pool[pair[0]]}+{pool[pair[1]]}:{k}", "kind": "two",
                            "effects": [pool[pair[0]], pool[pair[1]]]})
     # interleaved (a null or two-effect trial after every three single ones) so that a partial run has every kind
@@ -201,43 +211,19 @@ def run_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     say = (lambda m: print(f"    {time.perf_counter() - t0:7.1f} s  {m}", flush=True)) if args.verbose else None
     # a path long enough to hold every withheld effect and one spurious step (two-effect trials: 3)
     steps = max(args.max_steps, len(t["effects"]) + 1)
-    d = diagnose(sc.base_model, fitted, params, heldout_blocks=held, max_steps=steps, refit_top=args.refit_top,
-                 path_pool=args.path_pool, progress=say, **_fresh(args))
+    d = diagnose(sc.base_model, fitted, params, heldout_blocks=held, max_steps=steps, pair_top=args.pair_top,
+                 progress=say, **_fresh(args))
     wall = time.perf_counter() - t0
     try:
         true = _true_gap(sc, seed, fitted, ~last if tables else None) if tables or args.path == "render" else {"chi2_reduced": math.nan, "rms_log10": math.nan}
     except Exception as e:  # noqa: BLE001 - reported
         true = {"chi2_reduced": math.nan, "rms_log10": math.nan, "error": f"{type(e).__name__}: {e}"}
-    j = d.to_dict()
-    path = [s["effect"] for s in j["path"]]
-    base_h = j["path"][0]["heldout_rms_log10"]
-    end_h = j["path"][-1]["heldout_rms_log10"]
-    return _clean(
-        {
-            **t,
-            "seed": seed,
-            "truth": {k: (v if isinstance(v, int | float | str) or v is None else str(v)) for k, v in sc.truth.items()},
+    info = {"truth": {k: (v if isinstance(v, int | float | str) or v is None else str(v)) for k, v in sc.truth.items()},
             "notes": list(sc.notes),
-            "frames": [] if tables else [[float(np.degrees(b.theta_i)), float(np.degrees(b.phi_ref))] for b in blocks],
-            "top1": j["ranking"][0]["effect"] if j["ranking"] else None,
-            "ranking": [(c["effect"], c["delta_bic"], c["signature"].get("score")) for c in j["ranking"]],
-            "skipped": [(c["effect"], c["status"], c["note"]) for c in j["skipped"]],
-            "path": path,
-            "significant": j["significant"],
-            "in_path": all(e in path for e in t["effects"]) if t["effects"] else None,
-            "chi2_reduced_before": j["path"][0]["chi2_reduced"],
-            "chi2_reduced_after": j["path"][-1]["chi2_reduced"],
-            "chi2_reduced_true": true["chi2_reduced"],
-            "rms_log10_before": j["path"][0]["rms_log10"],
-            "rms_log10_after": j["path"][-1]["rms_log10"],
-            "rms_log10_true": true["rms_log10"],
-            "heldout_rms_log10_before": base_h,
-            "heldout_rms_log10_after": end_h,
-            "heldout_smaller": None if base_h is None or end_h is None or len(path) == 1 else bool(end_h < base_h),
-            "zones": [(z["name"], z["share"], z["sign"]) for z in j["zones"]],
-            "wall_s": wall,
-        }
-    )
+            "frames": [] if tables else [[float(np.degrees(b.theta_i)), float(np.degrees(b.phi_ref))] for b in blocks]}
+    if math.isfinite(true.get("chi2_reduced", math.nan)):
+        d.set_truth_gap(true, source="the generator's noiseless frames on the fitted pixels")
+    return _clean(_trial_record(t, seed, d, true, wall, info))
 
 
 # --- the independent generator: frames from the NumPy reference, written to EXR ------------------------------
@@ -327,8 +313,8 @@ def run_reference_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str
         say = (lambda m: print(f"    {time.perf_counter() - t0:7.1f} s  {m}", flush=True)) if args.verbose else None
         steps = max(args.max_steps, len(t["effects"]) + 1)
         effects = None if args.candidates is None else args.candidates.split(",")
-        d = diagnose(base, fitted, starts, heldout_blocks=held, max_steps=steps, refit_top=args.refit_top,
-                     path_pool=args.path_pool, effects=effects, progress=say, **_fresh(args))
+        d = diagnose(base, fitted, starts, heldout_blocks=held, max_steps=steps, pair_top=args.pair_top,
+                     effects=effects, progress=say, **_fresh(args))
         wall = time.perf_counter() - t0
         true = _truth_chi2(fitted, clean)
         d.set_truth_gap(true, source="the reference generator's noiseless frames on the fitted pixels")
@@ -448,7 +434,7 @@ def runtime_check(args: argparse.Namespace) -> dict[str, Any]:
     sc = fx.inject("diffraction", rng, sc)
     blocks = fx.synthesize(sc, args.seed, None, path=args.path)
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
-    d = diagnose(sc.base_model, blocks, _perturbed_starts(sc, rng), max_steps=args.max_steps, refit_top=args.refit_top,
+    d = diagnose(sc.base_model, blocks, _perturbed_starts(sc, rng), max_steps=args.max_steps, pair_top=args.pair_top,
                  progress=lambda m: print(f"  {time.perf_counter() - t0:7.1f} s  {m}", flush=True))
     wall = time.perf_counter() - t0
     # the process's CPU time (every thread) beside the wall time: on a shared box the wall time is inflated
@@ -488,7 +474,8 @@ def main(argv: list[str] | None = None) -> int:
                         "reference runs of the README), 'evaluation' for seeds never looked at while changing the rules")
     p.add_argument("--runtime", action="store_true", help="only the runtime check")
     p.add_argument("--verbose", action="store_true", help="print the diagnosis's progress")
-    p.add_argument("--path-pool", type=int, default=4, help="candidates re-tried at each later step of the path")
+    p.add_argument("--pair-top", type=int, default=3, help="diagnose(pair_top=N): the best admissible singles refitted in pairs")
+    p.add_argument("--mixed-two", action="store_true", help="two-effect trials pair an instrument effect with a material one")
     p.add_argument("--shard", default=None, help="i/n: run every n-th trial starting at i (parallel workers, own --out)")
     p.add_argument("--summarize", nargs="+", default=None, help="print the summary of these result JSONs (shards) and exit")
     p.add_argument("--path", choices=("render", "instrument"), default="render",
@@ -501,8 +488,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--candidates", default=None, help="reference generator: comma-separated candidate effects (default: the library)")
     p.add_argument("--fresh-top", type=int, default=None,
                    help="diagnose(fresh_top=N): candidates also refitted from the fresh starts (default: the library's)")
-    p.add_argument("--refit-top", type=int, default=None,
-                   help="refit only the K candidates with the highest signature scores (default: every candidate)")
     args = p.parse_args(argv)
     out = Path(args.out)
     names = list(fx.EFFECT_LIBRARY) if args.effects is None else [e.strip() for e in args.effects.split(",")]

@@ -27,11 +27,14 @@ Where to find what (each module imports only those above it):
 - :mod:`~brdfjax.diagnose.refits`: a fit state, a candidate's refit (retried
   from a second start), the refits from fresh starts, taking an effect out,
   the held-out and the truth's gaps, the ranking;
-- :mod:`~brdfjax.diagnose.admission`: the admission rules (bounds, a term
-  driven to zero, a weak signature, an effect's own terms dead or
-  undetermined, a dominant refit);
-- :mod:`~brdfjax.diagnose.engine`: :func:`diagnose` itself, the path search
-  (the generic-vs-specific rule, swaps, backward elimination, the final check);
+- :mod:`~brdfjax.diagnose.admission`: the admission rules (an effect's own
+  parameters on a bound or undetermined, its own terms dead or narrower than
+  the sampling, a term driven to zero, and where asked a weak signature);
+- :mod:`~brdfjax.diagnose.search`: the search over sets of effects (every
+  candidate refitted at every step, pairs, generic against specific, backward
+  elimination with the same threshold), generic over a ``SearchProblem``;
+- :mod:`~brdfjax.diagnose.engine`: :func:`diagnose` itself and the frame/table
+  problem (``FrameProblem``) the search runs on;
 - :mod:`~brdfjax.diagnose.model_config`: the final model as a fit config;
 - :mod:`~brdfjax.diagnose.config`: the ``[diagnose]`` table and the run of ``brdfjax diagnose``.
 """

@@ -35,7 +35,7 @@ def diagnose(
     :func:`brdfjax.fit.prepare` (its model is the base, its params the base fit's spec, its options every
     refit's); ``effects``: candidate names (default: the whole library); ``heldout``: frames or tables
     predicted, never fitted; ``options``: the search's settings (``bic_threshold``, ``max_steps``,
-    ``path_pool``, ``fresh_top``, ``threshold``, ``smooth``, ``presence``, ``noise_stop``, ``library``,
+    ``pair_top``, ``fresh_top``, ``threshold``, ``smooth``, ``presence``, ``noise_stop``, ``library``,
     ``progress``; see :func:`brdfjax.diagnose.engine.diagnose`).
     ``diagnose(base_model, blocks, params, fit_kwargs=...)`` is the older spelling (``fit_kwargs``
     deprecated).

@@ -6,11 +6,10 @@ The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
     [diagnose]
     effects = ["diffraction", "lambertian"]   # candidates; default: the whole library
     heldout = ["ti60"]                         # frames (block names) predicted, not fitted; default none
-    bic_threshold = 10.0                       # BIC gain an effect needs to enter the path
-    max_steps = 4                              # the most effects added by the greedy path
-    path_pool = 4                              # later steps re-try this many runners-up + best signatures
-    refit_top = 4                              # refit only the 4 best signatures (default: every candidate)
-    fresh_top = 3                              # where a fit moved far from its starts, refit the 3 best from them too
+    bic_threshold = 10.0                       # BIC gain an effect needs to enter, and its removal must cost to stay
+    max_steps = 4                              # the most steps of the search
+    pair_top = 3                               # the best admissible singles also refitted in pairs at each step
+    fresh_top = 3                              # 0: no refits from the fresh starts (else: where a fit moved far)
     threshold_sigma = 4.0                      # smoothed |residual| that makes a region significant
     smooth = 3                                 # box size (points) of that smoothing
     figures = true                             # embed figures in report.html
@@ -51,11 +50,12 @@ class DiagnoseSection(StrictModel):
 
     effects: list[str] | None = Field(None, description="candidate effects by name (brdfjax.diagnose.EFFECT_LIBRARY); default: the whole library")
     heldout: list[str] = Field(default_factory=list, description="block names (frames or tables) predicted by each model of the path, never fitted")
-    bic_threshold: float = Field(10.0, description="BIC gain an effect needs to enter the path (and that a removal or swap must beat)")
+    bic_threshold: float = Field(10.0, description="BIC gain an effect needs to enter, and the BIC cost of its removal it needs to stay")
     max_steps: int = Field(4, ge=0, le=12, description="the most effects the greedy path adds (0-12)")
-    path_pool: int = Field(4, ge=1, description="at each later step, refit this many runners-up of the previous step and this many strongest new signatures")
-    refit_top: int | None = Field(None, ge=1, description="refit only the candidates with the strongest residual signatures (default: every candidate)")
-    fresh_top: int = Field(3, ge=0, description="where the fit moved far from its starts, refit this many best candidates from the fresh starts too (0: off)")
+    pair_top: int = Field(3, ge=1, description="at each step the best admissible single effects are also refitted in pairs, jointly")
+    fresh_top: int = Field(3, ge=0, description="0: warm refits only; otherwise, where the fit a candidate extends moved far from its starts, the candidate is refitted from the fresh start too")
+    path_pool: int | None = Field(None, description="no longer used (refused): every candidate is refitted at every step")
+    refit_top: int | None = Field(None, description="no longer used (refused): every candidate is refitted at every step")
     threshold_sigma: float = Field(4.0, gt=0, description="smoothed normalised residual (in sigma) beyond which a region is significant")
     smooth: int = Field(3, ge=1, le=31, description="box size in points of the residual smoothing that finds the significant regions (1-31)")
     figures: bool = Field(True, description="embed the residual maps and path chart in report.html")
@@ -72,6 +72,11 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
     cfg = load_fit_config(config, sections={"diagnose": DiagnoseSection})
     sec: DiagnoseSection = cfg.sections.get("diagnose") or DiagnoseSection()
     out = Path(out)
+    for key in ("refit_top", "path_pool"):
+        if getattr(sec, key) is not None:
+            raise ConfigError(str(cfg.source), [(f"diagnose.{key}", "is no longer an option: the search refits every "
+                                                 "applicable candidate at every step (the residual signatures only order "
+                                                 "the work; see docs/guides/diagnosis.md); remove the key")])
     names_asked = effects if effects is not None else sec.effects
     if names_asked is not None:  # before generating or reducing any data
         check_choices("effect", names_asked, EFFECT_LIBRARY, error=DiagnoseInputError)
@@ -105,8 +110,7 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
         fit_kwargs=fit_kwargs,
         bic_threshold=sec.bic_threshold,
         max_steps=sec.max_steps,
-        path_pool=sec.path_pool,
-        refit_top=sec.refit_top,
+        pair_top=sec.pair_top,
         fresh_top=sec.fresh_top,
         threshold=sec.threshold_sigma,
         smooth=sec.smooth,

@@ -258,16 +258,18 @@ def noise_line(gap: dict[str, Any]) -> str:
 
 #: The rules by which the path admits and keeps an effect, stated in every report (and in docs/guides/diagnosis.md).
 PATH_RULES = (
-    "An effect enters the path when its refit lowers the BIC by more than the threshold and it is admissible: "
-    "its own new parameters have a finite sigma, no weight or width of a term it added ends dead (below 1e-3 of its "
-    "start), a lobe it added is not narrower than half the angular sampling, none of its parameters ends on a bound, "
-    "it does not drive a term of the model to zero, and its signature reaches its presence threshold (or its refit "
-    "dominates every admissible one 5x).",
-    "A generic effect (a floor, a response curve) that ranks first is refitted jointly with the best specific "
-    "runners-up: when taking it out of the joint model costs less than the threshold (the specific effect explains "
-    "its signature), or the joint model needs the specific effect more, the specific effect enters first.",
-    "Every effect must pass the same test to stay: after each step the earlier effects, and at the end every effect, "
-    "are taken out in turn (the model refitted); one whose removal costs less BIC than the threshold is taken out.",
+    "At every step every applicable candidate is refitted added to the current set; the residual signature only "
+    "orders the refits and is reported, it excludes nothing.",
+    "An effect is admissible when its own terms are sound: its own new parameters have a finite sigma and none ends "
+    "on a bound, no weight or width of a term it added ends dead (below 1e-3 of its start), a lobe it added is not "
+    "narrower than half the angular sampling, and it does not drive a term of the model to zero.  An inadmissible "
+    "effect never enters, whatever its BIC gain.",
+    "The best admissible candidates are also refitted in pairs: the single or pair with the largest BIC gain enters "
+    "when the gain exceeds the threshold; a pair only when it beats its better member alone by more than the threshold.",
+    "A generic effect (a floor, a response curve) does not enter where a specific candidate explains its residual: "
+    "on their joint refit, taking the generic effect out costs less than the threshold.",
+    "Every effect must pass the same test to stay: after every step each effect is taken out in turn (the model "
+    "refitted); one whose removal costs less BIC than the threshold is taken out.",
     "A refit that fails (raises, ends non-finite, or above the model it extends) is retried once from a second start; "
     "a refit that fails twice is reported and counted (diagnosis.json settings.failed_refits), never ranked.",
 )

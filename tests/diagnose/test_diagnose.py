@@ -237,40 +237,19 @@ def test_cli_bad_input(tmp_path, capsys):
     assert not (out / "diagnosis.json").exists()
 
 
-# --- refit_top keeps the previous step's runners-up ---------------------------------------------------------
+# --- options of the earlier greedy path are refused with a clear message -----------------------------------------
 
 
-def test_refit_top_keeps_the_runners_up():
-    """At a later step the previous step's runners-up are refitted even when ``refit_top`` new signatures outrank them.
+def test_refit_top_and_path_pool_are_refused(tmp_path, capsys):
+    """The search refits every candidate (a signature prefilter left the withheld effect unrefitted on
+    evaluation frames): ``refit_top`` and ``path_pool`` are refused, in the API and in a config."""
+    from brdfjax.cli import main
+    from brdfjax.diagnose.engine import diagnose as engine_diagnose
 
-    (The shipped config's diffraction, second at step 1, was cut at step 2 by four larger signatures and
-    never entered the path.)  Four copies of the diffuse-floor effect with scores set per step: at step 1
-    A and B are the two best (refitted; A added, B the runner-up), at step 2 C and D outrank B.
-    """
-    from brdfjax.core.terms import Lambertian
-    from brdfjax.diagnose.effects import EFFECT_LIBRARY, Signature
-
-    floor = EFFECT_LIBRARY["lambertian"]
-
-    class Copy(type(floor)):
-        def __init__(self, name, scores):
-            self.name, self.scores = name, scores
-
-        def present_in(self, model):
-            return False
-
-        def signature(self, ctx):
-            step = sum(isinstance(t, Lambertian) for t in ctx.model.terms.values())
-            return Signature(0.0, self.scores[min(step, 1)], "set by the test")
-
-    library = {"A": Copy("A", (100.0, 1.0)), "B": Copy("B", (90.0, 2.0)), "C": Copy("C", (1.0, 95.0)), "D": Copy("D", (0.5, 94.0))}
-    truth = bj.Model(terms={"center": bj.Specular(bj.Beckmann(2e-4), rho_s=0.02, n=3.6, **bj.SEED_FORM), "bg": bj.Lambertian(0.05)})
-    frames = render_noisy_frames(truth, [20.0], roi=(-160, 160, -160, 160), step=16, seed=4)
-    base = bj.Model(terms={"center": truth.terms["center"]})
-    d = diagnose(base, frames, {"center.m": 2.4e-4, "center.rho_s": 0.02}, library=library, refit_top=2, max_steps=2,
-                 bic_threshold=-1e9, noise_stop=False)
-    first, second = d.path_rankings
-    assert {c.effect for c in first} == {"A", "B"} and d.path[1].effect in {"A", "B"}
-    runner_up = ({"A", "B"} - {d.path[1].effect}).pop()
-    assert runner_up in {c.effect for c in second}  # refitted although C and D have the larger signatures
-    assert {"C", "D"} <= {c.effect for c in second}
+    for kw in ({"refit_top": 5}, {"path_pool": 4}):
+        with pytest.raises(DiagnoseInputError, match="is no longer an option of diagnose"):
+            engine_diagnose(None, [], {}, **kw)
+    cfg = _write_config(tmp_path, '["lambertian"]')
+    cfg.write_text(cfg.read_text().replace("max_steps = 1", "max_steps = 1\nrefit_top = 5"))
+    assert main(["diagnose", str(cfg), "--out", str(tmp_path / "out")]) == 2
+    assert "diagnose.refit_top" in capsys.readouterr().err

@@ -90,12 +90,19 @@ class Effect:
     #: a broad, unspecific change (a uniform floor, a response curve, another distribution family): its score
     #: can hold what a more specific effect's signature explains, so the engine compares the two on a joint refit
     generic: bool = False
-    #: the signature score below which the effect is not added to the path (its own evidence is too weak)
+    #: the signature score below which the effect counts as weakly evidenced (a flag only where the diagnosis
+    #: is asked for it: ``diagnose(presence=True)``)
     presence: float = 3.0
     #: effects this one reduces to at a neutral value of one of its parameters (``pixel_nonlinearity`` at
-    #: gamma = 1 is ``flux_scale``): the engine refits them whenever it refits this one, so that the BIC can
-    #: prefer the simpler where the extra parameter stays neutral
+    #: gamma = 1 is ``flux_scale``); informative (the search refits every candidate at every step)
     nests: tuple[str, ...] = ()
+    #: False for a swap of a part of the model for another that does not contain it (a distribution family):
+    #: its refit cannot return to the model it changes, so ending above it is the data rejecting the effect
+    nested: bool = True
+
+    def applicable(self, ctx: Any) -> str | None:
+        """Why the effect cannot be tried on this fit's context (None: it can); e.g. no room in the frames."""
+        return None
 
     def present_in(self, model: Model) -> bool:
         raise NotImplementedError
@@ -321,9 +328,14 @@ def smooth_z(r: np.ndarray, s: float) -> np.ndarray:
     x = np.arange(-half, half + 1)
     k = np.exp(-0.5 * (x / s) ** 2)
 
+    def same(v, kern):
+        # "full" cut to the input's length: np.convolve's "same" returns the longer of the two, so a kernel
+        # longer than a frame's side (8 rows at step 16) changed the map's shape
+        return np.convolve(v, kern, mode="full")[half:half + v.size]
+
     def conv(a, kern):
-        a = np.apply_along_axis(lambda v: np.convolve(v, kern, mode="same"), 0, a)
-        return np.apply_along_axis(lambda v: np.convolve(v, kern, mode="same"), 1, a)
+        a = np.apply_along_axis(same, 0, a, kern)
+        return np.apply_along_axis(same, 1, a, kern)
 
     num = conv(r0, k)
     den = np.sqrt(conv(ok.astype(float), k * k))

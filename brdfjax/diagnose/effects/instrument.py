@@ -428,6 +428,12 @@ class StrayLightEffect(Effect):
                 best = (float(z[i]), k, int(dr[i[0], 0]), int(dc[0, i[1]]))
         return best, n_shift
 
+    def applicable(self, ctx):
+        best, _ = self._xcorr(ctx)
+        if best is None or not math.isfinite(best[0]):
+            return "no room for a displaced copy in the frames (no shift outside the peak's footprint)"
+        return None
+
     def signature(self, ctx):
         best, n = self._xcorr(ctx)
         if best is None or not math.isfinite(best[0]):

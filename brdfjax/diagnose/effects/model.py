@@ -490,6 +490,8 @@ def inner_specular(term: AbstractTerm) -> Specular:
 
 class DistributionShapeEffect(Effect):
     generic = True
+    #: a swap, not an extension: the refit replaces D and cannot return to the model it changes
+    nested = False
     name = "distribution_shape"
     title = "microfacet distribution shape (swap D)"
     needs_2d = False

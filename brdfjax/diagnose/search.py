@@ -1,0 +1,303 @@
+"""The model search of a diagnosis: which set of candidate effects explains the gap, with every effect earning
+its place by the same BIC test.
+
+The search knows nothing about frames, tables or light curves: it works on a :class:`SearchProblem` (the
+candidates, whether one is generic, the base fit and a refit of the base plus a set of effects) and records
+every :class:`Trial` it made.  The frame/table diagnosis (:mod:`brdfjax.diagnose.engine`) is one such
+problem; a sky-observation gap can be another.
+
+The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" = BIC decrease):
+
+1. Singles: at each step every remaining candidate is refitted added to the current set (warm-started at the
+   current fit).  A trial that failed (its refit raised, ended non-finite or above the model it extends after
+   the problem's own retry) is recorded and counted, never ranked.  A candidate whose own flags are non-empty
+   (its own terms dead, undetermined, or a parameter on a bound) is inadmissible: it never enters, whatever
+   its gain.
+2. Pairs: the ``pair_top`` best admissible singles (and, when the best is generic, the best specific
+   singles) are refitted in pairs, jointly, warm-started at the better member's single fit.
+3. Generic versus specific: a generic effect G (a floor, a response curve) may not enter when a specific
+   effect S explains its residual on their joint refit: taking G out of {current + G + S} costs less than T.
+4. Commit: the admissible single or pair with the largest gain enters when the gain exceeds T; a pair only
+   when it beats its better member's single by more than T (and both members are admissible in the pair).
+5. Backward elimination, after every commit: each effect of the set is taken out in turn (the model
+   refitted); the cheapest whose removal costs less than T is taken out, and this repeats.  An effect stays
+   only if removing it costs more than T: the test it passed to enter.
+6. Stop when nothing passes the threshold, when the problem says the fit is within the noise, when a move
+   would return to a set already visited, or after ``max_steps`` steps.
+
+Trials are cached by their set of effects: a set reached twice is refitted once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+__all__ = ["Trial", "SearchProblem", "SearchMove", "SearchResult", "search"]
+
+
+@dataclass
+class Trial:
+    """One fit of the base model plus a set of effects."""
+
+    effects: tuple[str, ...]
+    ok: bool  # refit finished and is not above the model it extends
+    failure: str | None  # why not ok (reported, never silently replaced)
+    bic: float  # chi2 + k ln N (or -2 lnL + k ln N)
+    chi2_reduced: float
+    n_params: int
+    heldout: float | None  # held-out figure (lower is better), None when no held-out data
+    flags: dict[str, list[str]]  # per effect in `effects`: reasons it may not stay (dead, undetermined, on bound)
+    state: Any = None  # problem-specific fitted state (warm starts)
+
+    def own_flags(self, effects: tuple[str, ...] | list[str]) -> list[str]:
+        """The flags of the named effects (``"effect: reason"``)."""
+        return [f"{e}: {f}" for e in effects for f in self.flags.get(e, [])]
+
+
+@runtime_checkable
+class SearchProblem(Protocol):
+    """What the search needs from a problem.
+
+    Optional methods, used when present: ``applicable(current: tuple[str, ...], effect: str) -> str | None``
+    (why ``effect`` cannot be added to ``current``: not identifiable there, already present in another form;
+    None: it can), ``within_noise(trial: Trial) -> bool`` (stop: nothing is left to explain), ``order(current:
+    Trial, effects: list[str]) -> list[str]`` (the order in which to refit, e.g. by a residual signature; it
+    must return every effect it is given), ``polish(trial: Trial) -> Trial`` (a committed set refitted once
+    more, e.g. from fresh starts; it returns the better of the two).
+    """
+
+    def candidates(self) -> list[str]: ...
+
+    def generic(self, effect: str) -> bool: ...  # floor-like generic effect
+
+    def base(self) -> Trial: ...
+
+    def refit(self, effects: tuple[str, ...], warm: Trial | None) -> Trial: ...  # retries inside before failing
+
+
+@dataclass
+class SearchMove:
+    """One accepted move of the search: effects added (one, or a pair jointly) or one removed."""
+
+    action: str  # "add" or "remove"
+    effects: tuple[str, ...]  # added (one or two) or removed (one)
+    trial: Trial  # the set after the move
+    gain: float  # BIC decrease of the move (removal: negative of its cost)
+    step: int  # 1-based step of the search
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class SearchResult:
+    base: Trial
+    final: Trial
+    moves: list[SearchMove]
+    trials: list[Trial]  # every trial made, in order (failed ones included)
+    singles: list[list[Trial]]  # per step: the single-effect trials of that step (the ranking's material)
+    pairs: list[list[Trial]]  # per step: the pair trials of that step
+    stop_reason: str
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def failed(self) -> list[Trial]:
+        return [t for t in self.trials if not t.ok]
+
+    @property
+    def n_failed(self) -> int:
+        return len(self.failed)
+
+
+def _key(effects: tuple[str, ...] | list[str]) -> frozenset:
+    return frozenset(effects)
+
+
+def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair_top: int = 3,
+           progress: Callable[[str], Any] | None = None) -> SearchResult:
+    """Search the smallest set of effects that explains the gap (the rule: the module docstring)."""
+    say = progress or (lambda msg: None)
+    T = float(bic_threshold)
+    trials: list[Trial] = []
+    cache: dict[frozenset, Trial] = {}
+    applicable = getattr(problem, "applicable", None)
+    within_noise = getattr(problem, "within_noise", None)
+    order = getattr(problem, "order", None)
+    polish = getattr(problem, "polish", None)
+
+    def fit(effects: tuple[str, ...], warm: Trial | None) -> Trial:
+        k = _key(effects)
+        if k in cache:
+            return cache[k]
+        t = problem.refit(tuple(effects), warm)
+        trials.append(t)
+        cache[k] = t
+        if not t.ok:
+            say(f"refit of {' + '.join(effects) or 'the base'} failed: {t.failure}")
+        return t
+
+    base = problem.base()
+    trials.append(base)
+    cache[_key(())] = base
+    cur = base
+    visited = {_key(())}
+    moves: list[SearchMove] = []
+    singles_by_step: list[list[Trial]] = []
+    pairs_by_step: list[list[Trial]] = []
+    notes: list[str] = []
+    cands = list(problem.candidates())
+    stop = f"max_steps = {max_steps} reached"
+    if within_noise is not None and within_noise(base):
+        stop = f"the base's reduced chi^2 {base.chi2_reduced:.4g} is within the noise"
+    elif not base.ok:
+        stop = f"the base fit failed: {base.failure}"
+    else:
+        for step in range(1, max(max_steps, 0) + 1):
+            # 1. singles: every remaining candidate that can be added to the current set
+            todo = []
+            for c in cands:
+                if c in cur.effects:
+                    continue
+                why = applicable(cur.effects, c) if applicable is not None else None
+                if why:
+                    continue
+                todo.append(c)
+            if order is not None:
+                todo = list(order(cur, todo))
+            singles: list[Trial] = []
+            for i, c in enumerate(todo):
+                say(f"step {step}: refitting with {c} ({i + 1}/{len(todo)})")
+                singles.append(fit(cur.effects + (c,), cur))
+            singles_by_step.append(singles)
+
+            def gain(t: Trial, cur: Trial = cur) -> float:
+                return cur.bic - t.bic if t.ok and math.isfinite(t.bic) else -math.inf
+
+            new_of = {id(t): t.effects[-1] for t in singles}
+            adm = sorted((t for t in singles if t.ok and not t.flags.get(new_of[id(t)])), key=lambda t: -gain(t))
+            if not adm or gain(adm[0]) <= T:
+                held = [t for t in singles if t.ok and t.flags.get(new_of[id(t)]) and gain(t) > T]
+                stop = ("the gain is not significant: " + (
+                    f"the best admissible effect, {new_of[id(adm[0])]}, gains delta BIC {gain(adm[0]):.4g} <= {T:g}"
+                    if adm else "no admissible candidate is left"))
+                if held:
+                    stop += "; not added although their BIC gain is larger: " + "; ".join(
+                        f"{new_of[id(t)]} (delta BIC {gain(t):.4g}: {', '.join(t.flags[new_of[id(t)]])})" for t in held)
+                pairs_by_step.append([])
+                break
+            # 2. pairs among the best admissible singles (and the generic best against the best specific ones)
+            top = [t for t in adm if gain(t) > T][:max(pair_top, 1)]
+            best1 = adm[0]
+            spec = [t for t in adm if not problem.generic(new_of[id(t)]) and gain(t) > T][:max(pair_top, 1)]
+            pair_list: list[tuple[Trial, Trial]] = []
+            for a in range(len(top)):
+                for b in range(a + 1, len(top)):
+                    pair_list.append((top[a], top[b]))
+            if problem.generic(new_of[id(best1)]):
+                for s in spec:
+                    if s is not best1 and not any({id(best1), id(s)} == {id(p), id(q)} for p, q in pair_list):
+                        pair_list.append((best1, s))
+            pairs: list[Trial] = []
+            pair_info: list[tuple[Trial, Trial, Trial]] = []
+            step_notes: list[str] = []
+            for p, q in pair_list:
+                e_p, e_q = new_of[id(p)], new_of[id(q)]
+                if applicable is not None and (applicable(cur.effects + (e_p,), e_q) or applicable(cur.effects + (e_q,), e_p)):
+                    step_notes.append(f"pair {e_p} + {e_q}: not tried (they cannot be combined: "
+                                      f"{applicable(cur.effects + (e_p,), e_q) or applicable(cur.effects + (e_q,), e_p)})")
+                    continue
+                warm = p if gain(p) >= gain(q) else q
+                other = e_q if warm is p else e_p
+                say(f"step {step}: refitting {e_p} and {e_q} jointly")
+                t = fit(warm.effects + (other,), warm)
+                pairs.append(t)
+                pair_info.append((p, q, t))
+            pairs_by_step.append(pairs)
+            # 3. a generic effect does not enter where a specific one explains its residual on the joint refit
+            blocked: set[str] = set()
+            for p, q, t in pair_info:
+                if not t.ok:
+                    continue
+                for g, s in ((p, q), (q, p)):
+                    eg, es = new_of[id(g)], new_of[id(s)]
+                    if problem.generic(eg) and not problem.generic(es):
+                        cost = s.bic - t.bic  # taking the generic one out of the joint refit
+                        if cost < T:
+                            blocked.add(eg)
+                            step_notes.append(f"{eg} (generic) does not enter: on the joint refit with {es} taking "
+                                              f"{eg} out costs {cost:.4g} < {T:g} ({es} explains its residual)")
+                        else:
+                            step_notes.append(f"{eg} (generic) beside {es} on their joint refit: taking {eg} out "
+                                              f"costs {cost:.4g} >= {T:g}")
+            # 4. commit the best move
+            options: list[tuple[float, tuple[str, ...], Trial, str]] = []
+            for t in adm:
+                e = new_of[id(t)]
+                if e in blocked or gain(t) <= T:
+                    continue
+                options.append((gain(t), (e,), t, ""))
+            for p, q, t in pair_info:
+                e_p, e_q = new_of[id(p)], new_of[id(q)]
+                if not t.ok:
+                    continue
+                if t.own_flags([e_p, e_q]):
+                    step_notes.append(f"pair {e_p} + {e_q}: not admitted ({'; '.join(t.own_flags([e_p, e_q]))})")
+                    continue
+                g_pair, g_best = gain(t), max(gain(p), gain(q))
+                if g_pair - g_best > T and not ({e_p, e_q} & blocked and _generic_removable(problem, p, q, t, T)):
+                    options.append((g_pair, (e_p, e_q) if gain(p) >= gain(q) else (e_q, e_p), t,
+                                    f"entered jointly: the pair gains {g_pair:.4g}, {g_pair - g_best:.4g} more than "
+                                    f"its better member alone (> {T:g})"))
+                else:
+                    step_notes.append(f"pair {e_p} + {e_q}: gains {g_pair:.4g}, {g_pair - g_best:+.4g} against its "
+                                      f"better member alone (needs > {T:g})")
+            options = [o for o in options if _key(o[2].effects) not in visited]
+            if not options:
+                stop = ("the gain is not significant: every effect that gains more than the threshold is held back "
+                        "(" + "; ".join(step_notes[-3:]) + ")" if step_notes else "no admissible move is left")
+                break
+            g, added, t, why = max(options, key=lambda o: o[0])
+            if polish is not None:
+                t = polish(t)
+                cache[_key(t.effects)] = t
+            cur = t
+            visited.add(_key(cur.effects))
+            say(f"step {step}: added {' + '.join(added)} (delta BIC {g:.1f})")
+            moves.append(SearchMove("add", added, cur, g, step, ([why] if why else []) + step_notes))
+            # 5. backward elimination with the same threshold, every removal refitted
+            while len(cur.effects) >= 2:
+                costs = []
+                for e in cur.effects:
+                    rest = tuple(x for x in cur.effects if x != e)
+                    say(f"step {step}: trying the set without {e}")
+                    w = fit(rest, cur)
+                    if not w.ok:
+                        moves[-1].notes.append(f"without {e}: the refit failed ({w.failure}); it stays")
+                        continue
+                    cost = w.bic - cur.bic
+                    moves[-1].notes.append(f"without {e}: BIC {'+' if cost >= 0 else ''}{cost:.4g}"
+                                           + (" (stays)" if cost >= T else ""))
+                    costs.append((cost, e, w))
+                below = sorted((c for c in costs if c[0] < T), key=lambda c: c[0])
+                if not below:
+                    break
+                cost, e, w = below[0]
+                cur = w
+                visited.add(_key(cur.effects))
+                say(f"step {step}: removed {e} (BIC without it {cost:+.1f} < {T:g})")
+                moves.append(SearchMove("remove", (e,), cur, -cost, step,
+                                        [f"taken out: without it the BIC changes by {cost:+.4g}, less than the {T:g} "
+                                         "it needed to enter (the model refitted)"]))
+            if within_noise is not None and within_noise(cur):
+                stop = f"the reduced chi^2 {cur.chi2_reduced:.4g} is within the noise"
+                break
+    return SearchResult(base, cur, moves, trials, singles_by_step, pairs_by_step, stop, notes)
+
+
+def _generic_removable(problem: SearchProblem, p: Trial, q: Trial, t: Trial, T: float) -> bool:
+    """Whether the generic member of the pair (p, q) costs less than T to take out of the pair's joint refit."""
+    for g, s in ((p, q), (q, p)):
+        if problem.generic(g.effects[-1]) and not problem.generic(s.effects[-1]):
+            return s.bic - t.bic < T
+    return False
