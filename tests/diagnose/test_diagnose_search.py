@@ -140,3 +140,25 @@ def test_the_search_stops_within_the_noise_and_at_max_steps():
     assert r.moves == [] and "base" in r.stop_reason and "within the noise" in r.stop_reason
     r = search(Table({"a": 80.0, "b": 60.0, "c": 40.0}), bic_threshold=T, max_steps=1, pair_top=1)
     assert len(r.final.effects) == 1 and r.stop_reason == "max_steps = 1 reached"
+
+
+class StuckFromBase(Table):
+    """``s`` fitted from the base sits in a poor optimum; fitted from a larger set that holds it (a floor ``g``
+    taken out) it reaches the good one, as diffraction did on the shipped example (5044 from the base, 1.02 from
+    the pair with the floor)."""
+
+    def refit(self, effects, warm):
+        t = super().refit(effects, warm)
+        if tuple(effects) == ("s",) and (warm is None or "s" not in warm.effects):
+            return Trial(t.effects, True, None, 600.0, 6.0, t.n_params, None, t.flags)
+        return t
+
+
+def test_a_set_reached_by_taking_an_effect_out_is_refitted_from_the_larger_fit():
+    # from the base: g (a floor) 700, s 600 (stuck); g + s 100; s alone from the pair 102 (g costs 2 < T)
+    p = StuckFromBase({"g": 300.0, "s": 898.0}, generic=("g",), sets={frozenset({"g", "s"}): 100.0})
+    r = search(p, bic_threshold=T, max_steps=3, pair_top=2)
+    assert r.final.effects == ("s",)
+    assert r.final.bic == pytest.approx(102.0)
+    pair_at = [i for i, c in enumerate(p.calls) if set(c) == {"g", "s"}][0]
+    assert ("s",) in p.calls[pair_at + 1:]  # refitted from the pair
