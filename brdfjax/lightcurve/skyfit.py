@@ -56,7 +56,7 @@ from ..io import toml
 from ..io.observations import Observations
 from ..runtime.errors import InputError
 from .attitude import lumos_normal_to_body, offset_facets
-from .engine import Attitude, Facets
+from .engine import Attitude, Facets, to_facet_frames
 from .observe import FacetSpec
 from .photometry import band
 from .skygeometry import SkyGeometry, sky_geometry
@@ -117,6 +117,8 @@ class SkyData:
     phase_deg: np.ndarray
     sun_obs_az_deg: np.ndarray  # azimuth of the observer from the Sun about body z at the satellite
     engine: object = None  # the light-curve engine's Geometry of these rows (earthshine needs it); None after take()
+    rpy: tuple = (0.0, 0.0, 0.0)  # the attitude's roll, pitch, yaw offsets (deg)
+    disk: dict | None = None  # solar-disk nodes: "nodes_b" (N, K, 3) body frame, "vis" (N, K), "weights" (K,)
 
     def __len__(self) -> int:
         return int(self.mag.shape[0])
@@ -124,14 +126,34 @@ class SkyData:
     def take(self, idx) -> "SkyData":
         idx = np.asarray(idx)
         obs = self.obs.take(idx)
+        disk = None if self.disk is None else {"nodes_b": self.disk["nodes_b"][idx], "vis": self.disk["vis"][idx],
+                                               "weights": self.disk["weights"]}
         return SkyData(self.name, obs, self.geometry, self.s_b[idx], self.o_b[idx], self.scale[idx], self.sun_mag[idx],
-                       self.mag[idx], self.mag_err[idx], self.phase_deg[idx], self.sun_obs_az_deg[idx])
+                       self.mag[idx], self.mag_err[idx], self.phase_deg[idx], self.sun_obs_az_deg[idx], None, self.rpy,
+                       disk)
 
     def with_mag(self, mag, mag_err=None) -> "SkyData":
         """The same rows with other magnitudes (synthetic sets)."""
         return SkyData(self.name, self.obs, self.geometry, self.s_b, self.o_b, self.scale, self.sun_mag,
                        np.asarray(mag, float), self.mag_err if mag_err is None else np.asarray(mag_err, float),
-                       self.phase_deg, self.sun_obs_az_deg, self.engine)
+                       self.phase_deg, self.sun_obs_az_deg, self.engine, self.rpy, self.disk)
+
+    def with_disk(self, disk) -> "SkyData":
+        """The same rows with the solar-disk nodes of ``disk`` (a :class:`~.engine.SunDisk`; the engine's own node
+        directions and Earth-shadow mask, so that a fit with the disk reproduces ``facet_flux`` with it)."""
+        from .engine import shadow_mask
+
+        if self.engine is None:
+            raise InputError(f"{self.name}: the solar disk needs the rows' engine geometry (lost by take(); build the "
+                             "rows with sky_data)")
+        g = self.engine
+        nodes = disk.directions(g.s)
+        vis = shadow_mask(g.r_hat * g.r[:, None], g.r, nodes, self.geometry.earth_radius)
+        M = Attitude.nadir(*np.deg2rad(self.rpy)).matrix(g.r_hat, g.v_hat)
+        nodes_b = jnp.einsum("tij,tki->tkj", M, nodes)
+        return SkyData(self.name, self.obs, self.geometry, self.s_b, self.o_b, self.scale, self.sun_mag, self.mag,
+                       self.mag_err, self.phase_deg, self.sun_obs_az_deg, self.engine, self.rpy,
+                       {"nodes_b": np.asarray(nodes_b), "vis": np.asarray(vis), "weights": np.asarray(disk.weights)})
 
 
 def sky_data(name: str, obs: Observations, *, yaw_law: str = "sun_yaw", convention: str = "physical",
@@ -151,7 +173,7 @@ def sky_data(name: str, obs: Observations, *, yaw_law: str = "sun_yaw", conventi
     az = np.rad2deg(np.arctan2(o_b[:, 1], o_b[:, 0]) - np.arctan2(s_b[:, 1], s_b[:, 0]))
     az = (az + 180.0) % 360.0 - 180.0
     return SkyData(name, kept, geo, s_b, o_b, scale, sun_mag, np.asarray(kept.mag, float),
-                   np.asarray(kept.mag_err, float), geo.phase_angle_deg(), az, g)
+                   np.asarray(kept.mag_err, float), geo.phase_angle_deg(), az, g, (roll_deg, pitch_deg, yaw_deg))
 
 
 # --- grouping for cross-validation ---------------------------------------------------------------------------
@@ -387,11 +409,36 @@ class SkyProblem:
         cos = jnp.maximum(w_c[..., 2], 0.0) * jnp.maximum(w_s[..., 2], 0.0)
         return w_c, w_s, jnp.nan_to_num(f * cos), fac.area
 
+    def disk_terms(self, x, d: SkyData):
+        """Each facet's BRDF x cos_i x cos_s integrated over the solar disk (N, J): the rule of ``d.disk``, as
+        :func:`~.engine.facet_flux` integrates it (node weights, the Earth's shadow per node)."""
+        fac = self._facets(x)
+        s_b = jnp.asarray(d.s_b)
+        xa, ya, na = fac.frames(s_b)
+        w_i = to_facet_frames(jnp.asarray(d.disk["nodes_b"]), xa, ya, na)  # (N, J, K, 3)
+        w_s = to_facet_frames(jnp.asarray(d.o_b), xa, ya, na)  # (N, J, 3)
+        models = self._models(x)
+        fams = [f.families[0] for f in self.facets]
+        cols = [None] * len(fams)
+        for fam in dict.fromkeys(fams):
+            idx = [j for j, q in enumerate(fams) if q == fam]
+            ii = np.asarray(idx)
+            vals = models[fam](Directions.from_vectors(w_i[:, ii], w_s[:, ii][:, :, None, :]), self.wavelength)
+            for q, j in enumerate(idx):
+                cols[j] = vals[:, q]
+        fv = jnp.stack(cols, 1)  # (N, J, K)
+        wts = jnp.asarray(d.disk["weights"]) * jnp.asarray(d.disk["vis"])[:, None, :]
+        integral = jnp.sum(wts * fv * jnp.maximum(w_i[..., 2], 0.0), -1)
+        return jnp.nan_to_num(integral * jnp.maximum(w_s[..., 2], 0.0))
+
     def flux(self, x, d: SkyData | None = None):
         """Per-facet flux (N, J) and the effects' flux (N,), in units of the solar irradiance at 1 AU."""
         d = d or self.data
         s_b, o_b, scale = jnp.asarray(d.s_b), jnp.asarray(d.o_b), jnp.asarray(d.scale)
         w_c, w_s, fc, area = self.facet_terms(x, s_b, o_b)
+        if d.disk is not None and any(p.key == "disk.on" for p in self.params):
+            on = x[self.index("disk.on")] > 0.5
+            fc = jax.lax.cond(on, lambda: self.disk_terms(x, d), lambda: fc)
         per = fc * area[None, :] * scale[:, None]
         extra = (self.effect_flux(self, x, d, w_c, w_s) if self.effect_flux is not None
                  else jnp.zeros(per.shape[0]))
