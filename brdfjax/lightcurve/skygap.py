@@ -330,6 +330,7 @@ class SkyGapProblem:
         self.max_starts = max_starts
         self.cv: dict[tuple[str, ...], dict] = {}
         self.n_refits = 0
+        self._last: dict[str, dict[str, float]] = {}  # each effect's fitted u of its keys in its latest refit
 
     def candidates(self) -> list[str]:
         return list(self.cands)
@@ -385,18 +386,33 @@ class SkyGapProblem:
         for c in new:
             for k, v in c.fixed.items():
                 u[P.index(k)] = P.params[P.index(k)].to_u(v)
+        # an effect refitted before (an earlier step or a single before a pair) starts where it ended and from its
+        # first listed start; a new one from each listed start (multimodal: the missing facet's orientation)
         starts = []
-        for combo in itertools.islice(itertools.product(*[c.starts or [{}] for c in new]), self.max_starts):
+        opts = [[("u", self._last[c.name]), ("x", (c.starts or [{}])[0])] if c.name in self._last and c.keys
+                else [("x", st) for st in (c.starts or [{}])] for c in new]
+        for combo in itertools.islice(itertools.product(*opts), self.max_starts):
             v = u.copy()
-            for st in combo:
+            for how, st in combo:
                 for k, val in st.items():
-                    v[P.index(k)] = P.params[P.index(k)].to_u(val)
+                    v[P.index(k)] = val if how == "u" else P.params[P.index(k)].to_u(val)
             starts.append(v)
         starts = starts or [u]
+        if warm is not None and warm.ok and len(new) == 1 and not new[0].keys:
+            # an effect without free parameters (the solar disk) that changes no row at the warm start is dead
+            # there: no refit (the disk's rule costs its node count in every evaluation)
+            if np.max(np.abs(P.predict(starts[0]) - warm.state.predict())) < DEAD_MAG:
+                w = warm.state
+                f0 = SkyFit(P, starts[0], w.free, P.m2ll(starts[0], w.w, w.joint), w.n, 0, w.w, w.joint)
+                t = self._trial(effects, f0)
+                t.flags["dead"] = sorted(set(t.flags["dead"]) | {new[0].name})
+                return t
         try:
             fit = P.fit(self.mask(effects), u0=starts[0], starts=starts[1:])
         except Exception as e:  # noqa: BLE001 -- a refit that cannot be evaluated is a failed trial, counted
             return self._trial(effects, None, f"{type(e).__name__}: {e}")
+        for e in effects:
+            self._last[e] = {k: float(fit.u[P.index(k)]) for k in self.cands[e].keys}
         return self._trial(effects, fit)
 
     def heldout(self, trial: Trial) -> float | None:
