@@ -44,6 +44,8 @@ OBS = ROOT / "tests/data/satellites/observations"
 #: the withheld effect -> the truth's parameter values (natural units)
 EFFECTS = {
     "earthshine": {"es.albedo": 0.3},
+    # a bright (cloud-covered) Earth: twice lumos-sat's default albedo
+    "earthshine@bright": {"es.albedo": 0.6},
     "offset": {"yaw.array": np.deg2rad(15.0)},
     "missing_facet": {"miss.arho": 1.5, "miss.tilt": np.deg2rad(50.0), "miss.az": np.deg2rad(90.0)},
     "wide_lobe": {"wide.chassis.k": 0.4, "wide.chassis.w": np.deg2rad(20.0)},
@@ -56,14 +58,15 @@ EFFECTS = {
     "solar_disk": {"disk.on": 1.0},
 }
 
-#: the side panel's material in the solar-disk trials: a Phong lobe about 0.5 deg wide (exponent 1.3e4), so that the
-#: Sun's 0.27-deg radius changes the glint; the SCORE rows within a few degrees of that panel's specular direction
-#: are the only real rows where a disk can show (none of the Slingshot rows come within 10 deg of any facet's)
-SHARP_SIDE = (0.1, 0.2, 1.3e4)
+#: the side panel's material in the solar-disk trials: a bright Phong lobe about 0.3 deg wide (exponent 3.6e4), so
+#: that the Sun's 0.27-deg radius changes the glint; the SCORE rows within a few degrees of that panel's specular
+#: direction are the only real rows where a disk can show (no Slingshot row comes within 10 deg of any facet's)
+SHARP_SIDE = (0.1, 0.5, 3.6e4)
 #: the rows of each trial: the solar-disk trials take SCORE nights holding rows within this angle of the side
-#: panel's specular direction first; the earthshine trials take rows where the Sun is below the satellite's
-#: horizontal by more than EARTHSHINE_SUN_BELOW_DEG (the nadir faces then see the Sun at grazing incidence and the lit
-#: Earth's limb: earthshine is largest there, experiments/sky_earthshine_size.py)
+#: panel's specular direction first; the earthshine trials take only rows where the Sun is less than
+#: EARTHSHINE_SUN_BELOW_DEG below the satellite's horizontal (the nadir faces then see the Sun at grazing incidence
+#: and more of the lit Earth: earthshine is largest there, 10-100 times its size elsewhere;
+#: experiments/sky_earthshine_size.py)
 DISK_NEAR_DEG = 5.0
 EARTHSHINE_SUN_BELOW_DEG = 10.0
 
@@ -97,13 +100,13 @@ def _near_side_specular(d) -> np.ndarray:
 
 
 def geometry(which: str, rows: int, seed: int, select: str | None = None):
-    """The rows of one trial.  ``select``: ``"earthshine"`` keeps only rows with the Sun more than
+    """The rows of one trial.  ``select``: ``"earthshine"`` keeps only rows with the Sun less than
     EARTHSHINE_SUN_BELOW_DEG below the satellite's horizontal; ``"solar_disk"`` takes the SCORE nights holding rows
     near the side panel's specular direction first."""
     rng = np.random.default_rng(seed)
     obs, full = _load(which)
     if select == "earthshine":
-        ok = full.geometry.sun_elevation_at_satellite_deg() < -EARTHSHINE_SUN_BELOW_DEG
+        ok = full.geometry.sun_elevation_at_satellite_deg() > -EARTHSHINE_SUN_BELOW_DEG
         obs = obs.take(full.geometry.keep[ok])
     if which == "slingshot":
         k = max(1, len(obs) // rows)
@@ -177,12 +180,12 @@ def trial(which: str, effect: str | None, rows: int, seed: int, log) -> dict:
             "zones_first_step": res["path"][0]["zones"][:3] if res["path"] else []}
 
 
-def effect_sizes(rows: int, seeds, log) -> list[dict]:
+def effect_sizes(rows: int, seeds, log, effects=tuple(EFFECTS)) -> list[dict]:
     """How much each withheld effect changes the noiseless magnitudes at its trial's rows (no fit): RMS and the 90th
     percentile of |truth - base| (mag), and for earthshine its share of the flux."""
     out = []
     for seed in seeds:
-        for eff in EFFECTS:
+        for eff in effects:
             P, _, truth, _, which = setup(("slingshot", "score")[seed % 2], eff, rows, seed)
             base = P.predict(P.u0())
             dm = np.abs(P.predict(truth) - base)
@@ -213,14 +216,20 @@ def main(argv=None) -> int:
     out = Path(a.out)
     if a.sizes:
         data = json.loads(out.read_text()) if out.exists() else {}
-        data["effect_sizes"] = effect_sizes(a.rows, range(a.first_seed, a.first_seed + a.trials), print)
+        data["effect_sizes"] = effect_sizes(a.rows, range(a.first_seed, a.first_seed + a.trials), print,
+                                           [e for e in a.effects.split(",") if e])
         write_json_atomic(out, data)
         return 0
     done = json.loads(out.read_text())["trials"] if out.exists() else []
     seen = {(t["set"], t["withheld"], t["seed"]) for t in done}
     seeds = range(a.first_seed, a.first_seed + a.trials)
-    plan = [(("slingshot", "score")[s % 2], e, s) for e in a.effects.split(",") if e for s in seeds]
-    plan += [(("slingshot", "score")[s % 2], None, s) for s in range(a.first_seed, a.first_seed + a.nulls)]
+    # seed by seed (every effect gets its first trial before any gets its second), nulls in between
+    plan = []
+    for s in range(a.first_seed, a.first_seed + max(a.trials, a.nulls)):
+        if s in seeds:
+            plan += [(("slingshot", "score")[s % 2], e, s) for e in a.effects.split(",") if e]
+        if s < a.first_seed + a.nulls:
+            plan.append((("slingshot", "score")[s % 2], None, s))
     t0 = time.perf_counter()
     for which, eff, seed in plan:
         if (which, eff, seed) in seen:

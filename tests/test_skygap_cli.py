@@ -62,12 +62,12 @@ width_deg = 20.0
 
 
 def _write_set(tmp: Path) -> Path:
-    """Every 8th Slingshot row with the magnitudes of the truth (a wide lobe on the chassis) plus 0.15 mag noise."""
+    """Every 16th Slingshot row with the magnitudes of the truth (a wide lobe on the chassis) plus 0.15 mag noise."""
     from brdfjax.lightcurve.observe_config import load_observe_config, predict_all
 
     lines = CSV.read_text().splitlines()
     sub = tmp / "rows.csv"
-    sub.write_text("\n".join([lines[0]] + lines[1::8]) + "\n")
+    sub.write_text("\n".join([lines[0]] + lines[1::16]) + "\n")
     truth = tmp / "truth.toml"
     truth.write_text(FACETS.format(csv=sub) + TRUTH)
     mag = predict_all(load_observe_config(truth))[0].mag
@@ -75,7 +75,7 @@ def _write_set(tmp: Path) -> Path:
     head = lines[0].split(",")
     k = head.index("measured_ab")
     rows = []
-    for line, m in zip(lines[1::8], mag):
+    for line, m in zip(lines[1::16], mag):
         cells = line.split(",")
         cells[k] = f"{m:.6f}"
         rows.append(",".join(cells))
@@ -90,8 +90,8 @@ def run(tmp_path_factory):
     csv = _write_set(tmp)
     (tmp / "base.toml").write_text(FACETS.format(csv=csv))
     (tmp / "skygap.toml").write_text(
-        'observe = "base.toml"\n[candidates]\nkinds = ["offset", "wide_lobe", "missing_facet"]\n'
-        '[holdout]\nby = "block"\nfolds = 4\nblocks = 8\n[bands]\ndraws = 60\n')
+        'observe = "base.toml"\n[candidates]\nkinds = ["offset", "wide_lobe"]\n[search]\npair_top = 2\n'
+        '[holdout]\nby = "block"\nfolds = 3\nblocks = 6\n[bands]\ndraws = 40\n')
     out = tmp / "out"
     p = subprocess.run([sys.executable, "-m", "brdfjax", "skygap", str(tmp / "skygap.toml"), "--out", str(out)],
                        capture_output=True, text=True, cwd=ROOT)
