@@ -28,10 +28,10 @@ Candidates (:func:`add_effects`; the effect kinds, their fluxes in
 :mod:`.skyeffects`):
 
 ``earthshine``
-    a Lambertian Earth of albedo ``a`` in [0, 1]: ``a`` times the
-    satellite's earthshine per unit albedo (:func:`~.earthshine.earthshine_flux`
-    on an 8 x 16 Earth grid, with the current facets and models, as
-    ``brdfjax observe`` computes it).
+    a Lambertian Earth of albedo ``a`` in [0, 1]: ``a`` times each facet's
+    earthshine per unit albedo (:func:`~.earthshine.earthshine_flux` on an
+    8 x 16 Earth grid with the configured facets and models, computed once),
+    scaled with each facet's fitted area.
 ``offset``
     a facet's normal canted about its x axis (a fixed facet) or a tracking
     array's axis turned about body z (``yaw``), +- 30 deg.
@@ -69,7 +69,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -302,24 +301,14 @@ def _effect_flux(problem: SkyProblem, x, d, w_c, w_s):
     total = effects_flux(vals, [f.name for f in problem.facets], w_c, w_s, d.s_b, d.o_b, d.scale, area,
                          problem._theta_max)
     if any(p.key == "es.albedo" for p in problem.params):
-        a = x[problem.index("es.albedo")]
-        if d.engine is None:  # rows without the engine geometry: the base facets' earthshine scaled by area
-            es = jnp.sum(jnp.asarray(problem._es_unit) * area[None, :], -1)
-        else:  # the current facets (areas, cants, yaws) and models, as `brdfjax observe` computes it
-            es = jax.lax.cond(a > 0, lambda: _earthshine_now(problem, x, d), lambda: jnp.zeros(total.shape[0]))
-        total = total + a * es
+        # each facet's earthshine per m^2 at albedo 1, computed once with the configured facets and models, scaled by
+        # the fitted areas: evaluating the Earth grid inside the fit (differentiable in cants and model parameters)
+        # made every compiled fit 3-4 times slower to compile; a model diagnosed with earthshine *and* a refitted
+        # facet orientation or model therefore reruns in observe to within the earthshine's change with them
+        # (skygap.json's rerun_check says how close)
+        es = jnp.sum(jnp.asarray(problem._es_unit) * area[None, :], -1)
+        total = total + x[problem.index("es.albedo")] * es
     return total
-
-
-def _earthshine_now(problem: SkyProblem, x, d):
-    """The satellite's earthshine at albedo 1 (N,) with the facets and models at ``x``."""
-    fams = list(dict.fromkeys(f.families[0] for f in problem.facets))
-    models = problem._models(x)
-    sat = Satellite(problem._facets(x), tuple(models[m] for m in fams), Attitude.nadir(*np.deg2rad(d.rpy)),
-                    tuple(fams.index(f.families[0]) for f in problem.facets))
-    n_psi, n_chi = problem._es_grid
-    return jnp.sum(earthshine_flux(sat, d.engine, 1.0, n_psi=n_psi, n_chi=n_chi, earth_radius=problem._es_radius,
-                                   wavelength=problem.wavelength), -1)
 
 
 def candidates(problem: SkyProblem) -> list[Candidate]:
