@@ -20,6 +20,7 @@ import argparse
 import sys
 
 from ..io import check_output_dir
+from ..lightcurve.skygap_config import load_skygap_config, run_skygap
 from ..runtime.cli_args import CONFIG, DIR, add_no_figures
 
 __all__ = ["add_arguments", "run"]
@@ -33,8 +34,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..lightcurve.skygap_config import load_skygap_config, run_skygap
-
     prog = "brdfjax skygap"
     cfg = load_skygap_config(args.config)
     check_output_dir(args.out)

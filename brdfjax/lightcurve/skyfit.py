@@ -56,7 +56,7 @@ from ..io import toml
 from ..io.observations import Observations
 from ..runtime.errors import InputError
 from .attitude import lumos_normal_to_body, offset_facets
-from .engine import Attitude, Facets, to_facet_frames
+from .engine import Attitude, Facets, shadow_mask, to_facet_frames
 from .observe import FacetSpec
 from .photometry import band
 from .skygeometry import SkyGeometry, sky_geometry
@@ -141,8 +141,6 @@ class SkyData:
     def with_disk(self, disk) -> "SkyData":
         """The same rows with the solar-disk nodes of ``disk`` (a :class:`~.engine.SunDisk`; the engine's own node
         directions and Earth-shadow mask, so that a fit with the disk reproduces ``facet_flux`` with it)."""
-        from .engine import shadow_mask
-
         if self.engine is None:
             raise InputError(f"{self.name}: the solar disk needs the rows' engine geometry (lost by take(); build the "
                              "rows with sky_data)")

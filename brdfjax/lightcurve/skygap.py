@@ -72,6 +72,7 @@ from typing import Any, Protocol
 import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.errors import InputError
 from .earthshine import earthshine_flux
 from .engine import Attitude, Satellite, SunDisk
 from .skyeffects import effects_flux
@@ -227,8 +228,6 @@ def add_effects(problem: SkyProblem, *, kinds=KINDS, facets: list[str] | None = 
     """
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:
-        from ..runtime.errors import InputError
-
         raise InputError(f"effect kinds {unknown} unknown; known: {', '.join(KINDS)}")
     earth_radius = problem.data.geometry.earth_radius if earth_radius is None else earth_radius
     names = [f.name for f in problem.facets]
@@ -490,8 +489,6 @@ def diagnose_sky(problem: SkyProblem, cands: list[Candidate] | None = None, fold
     res = search(gp, bic_threshold=threshold, max_steps=max_steps, pair_top=pair_top, progress=log)
     base = res.path[0]
     if not base.ok:
-        from ..runtime.errors import InputError
-
         raise InputError(f"sky diagnosis: the base fit failed ({base.failure})")
     ranking = []
     for t in (res.steps[0] if res.steps else []):

@@ -53,18 +53,21 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
+import jax
 import numpy as np
 from pydantic import Field
 
-from ..config import StrictModel, read_toml, validate
+from ..config import ConfigError, StrictModel, read_toml, validate
 from ..io import check_output_dir, write_json_atomic
 from ..io.observations import read_observations
+from ..plotting import save_figure_atomic
 from ..runtime.atomic import atomic_output
 from .config import build_models
-from .observe_config import _facet_specs, load_observe_config
+from .observe_config import _facet_specs, load_observe_config, predict_all
 from .skyfit import (
     SkyProblem,
     block_groups,
+    cross_validate,
     group_folds,
     lab_table,
     night_groups,
@@ -164,8 +167,6 @@ def load_skygap_config(path: str | Path) -> SkygapConfig:
     cfg = validate(SkygapConfig, {**data, "source": str(path)}, str(path))
     bad = [k for k in cfg.candidates.kinds if k not in KINDS]
     if bad:
-        from ..config import ConfigError
-
         raise ConfigError(str(path), [("candidates.kinds", f"unknown effect kinds {bad}; known: {', '.join(KINDS)}")])
     return cfg
 
@@ -174,8 +175,6 @@ def load_skygap_config(path: str | Path) -> SkygapConfig:
 
 
 def _setup(cfg: SkygapConfig, log):
-    from ..config import ConfigError
-
     opath = cfg.resolve(cfg.observe)
     ocfg = load_observe_config(opath)
     names = [o.name for o in ocfg.observations]
@@ -219,8 +218,6 @@ def _setup(cfg: SkygapConfig, log):
 
 
 def _groups(cfg: SkygapConfig, d) -> tuple[np.ndarray, str]:
-    from ..config import ConfigError
-
     by = cfg.holdout.by
     if by == "auto":
         by = "night" if d.obs.time is not None and d.obs.lon_deg is not None else "block"
@@ -289,8 +286,6 @@ def _figure(res: dict, P, out: Path) -> str:
         ax.legend(fontsize=7, loc="upper right")
     ax.set_xlabel("solar phase angle (deg)")
     fig.tight_layout()
-    from ..plotting import save_figure_atomic
-
     p = out / "residuals_by_step.png"
     save_figure_atomic(fig, p, 110)
     return p.name
@@ -345,11 +340,7 @@ def _report(res: dict, summary: dict) -> str:
 def run_skygap(cfg: SkygapConfig, out_dir: str | Path, log=lambda s: sys.stderr.write(s + "\n"),
                figures: bool | None = None, progress=None) -> dict[str, Any]:
     """Diagnose one observation set (see the module docstring) and write the outputs into ``out_dir``."""
-    import jax
-
     jax.config.update("jax_enable_x64", True)
-    from .observe_config import predict_all
-
     out = Path(check_output_dir(out_dir))
     out.mkdir(parents=True, exist_ok=True)
     ocfg, opath, oc, step, P = _setup(cfg, log)
@@ -358,8 +349,6 @@ def run_skygap(cfg: SkygapConfig, out_dir: str | Path, log=lambda s: sys.stderr.
     if c.facets:
         bad = [f for f in c.facets if f not in [q.name for q in P.facets]]
         if bad:
-            from ..config import ConfigError
-
             raise ConfigError(cfg.source, [("candidates.facets", f"unknown facets {bad}")])
         top = list(c.facets)
     else:
@@ -410,8 +399,6 @@ def run_skygap(cfg: SkygapConfig, out_dir: str | Path, log=lambda s: sys.stderr.
     if cfg.bands.draws > 0:
         pb = predictive_band(final, cfg.bands.draws, cfg.bands.seed)
         band = pb["band"]
-        from .skyfit import cross_validate
-
         cvb = cross_validate(P, final.free, folds, u0=final.u, band_draws=cfg.bands.draws, seed=cfg.bands.seed)
         summary["band"] = {"draws": cfg.bands.draws, "median_param_sd_mag": float(np.nanmedian(pb["param_sd"])),
                            "heldout_coverage_68": cvb["band_coverage_68"],
