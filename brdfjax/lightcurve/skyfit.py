@@ -577,6 +577,9 @@ def laplace_covariance(fit: SkyFit, max_sd_u: float = 1.0) -> tuple[np.ndarray, 
     w = jnp.asarray(np.ones(len(prob.data)) if fit.w is None else fit.w)
     ufull = jnp.asarray(fit.u)
     H = np.asarray(jax.hessian(lambda z: prob._m2ll(ufull.at[idx].set(z), w, fit.joint))(ufull[idx]))
+    # a non-finite second derivative (a parameter saturated on its bound: sigmoid' underflows) says nothing about
+    # that direction: it gets the floor below
+    H = np.nan_to_num(H, nan=0.0, posinf=0.0, neginf=0.0)
     H = 0.25 * (H + H.T)  # H / 2, symmetrised
     ev, V = np.linalg.eigh(H)
     ev = np.maximum(np.nan_to_num(ev, nan=0.0), 1.0 / max_sd_u**2)
