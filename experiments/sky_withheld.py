@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
@@ -43,17 +44,36 @@ OBS = ROOT / "tests/data/satellites/observations"
 #: the withheld effect -> the truth's parameter values (natural units)
 EFFECTS = {
     "earthshine": {"es.albedo": 0.3},
+    # a bright (cloud-covered) Earth: twice lumos-sat's default albedo
+    "earthshine@bright": {"es.albedo": 0.6},
     "offset": {"yaw.array": np.deg2rad(15.0)},
     "missing_facet": {"miss.arho": 1.5, "miss.tilt": np.deg2rad(50.0), "miss.az": np.deg2rad(90.0)},
     "wide_lobe": {"wide.chassis.k": 0.4, "wide.chassis.w": np.deg2rad(20.0)},
     "out_of_plane": {"oop.chassis.k": 0.6, "oop.chassis.delta": np.deg2rad(15.0)},
     # the same offset peak 2.5 times as bright (a variant: "kind@label" is scored on its kind)
     "out_of_plane@strong": {"oop.chassis.k": 1.5, "oop.chassis.delta": np.deg2rad(15.0)},
+    # grating orders of the chassis out of its lab scan plane (grooves along its x axis)
+    "diffraction": {"diff.chassis.k": 0.6, "diff.chassis.s": 0.15},
+    # the finite Sun on a glinting side panel (its model sharp in both truth and base: see SHARP_SIDE)
+    "solar_disk": {"disk.on": 1.0},
 }
 
+#: the side panel's material in the solar-disk trials: a bright Phong lobe about 0.3 deg wide (exponent 3.6e4), so
+#: that the Sun's 0.27-deg radius changes the glint; the SCORE rows within a few degrees of that panel's specular
+#: direction are the only real rows where a disk can show (no Slingshot row comes within 10 deg of any facet's)
+SHARP_SIDE = (0.1, 0.5, 3.6e4)
+#: the rows of each trial: the solar-disk trials take SCORE nights holding rows within this angle of the side
+#: panel's specular direction first; the earthshine trials take only rows where the Sun is less than
+#: EARTHSHINE_SUN_BELOW_DEG below the satellite's horizontal (the nadir faces then see the Sun at grazing incidence
+#: and more of the lit Earth: earthshine is largest there, 10-100 times its size elsewhere;
+#: experiments/sky_earthshine_size.py)
+DISK_NEAR_DEG = 5.0
+EARTHSHINE_SUN_BELOW_DEG = 10.0
 
-def facets_and_models():
-    models = {"chassis": lumos_phong(0.05, 0.4, 8.0), "side": lumos_phong(0.1, 0.2, 4.0),
+
+def facets_and_models(sharp_side: bool = False):
+    models = {"chassis": lumos_phong(0.05, 0.4, 8.0),
+              "side": lumos_phong(*SHARP_SIDE) if sharp_side else lumos_phong(0.1, 0.2, 4.0),
               "array": lumos_phong(0.02, 0.3, 20.0)}
     facets = [FacetSpec("chassis", 12.0, (0, 0, -1.0), ["chassis"], max_theta_i_deg=60.0),
               FacetSpec("side", 3.0, (0, 0.7071, -0.7071), ["side"], max_theta_i_deg=60.0),
@@ -61,18 +81,47 @@ def facets_and_models():
     return facets, models
 
 
-def geometry(which: str, rows: int, seed: int):
-    rng = np.random.default_rng(seed)
+def _load(which: str):
     if which == "slingshot":
         obs = read_observations(OBS / "slingshot_v2mini.csv", "slingshot")
-        start = rng.integers(0, max(1, len(obs) - rows * 4))
-        obs = obs.take(np.arange(start, len(obs), 4)[:rows])  # every 4th row: passes stay contiguous
+        return obs, sky_data("slingshot", obs, convention="lumos", earth_radius=6378000.0)
+    obs = read_observations(OBS / "score_v2mini.csv", "score")
+    return obs, sky_data("score", obs, convention="physical", band_map={"CLEAR": "V"})
+
+
+def _near_side_specular(d) -> np.ndarray:
+    """Rows (kept rows of ``d``) within DISK_NEAR_DEG of the side panel's specular direction."""
+    facets, models = facets_and_models()
+    P = SkyProblem.build(d, facets, models, normals="lumos")
+    w_c, w_s, _, _ = P.facet_terms(P.x_of_u(jnp.asarray(P.u0())), jnp.asarray(d.s_b), jnp.asarray(d.o_b))
+    w_c, w_s = np.asarray(w_c)[:, 1], np.asarray(w_s)[:, 1]
+    ang = np.degrees(np.arccos(np.clip(np.sum(w_c * np.array([-1, -1, 1.0]) * w_s, -1), -1, 1)))
+    return (w_c[:, 2] > 0) & (w_s[:, 2] > 0) & (ang < DISK_NEAR_DEG)
+
+
+def geometry(which: str, rows: int, seed: int, select: str | None = None):
+    """The rows of one trial.  ``select``: ``"earthshine"`` keeps only rows with the Sun less than
+    EARTHSHINE_SUN_BELOW_DEG below the satellite's horizontal; ``"solar_disk"`` takes the SCORE nights holding rows
+    near the side panel's specular direction first."""
+    rng = np.random.default_rng(seed)
+    obs, full = _load(which)
+    if select == "earthshine":
+        ok = full.geometry.sun_elevation_at_satellite_deg() > -EARTHSHINE_SUN_BELOW_DEG
+        obs = obs.take(full.geometry.keep[ok])
+    if which == "slingshot":
+        k = max(1, len(obs) // rows)
+        start = rng.integers(0, k)
+        obs = obs.take(np.arange(start, len(obs), k)[:rows])  # every k-th row: passes stay contiguous
         d = sky_data("slingshot", obs, convention="lumos", earth_radius=6378000.0)
         groups = block_groups(len(d), 10)
     else:
-        obs = read_observations(OBS / "score_v2mini.csv", "score")
         nights = night_groups(obs)
-        pick = rng.permutation(np.unique(nights))
+        pick = list(rng.permutation(np.unique(nights)))
+        if select == "solar_disk":
+            near = np.zeros(len(obs), bool)
+            near[full.geometry.keep[_near_side_specular(full)]] = True
+            first = [g for g in pick if near[nights == g].any()]
+            pick = first + [g for g in pick if g not in first]
         keep, n = [], 0
         for g in pick:  # whole nights until ``rows``
             idx = np.flatnonzero(nights == g)
@@ -86,14 +135,25 @@ def geometry(which: str, rows: int, seed: int):
     return d, groups
 
 
-def trial(which: str, effect: str | None, rows: int, seed: int, log) -> dict:
-    d, groups = geometry(which, rows, seed)
-    facets, models = facets_and_models()
+def setup(which: str, effect: str | None, rows: int, seed: int):
+    """The problem of one trial (candidates added), the truth's ``u``, the row groups and the set actually used."""
+    kind = None if effect is None else effect.split("@")[0]
+    if kind == "solar_disk":
+        which = "score"  # only SCORE rows come near a facet's specular direction
+    d, groups = geometry(which, rows, seed, select=kind if kind in ("earthshine", "solar_disk") else None)
+    facets, models = facets_and_models(sharp_side=kind == "solar_disk")
     P = SkyProblem.build(d, facets, models, normals="lumos")
     cands = add_effects(P, earth_radius=6378000.0 if which == "slingshot" else 6378137.0)
     truth = P.u0()
     for k, v in (EFFECTS[effect] if effect else {}).items():
         truth[P.index(k)] = P.params[P.index(k)].to_u(v)
+    return P, cands, truth, groups, which
+
+
+def trial(which: str, effect: str | None, rows: int, seed: int, log) -> dict:
+    kind = None if effect is None else effect.split("@")[0]
+    P, cands, truth, groups, which = setup(which, effect, rows, seed)
+    d = P.data
     clean = P.predict(truth)
     rng = np.random.default_rng(1000 + seed)
     if which == "slingshot":
@@ -102,7 +162,7 @@ def trial(which: str, effect: str | None, rows: int, seed: int, log) -> dict:
     else:
         err = np.where(np.isfinite(d.mag_err) & (d.mag_err > 0), d.mag_err, 0.2)
         noise = err * rng.standard_normal(len(d))
-    P.data = d.with_mag(clean + noise, err)
+    P.data = d.with_mag(clean + noise, err)  # d: the rows with the solar-disk nodes
     P._fns.clear()
     folds = group_folds(groups, 5, seed=seed)
     res = diagnose_sky(P, cands, folds, log=log)
@@ -110,40 +170,35 @@ def trial(which: str, effect: str | None, rows: int, seed: int, log) -> dict:
     h = res["heldout"]
     path_rms = h.get("path_rms", h["base_rms"])
     named = res["named"]
-    kind = None if effect is None else effect.split("@")[0]
     ok = (named is None) if effect is None else (named == kind and path_rms <= 1.2 * truth_rms)
     return {"set": which, "withheld": effect, "seed": seed, "n": res["n"], "named": named,
             "path": [p["effect"] for p in res["path"]], "truth_rms": truth_rms, "base_heldout_rms": h["base_rms"],
             "path_heldout_rms": path_rms, "pass": bool(ok), "seconds": res["seconds"],
-            "ranking_top3": [{k: r[k] for k in ("name", "delta_bic", "on_bound")} for r in res["ranking"][:3]],
+            "refits": res["refits"], "failed_refits": res["failed_refits"],
+            "effect_rms_mag": float(np.sqrt(np.mean((clean - P.predict(P.u0())) ** 2))),
+            "ranking_top3": [{k: r[k] for k in ("name", "delta_bic", "on_bound", "dead")} for r in res["ranking"][:3]],
             "zones_first_step": res["path"][0]["zones"][:3] if res["path"] else []}
 
 
-def effect_sizes(rows: int, seeds, log) -> list[dict]:
-    """How much each withheld effect changes the noiseless magnitudes at the real rows (no fit): RMS and the 90th
+def effect_sizes(rows: int, seeds, log, effects=tuple(EFFECTS)) -> list[dict]:
+    """How much each withheld effect changes the noiseless magnitudes at its trial's rows (no fit): RMS and the 90th
     percentile of |truth - base| (mag), and for earthshine its share of the flux."""
     out = []
     for seed in seeds:
-        which = ("slingshot", "score")[seed % 2]
-        d, _ = geometry(which, rows, seed)
-        facets, models = facets_and_models()
-        P = SkyProblem.build(d, facets, models, normals="lumos")
-        add_effects(P, earth_radius=6378000.0 if which == "slingshot" else 6378137.0)
-        base = P.predict(P.u0())
-        per, _ = P.flux(P.x_of_u(P.u0()))
-        direct = np.asarray(per).sum(-1)
-        for eff, vals in EFFECTS.items():
-            u = P.u0()
-            for k, v in vals.items():
-                u[P.index(k)] = P.params[P.index(k)].to_u(v)
-            dm = np.abs(P.predict(u) - base)
-            row = {"set": which, "seed": seed, "effect": eff, "rms_mag": float(np.sqrt(np.mean(dm**2))),
-                   "p90_mag": float(np.percentile(dm, 90))}
+        for eff in effects:
+            P, _, truth, _, which = setup(("slingshot", "score")[seed % 2], eff, rows, seed)
+            base = P.predict(P.u0())
+            dm = np.abs(P.predict(truth) - base)
+            row = {"set": which, "seed": seed, "effect": eff, "rows": len(base),
+                   "rms_mag": float(np.sqrt(np.mean(dm**2))), "p90_mag": float(np.percentile(dm, 90)),
+                   "max_mag": float(np.max(dm))}
             if eff == "earthshine":
-                es = 0.3 * np.sum(P._es_unit * np.asarray([f.area for f in facets])[None, :], -1)
-                row["flux_share_p50_p90"] = [float(x) for x in np.percentile(es / direct, [50, 90])]
+                per, _ = P.flux(P.x_of_u(P.u0()))
+                es = 0.3 * np.sum(P._es_unit * np.asarray([f.area for f in P.facets])[None, :], -1)
+                row["flux_share_p50_p90"] = [float(x) for x in np.percentile(es / np.asarray(per).sum(-1), [50, 90])]
             out.append(row)
-            log(f"{which:9s} seed {seed} {eff:20s} |truth - base| RMS {row['rms_mag']:.4f} mag, p90 {row['p90_mag']:.4f}"
+            log(f"{which:9s} seed {seed} {eff:20s} {len(base)} rows |truth - base| RMS {row['rms_mag']:.4f} mag, "
+                f"p90 {row['p90_mag']:.4f}, max {row['max_mag']:.3f}"
                 + (f", flux share p50/p90 {row['flux_share_p50_p90']}" if "flux_share_p50_p90" in row else ""))
     return out
 
@@ -161,14 +216,20 @@ def main(argv=None) -> int:
     out = Path(a.out)
     if a.sizes:
         data = json.loads(out.read_text()) if out.exists() else {}
-        data["effect_sizes"] = effect_sizes(a.rows, range(a.first_seed, a.first_seed + a.trials), print)
+        data["effect_sizes"] = effect_sizes(a.rows, range(a.first_seed, a.first_seed + a.trials), print,
+                                           [e for e in a.effects.split(",") if e])
         write_json_atomic(out, data)
         return 0
     done = json.loads(out.read_text())["trials"] if out.exists() else []
     seen = {(t["set"], t["withheld"], t["seed"]) for t in done}
     seeds = range(a.first_seed, a.first_seed + a.trials)
-    plan = [(("slingshot", "score")[s % 2], e, s) for e in a.effects.split(",") if e for s in seeds]
-    plan += [(("slingshot", "score")[s % 2], None, s) for s in range(a.first_seed, a.first_seed + a.nulls)]
+    # seed by seed (every effect gets its first trial before any gets its second), nulls in between
+    plan = []
+    for s in range(a.first_seed, a.first_seed + max(a.trials, a.nulls)):
+        if s in seeds:
+            plan += [(("slingshot", "score")[s % 2], e, s) for e in a.effects.split(",") if e]
+        if s < a.first_seed + a.nulls:
+            plan.append((("slingshot", "score")[s % 2], None, s))
     t0 = time.perf_counter()
     for which, eff, seed in plan:
         if (which, eff, seed) in seen:

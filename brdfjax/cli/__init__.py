@@ -184,6 +184,12 @@ COMMANDS: dict[str, Command] = {
         _lazy(".observe", "add_arguments"),
         _lazy(".observe", "run"),
     ),
+    "skygap": Command(
+        "skygap",
+        "diagnose the gap between a facet model and observed magnitudes: which effect, where, how far on held-out nights",
+        _lazy(".skygap", "add_arguments"),
+        _lazy(".skygap", "run"),
+    ),
 }
 
 

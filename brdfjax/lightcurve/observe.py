@@ -51,6 +51,7 @@ from .attitude import lumos_normal_to_body, offset_facets
 from .earthshine import earthshine_flux
 from .engine import Attitude, Facets, Satellite, SunDisk, facet_flux
 from .photometry import BANDS, BandError, band
+from .skyeffects import effects_flux
 from .skygeometry import SkyGeometry, sky_geometry
 
 __all__ = ["FacetSpec", "SetPrediction", "metrics", "covariance_draws", "predict_set", "lab_coverage"]
@@ -97,6 +98,7 @@ class SetPrediction:
     phase_deg: np.ndarray
     sun_mag: np.ndarray
     band: np.ndarray | None = None  # (N, 5): 2.5, 16, 50, 84, 97.5 percentiles
+    effect_flux: np.ndarray | None = None  # (N,) the [effects] terms' flux (skyeffects), None without any
     families_drawn: dict[str, dict[str, int]] = field(default_factory=dict)
 
     @property
@@ -226,7 +228,7 @@ def _facet_directions(sat: Satellite, geo):
         return jnp.stack([jnp.sum(vv * x, -1), jnp.sum(vv * y, -1), jnp.sum(vv * n, -1)], -1)
 
     scale = jnp.square(1.495978707e11 / geo.d_sun) / jnp.square(geo.d_obs)
-    return to_facet(s_b), to_facet(o_b), scale
+    return to_facet(s_b), to_facet(o_b), scale, s_b, o_b
 
 
 @jax.jit
@@ -277,7 +279,9 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
                 incidence_margin_deg: float = 1.0, min_flux_fraction: float = 0.1,
                 min_altitude_deg: float = 0.0, earthshine_albedo: float | None = None,
                 earthshine_grid: tuple[int, int] = (32, 64),
-                model_error: dict[str, tuple[float, float]] | None = None) -> SetPrediction:
+                model_error: dict[str, tuple[float, float]] | None = None,
+                effects: dict[str, float] | None = None, effects_theta_max_deg: dict[str, float] | None = None
+                ) -> SetPrediction:
     """Predict one observation set (see the module docstring).
 
     ``models``: model name -> object with ``.model`` (a Model) and ``.draws``
@@ -290,7 +294,11 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     each draw multiplies a facet's flux by ``exp(sigma z)`` (z normal, per
     draw, row and facet), sigma the model's error inside the lab's geometry
     (its fit's log-RMS) or outside it (e.g. its log-RMS on a withheld
-    incidence), by the facet's flag on that row.
+    incidence), by the facet's flag on that row.  ``effects``: values of
+    :mod:`.skyeffects` keys (e.g. ``wide.<facet>.k``; radians) whose flux
+    is added to the total (and to each draw of the band);
+    ``effects_theta_max_deg``: facet -> the incidence beyond which its wide
+    lobe switches on (default: the facet's ``max_theta_i_deg``, else 75).
     """
     geo = sky_geometry(obs, yaw_law=yaw_law, earth_radius=earth_radius, min_altitude_deg=min_altitude_deg)
     kept = obs.take(geo.keep)
@@ -339,11 +347,18 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     if earthshine_albedo is not None:
         ratio = ratio * np.where(flux > 0, (flux + es) / np.where(flux > 0, flux, 1.0), 1.0)
         flux = flux + es
-    total = flux.sum(-1)
+    w_c, w_s, scale, s_b, o_b = _facet_directions(sat, g)
+    extra = None
+    if effects:
+        tmax = effects_theta_max_deg or {}
+        theta_max = np.deg2rad([tmax.get(f.name, 75.0 if f.max_theta_i_deg is None else f.max_theta_i_deg)
+                                for f in facets])
+        extra = np.asarray(effects_flux({k: jnp.asarray(v) for k, v in effects.items()}, [f.name for f in facets],
+                                        w_c, w_s, s_b, o_b, scale, sat.facets.area, theta_max))
+    total = flux.sum(-1) + (0.0 if extra is None else extra)
     with np.errstate(divide="ignore"):
         mag = sun_mag - 2.5 * np.log10(total)
         facet_mag = sun_mag[:, None] - 2.5 * np.log10(flux)
-    w_c, w_s, scale = _facet_directions(sat, g)
     ti, ts, oop = (np.asarray(a) for a in _angles(w_c, w_s))
     lit = (ti < 90) & (ts < 90)
     max_ti = np.array([np.inf if f.max_theta_i_deg is None else f.max_theta_i_deg + incidence_margin_deg for f in facets])
@@ -352,12 +367,12 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     frac = flux / np.where(total > 0, total, 1.0)[:, None]
     flagged = np.any((flag_i | flag_p) & (frac >= min_flux_fraction), -1)
     pred = SetPrediction(name, kept, geo, [f.name for f in facets], mag, facet_mag, flux, ti, ts, oop, flag_i, flag_p,
-                         flagged, geo.phase_angle_deg(), sun_mag)
+                         flagged, geo.phase_angle_deg(), sun_mag, effect_flux=extra)
     if draws > 0:
         pred.band, pred.families_drawn = _bands(sat, facets, fam_names, models, result_paths or {}, np.asarray(w_c),
                                                 np.asarray(w_s), np.asarray(scale), ratio, sun_mag, kept.mag_err, draws,
                                                 seed, parameter_uncertainty, model_form, wavelength, model_error or {},
-                                                flag_i | flag_p)
+                                                flag_i | flag_p, extra)
     return pred
 
 
@@ -375,7 +390,7 @@ def _family_weights(facets: list[FacetSpec]) -> np.ndarray:
 
 
 def _bands(sat, facets, fam_names, models, result_paths, w_c, w_s, scale, ratio, sun_mag, mag_err, S, seed,
-           parameter_uncertainty, model_form, wavelength, model_error, outside):
+           parameter_uncertainty, model_form, wavelength, model_error, outside, extra=None):
     rng = np.random.default_rng(seed)
     J = len(facets)
     T = w_c.shape[0]
@@ -418,6 +433,8 @@ def _bands(sat, facets, fam_names, models, result_paths, w_c, w_s, scale, ratio,
                 contrib = contrib * np.exp(sig[None, :] * rng.standard_normal(contrib.shape))
             total[used[use]] += contrib
             counts.setdefault(facets[j].name, {})[fam] = int(use.sum())
+    if extra is not None:
+        total = total + extra[None, :]
     with np.errstate(divide="ignore"):
         m = sun_mag[None, :] - 2.5 * np.log10(total)
     err = np.where(np.isfinite(mag_err), mag_err, 0.0)

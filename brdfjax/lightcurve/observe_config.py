@@ -57,6 +57,10 @@
     n_psi = 32
     n_chi = 64
 
+    [effects.wide_lobe.chassis]      # light terms beyond the facet models (written by brdfjax skygap)
+    k = 0.4
+    width_deg = 20.0
+
     [model_error.mirror_binomial]    # the model's own error, RMS of ln BRDF (widens the band)
     inside_log_rms = 0.79            # its fit's log-RMS
     outside_log_rms = 1.28           # its log-RMS on a withheld incidence (experiments/sky_lab_cv.py)
@@ -202,6 +206,68 @@ class FlagsConfig(StrictModel):
     min_flux_fraction: float = Field(0.1, ge=0, le=1)
 
 
+class MissingFacetEffect(StrictModel):
+    """A Lambertian plate the facet model lacks (the sky gap diagnosis's ``missing_facet``)."""
+
+    arho_m2: float = Field(ge=0, description="its area times its albedo (m^2)")
+    tilt_deg: float = Field(ge=0, le=180, description="its body-frame normal's angle from body +z (deg)")
+    az_deg: float = Field(ge=-360, le=360, description="its normal's azimuth about body z, from body +x (deg)")
+
+
+class WideLobeEffect(StrictModel):
+    """A lobe beyond a facet's measured incidence: k exp(-(1 - h_z) / w^2), switched on beyond theta_max."""
+
+    k: float = Field(ge=0, description="amplitude (sr^-1)")
+    width_deg: float = Field(gt=0, le=90, description="width w of the lobe in the half vector (deg)")
+    theta_max_deg: float | None = Field(None, gt=0, le=90, description="incidence beyond which it switches on "
+                                        "(a 2-deg sigmoid); unset: the facet's lab table's largest incidence, else 75")
+
+
+class OutOfPlaneEffect(StrictModel):
+    """Two offset peaks out of the plane of incidence (6-deg lobes about the half vector)."""
+
+    k: float = Field(ge=0, description="amplitude of the pair (sr^-1)")
+    delta_deg: float = Field(ge=0, le=90, description="the peaks' offset from the facet normal, out of the plane (deg)")
+
+
+class DiffractionEffect(StrictModel):
+    """First diffraction orders of grooves along the facet's x axis (out of a lab scan along x)."""
+
+    k: float = Field(ge=0, description="amplitude of the pair of orders (sr^-1)")
+    order_spacing: float = Field(gt=0, le=2, description="lambda / groove period: the orders' offset in direction "
+                                 "cosine along the facet's y axis")
+
+
+class EffectsConfig(StrictModel):
+    """Light terms added to the facet model (brdfjax.lightcurve.skyeffects); `brdfjax skygap` writes them."""
+
+    missing_facet: MissingFacetEffect | None = Field(None, description="a Lambertian plate the model lacks")
+    wide_lobe: dict[str, WideLobeEffect] = Field(default_factory=dict, description="per facet: a lobe beyond "
+                                                 "its measured incidence")
+    out_of_plane: dict[str, OutOfPlaneEffect] = Field(default_factory=dict, description="per facet: offset peaks "
+                                                      "out of the plane of incidence")
+    diffraction: dict[str, DiffractionEffect] = Field(default_factory=dict, description="per facet: grating "
+                                                      "orders out of the lab's scan plane")
+
+    def values(self) -> tuple[dict[str, float], dict[str, float]]:
+        """The :mod:`.skyeffects` parameter values (radians) and each wide lobe's switch-on incidence (deg)."""
+        v: dict[str, float] = {}
+        tmax: dict[str, float] = {}
+        if self.missing_facet is not None:
+            m = self.missing_facet
+            v.update({"miss.arho": m.arho_m2, "miss.tilt": float(np.deg2rad(m.tilt_deg)),
+                      "miss.az": float(np.deg2rad(m.az_deg))})
+        for f, e in self.wide_lobe.items():
+            v.update({f"wide.{f}.k": e.k, f"wide.{f}.w": float(np.deg2rad(e.width_deg))})
+            if e.theta_max_deg is not None:
+                tmax[f] = e.theta_max_deg
+        for f, e in self.out_of_plane.items():
+            v.update({f"oop.{f}.k": e.k, f"oop.{f}.delta": float(np.deg2rad(e.delta_deg))})
+        for f, e in self.diffraction.items():
+            v.update({f"diff.{f}.k": e.k, f"diff.{f}.s": e.order_spacing})
+        return v, tmax
+
+
 class OutputConfig(StrictModel):
     figures: bool = True
 
@@ -218,6 +284,7 @@ class ObserveConfig(StrictModel):
     lab: dict[str, LabConfig] = Field(default_factory=dict)
     models: dict[str, LCModelConfig] = Field(min_length=1)
     earthshine: EarthshineConfig = Field(default_factory=EarthshineConfig)
+    effects: EffectsConfig = Field(default_factory=EffectsConfig)
     model_error: dict[str, ModelErrorConfig] = Field(default_factory=dict)
     bands: BandsConfig = Field(default_factory=BandsConfig)
     flags: FlagsConfig = Field(default_factory=FlagsConfig)
@@ -231,6 +298,10 @@ class ObserveConfig(StrictModel):
                     raise ValueError(f"facets.{name}: unknown model '{m}'; known: {', '.join(self.models)}")
             if f.lab is not None and f.lab not in self.lab:
                 raise ValueError(f"facets.{name}.lab: unknown lab table '{f.lab}'; known: {', '.join(self.lab) or 'none'}")
+        for kind in ("wide_lobe", "out_of_plane", "diffraction"):
+            for f in getattr(self.effects, kind):
+                if f not in self.facets:
+                    raise ValueError(f"effects.{kind}.{f}: unknown facet; known: {', '.join(self.facets)}")
         for m in self.model_error:
             if m not in self.models:
                 raise ValueError(f"model_error.{m}: unknown model; known: {', '.join(self.models)}")
@@ -283,6 +354,7 @@ def predict_all(cfg: ObserveConfig, log=lambda s: None) -> list[SetPrediction]:
     facets = _facet_specs(cfg)
     disk = SunDisk.point() if cfg.sun.disk == "point" else SunDisk.rings(cfg.sun.disk_rings,
                                                                       limb_darkening=cfg.sun.limb_darkening)
+    eff, eff_tmax = cfg.effects.values()
     out = []
     for oc in cfg.observations:
         obs = read_observations(cfg.resolve(oc.path), oc.format, oc.columns or None, oc.band,
@@ -303,7 +375,8 @@ def predict_all(cfg: ObserveConfig, log=lambda s: None) -> list[SetPrediction]:
             incidence_margin_deg=cfg.flags.incidence_margin_deg, min_flux_fraction=cfg.flags.min_flux_fraction,
             min_altitude_deg=oc.min_altitude_deg, earthshine_albedo=cfg.earthshine.albedo,
             earthshine_grid=(cfg.earthshine.n_psi, cfg.earthshine.n_chi),
-            model_error={k: (v.inside_log_rms, v.outside_log_rms) for k, v in cfg.model_error.items()})
+            model_error={k: (v.inside_log_rms, v.outside_log_rms) for k, v in cfg.model_error.items()},
+            effects=eff, effects_theta_max_deg=eff_tmax)
         log(f"{oc.name}: {len(pred.mag)} rows predicted (dropped: {pred.obs.dropped})")
         out.append(pred)
     return out

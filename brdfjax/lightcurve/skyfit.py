@@ -56,13 +56,13 @@ from ..io import toml
 from ..io.observations import Observations
 from ..runtime.errors import InputError
 from .attitude import lumos_normal_to_body, offset_facets
-from .engine import Attitude, Facets
+from .engine import Attitude, Facets, shadow_mask, to_facet_frames
 from .observe import FacetSpec
 from .photometry import band
 from .skygeometry import SkyGeometry, sky_geometry
 
 __all__ = ["Param", "SkyData", "SkyProblem", "SkyFit", "sky_data", "group_folds", "night_groups", "block_groups",
-           "cross_validate", "nuts_posterior", "LabTable", "lab_table", "write_observe_config"]
+           "cross_validate", "nuts_posterior", "laplace_covariance", "predictive_band", "LabTable", "lab_table", "write_observe_config"]
 
 AU_M = 1.495978707e11
 _EDGE = 1e-3  # a parameter within this fraction of its range of a bound is "on the bound"
@@ -117,6 +117,8 @@ class SkyData:
     phase_deg: np.ndarray
     sun_obs_az_deg: np.ndarray  # azimuth of the observer from the Sun about body z at the satellite
     engine: object = None  # the light-curve engine's Geometry of these rows (earthshine needs it); None after take()
+    rpy: tuple = (0.0, 0.0, 0.0)  # the attitude's roll, pitch, yaw offsets (deg)
+    disk: dict | None = None  # solar-disk nodes: "nodes_b" (N, K, 3) body frame, "vis" (N, K), "weights" (K,)
 
     def __len__(self) -> int:
         return int(self.mag.shape[0])
@@ -124,14 +126,32 @@ class SkyData:
     def take(self, idx) -> "SkyData":
         idx = np.asarray(idx)
         obs = self.obs.take(idx)
+        disk = None if self.disk is None else {"nodes_b": self.disk["nodes_b"][idx], "vis": self.disk["vis"][idx],
+                                               "weights": self.disk["weights"]}
         return SkyData(self.name, obs, self.geometry, self.s_b[idx], self.o_b[idx], self.scale[idx], self.sun_mag[idx],
-                       self.mag[idx], self.mag_err[idx], self.phase_deg[idx], self.sun_obs_az_deg[idx])
+                       self.mag[idx], self.mag_err[idx], self.phase_deg[idx], self.sun_obs_az_deg[idx], None, self.rpy,
+                       disk)
 
     def with_mag(self, mag, mag_err=None) -> "SkyData":
         """The same rows with other magnitudes (synthetic sets)."""
         return SkyData(self.name, self.obs, self.geometry, self.s_b, self.o_b, self.scale, self.sun_mag,
                        np.asarray(mag, float), self.mag_err if mag_err is None else np.asarray(mag_err, float),
-                       self.phase_deg, self.sun_obs_az_deg, self.engine)
+                       self.phase_deg, self.sun_obs_az_deg, self.engine, self.rpy, self.disk)
+
+    def with_disk(self, disk) -> "SkyData":
+        """The same rows with the solar-disk nodes of ``disk`` (a :class:`~.engine.SunDisk`; the engine's own node
+        directions and Earth-shadow mask, so that a fit with the disk reproduces ``facet_flux`` with it)."""
+        if self.engine is None:
+            raise InputError(f"{self.name}: the solar disk needs the rows' engine geometry (lost by take(); build the "
+                             "rows with sky_data)")
+        g = self.engine
+        nodes = disk.directions(g.s)
+        vis = shadow_mask(g.r_hat * g.r[:, None], g.r, nodes, self.geometry.earth_radius)
+        M = Attitude.nadir(*np.deg2rad(self.rpy)).matrix(g.r_hat, g.v_hat)
+        nodes_b = jnp.einsum("tij,tki->tkj", M, nodes)
+        return SkyData(self.name, self.obs, self.geometry, self.s_b, self.o_b, self.scale, self.sun_mag, self.mag,
+                       self.mag_err, self.phase_deg, self.sun_obs_az_deg, self.engine, self.rpy,
+                       {"nodes_b": np.asarray(nodes_b), "vis": np.asarray(vis), "weights": np.asarray(disk.weights)})
 
 
 def sky_data(name: str, obs: Observations, *, yaw_law: str = "sun_yaw", convention: str = "physical",
@@ -151,7 +171,7 @@ def sky_data(name: str, obs: Observations, *, yaw_law: str = "sun_yaw", conventi
     az = np.rad2deg(np.arctan2(o_b[:, 1], o_b[:, 0]) - np.arctan2(s_b[:, 1], s_b[:, 0]))
     az = (az + 180.0) % 360.0 - 180.0
     return SkyData(name, kept, geo, s_b, o_b, scale, sun_mag, np.asarray(kept.mag, float),
-                   np.asarray(kept.mag_err, float), geo.phase_angle_deg(), az, g)
+                   np.asarray(kept.mag_err, float), geo.phase_angle_deg(), az, g, (roll_deg, pitch_deg, yaw_deg))
 
 
 # --- grouping for cross-validation ---------------------------------------------------------------------------
@@ -226,6 +246,8 @@ class SkyFit:
     m2ll: float
     n: int
     steps: int = 0
+    w: np.ndarray | None = None  # the rows' weights of the fit (None: all 1)
+    joint: float = 1.0
 
     @property
     def k(self) -> int:
@@ -387,11 +409,36 @@ class SkyProblem:
         cos = jnp.maximum(w_c[..., 2], 0.0) * jnp.maximum(w_s[..., 2], 0.0)
         return w_c, w_s, jnp.nan_to_num(f * cos), fac.area
 
+    def disk_terms(self, x, d: SkyData):
+        """Each facet's BRDF x cos_i x cos_s integrated over the solar disk (N, J): the rule of ``d.disk``, as
+        :func:`~.engine.facet_flux` integrates it (node weights, the Earth's shadow per node)."""
+        fac = self._facets(x)
+        s_b = jnp.asarray(d.s_b)
+        xa, ya, na = fac.frames(s_b)
+        w_i = to_facet_frames(jnp.asarray(d.disk["nodes_b"]), xa, ya, na)  # (N, J, K, 3)
+        w_s = to_facet_frames(jnp.asarray(d.o_b), xa, ya, na)  # (N, J, 3)
+        models = self._models(x)
+        fams = [f.families[0] for f in self.facets]
+        cols = [None] * len(fams)
+        for fam in dict.fromkeys(fams):
+            idx = [j for j, q in enumerate(fams) if q == fam]
+            ii = np.asarray(idx)
+            vals = models[fam](Directions.from_vectors(w_i[:, ii], w_s[:, ii][:, :, None, :]), self.wavelength)
+            for q, j in enumerate(idx):
+                cols[j] = vals[:, q]
+        fv = jnp.stack(cols, 1)  # (N, J, K)
+        wts = jnp.asarray(d.disk["weights"]) * jnp.asarray(d.disk["vis"])[:, None, :]
+        integral = jnp.sum(wts * fv * jnp.maximum(w_i[..., 2], 0.0), -1)
+        return jnp.nan_to_num(integral * jnp.maximum(w_s[..., 2], 0.0))
+
     def flux(self, x, d: SkyData | None = None):
         """Per-facet flux (N, J) and the effects' flux (N,), in units of the solar irradiance at 1 AU."""
         d = d or self.data
         s_b, o_b, scale = jnp.asarray(d.s_b), jnp.asarray(d.o_b), jnp.asarray(d.scale)
         w_c, w_s, fc, area = self.facet_terms(x, s_b, o_b)
+        if d.disk is not None and any(p.key == "disk.on" for p in self.params):
+            on = x[self.index("disk.on")] > 0.5
+            fc = jax.lax.cond(on, lambda: self.disk_terms(x, d), lambda: fc)
         per = fc * area[None, :] * scale[:, None]
         extra = (self.effect_flux(self, x, d, w_c, w_s) if self.effect_flux is not None
                  else jnp.zeros(per.shape[0]))
@@ -463,7 +510,7 @@ class SkyProblem:
             u, m, steps = fn(jnp.asarray(start, float), jnp.asarray(free), jnp.asarray(w), jnp.asarray(joint))
             m = float(m)
             if np.isfinite(m) and (best is None or m < best.m2ll):
-                best = SkyFit(self, np.asarray(u), free, m, int(np.sum(w > 0)), int(steps))
+                best = SkyFit(self, np.asarray(u), free, m, int(np.sum(w > 0)), int(steps), w, float(joint))
         if best is None:
             raise InputError("sky fit: the likelihood is not finite at any start (check the facets' models and rows)")
         return best
@@ -473,7 +520,7 @@ class SkyProblem:
 
 
 def cross_validate(problem: SkyProblem, free: np.ndarray, folds: list[np.ndarray], u0: np.ndarray | None = None,
-                   joint: float = 1.0) -> dict:
+                   joint: float = 1.0, band_draws: int = 0, seed: int = 0) -> dict:
     """Refit on all but each held-out fold; the held-out residuals (observed - predicted) of every row.
 
     Returns ``rms``, ``bias``, ``n``, the per-row held-out ``pred`` (N,) and
@@ -482,16 +529,23 @@ def cross_validate(problem: SkyProblem, free: np.ndarray, folds: list[np.ndarray
     training rows' residual RMS), the fractions of held-out rows within
     +-0.9945 and +-1.96 of it (the Gaussian 68 and 95 % bands; the fit's own
     parameter uncertainty is not added), and per fold the RMS and the rows.
+    ``band_draws`` > 0: also each held-out row's :func:`predictive_band` from
+    its training fit (parameter uncertainty and the row's noise):
+    ``band`` (N, 5) and ``band_coverage_68``/``band_coverage_95``, the
+    fractions of held-out rows inside its 16-84 and 2.5-97.5 % ranges.
     """
     d = problem.data
     pred = np.full(len(d), np.nan)
     sig = np.full(len(d), np.nan)
     has = np.isfinite(d.mag_err) & (d.mag_err > 0)
     per_fold = []
-    for hold in folds:
+    band = np.full((len(d), 5), np.nan)
+    for q, hold in enumerate(folds):
         f = problem.fit(free, u0=u0, w=(~hold).astype(float), joint=joint)
         p = f.predict()
         pred[hold] = p[hold]
+        if band_draws > 0:
+            band[hold] = predictive_band(f, band_draws, seed + q)["band"][hold]
         r = d.mag - p
         train0 = ~hold & ~has
         s0 = np.sqrt(np.mean(r[train0] ** 2)) if train0.any() else np.nan
@@ -501,9 +555,66 @@ def cross_validate(problem: SkyProblem, free: np.ndarray, folds: list[np.ndarray
     r = d.mag - pred
     ok = np.isfinite(r)
     z = np.abs(r[ok]) / sig[ok]
-    return {"rms": float(np.sqrt(np.mean(r[ok] ** 2))), "bias": float(np.mean(r[ok])), "n": int(ok.sum()),
-            "pred": pred, "sigma": sig, "coverage_68": float(np.mean(z <= 0.9945)),
-            "coverage_95": float(np.mean(z <= 1.96)), "folds": per_fold}
+    out = {"rms": float(np.sqrt(np.mean(r[ok] ** 2))), "bias": float(np.mean(r[ok])), "n": int(ok.sum()),
+           "pred": pred, "sigma": sig, "coverage_68": float(np.mean(z <= 0.9945)),
+           "coverage_95": float(np.mean(z <= 1.96)), "folds": per_fold}
+    if band_draws > 0:
+        m = d.mag[ok]
+        out.update(band=band, band_coverage_68=float(np.mean((m >= band[ok, 1]) & (m <= band[ok, 3]))),
+                   band_coverage_95=float(np.mean((m >= band[ok, 0]) & (m <= band[ok, 4]))))
+    return out
+
+
+def laplace_covariance(fit: SkyFit, max_sd_u: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The free entries' indices and their covariance in ``u`` from the Hessian of ``-2 ln L`` at the fit
+    (``(H / 2)^-1``, the fit's own weights and joint factor).  Directions the rows do not constrain (a flat or
+    negative curvature: an area of a facet no row sees, an amplitude on its bound) would get an unbounded spread;
+    each eigenvalue of ``H / 2`` is floored at ``1 / max_sd_u^2``, so no direction spreads by more than
+    ``max_sd_u`` in ``u`` (one logistic unit: a parameter in the middle of its range moves by about a quarter of
+    it)."""
+    prob = fit.problem
+    idx = np.flatnonzero(fit.free)
+    w = jnp.asarray(np.ones(len(prob.data)) if fit.w is None else fit.w)
+    ufull = jnp.asarray(fit.u)
+    H = np.asarray(jax.hessian(lambda z: prob._m2ll(ufull.at[idx].set(z), w, fit.joint))(ufull[idx]))
+    # a non-finite second derivative (a parameter saturated on its bound: sigmoid' underflows) says nothing about
+    # that direction: it gets the floor below
+    H = np.nan_to_num(H, nan=0.0, posinf=0.0, neginf=0.0)
+    H = 0.25 * (H + H.T)  # H / 2, symmetrised
+    ev, V = np.linalg.eigh(H)
+    ev = np.maximum(np.nan_to_num(ev, nan=0.0), 1.0 / max_sd_u**2)
+    return idx, (V / ev) @ V.T
+
+
+def predictive_band(fit: SkyFit, n_draws: int = 200, seed: int = 0, data: SkyData | None = None) -> dict:
+    """Each row's predictive band with the fit's parameter uncertainty (the Laplace approximation of
+    :func:`laplace_covariance`, drawn in ``u`` so that draws stay inside the bounds) and the row's noise (its
+    uncertainty and the fitted scatter, or the fit's residual RMS over rows without one).
+
+    Returns ``band`` (N, 5): the 2.5, 16, 50, 84 and 97.5 percentiles of the predicted observation (mag);
+    ``param_sd`` (N,): the standard deviation of the predicted magnitude from the parameters alone; ``noise``
+    (N,): the noise sigma used.
+    """
+    prob = fit.problem
+    d = data or prob.data
+    rng = np.random.default_rng(seed)
+    idx, cov = laplace_covariance(fit)
+    ev, V = np.linalg.eigh(cov)
+    L = V * np.sqrt(np.clip(ev, 0, None))
+    u = np.tile(fit.u, (n_draws, 1))
+    u[:, idx] += rng.standard_normal((n_draws, idx.size)) @ L.T
+    mags = np.asarray(jax.lax.map(lambda v: prob.mag_of_x(prob.x_of_u(v), d), jnp.asarray(u), batch_size=16))
+    mags = np.nan_to_num(mags, nan=np.inf)
+    has = np.isfinite(d.mag_err) & (d.mag_err > 0)
+    s = fit.values()["scatter"]
+    p = fit.predict(d)
+    w = np.ones(len(d)) if (fit.w is None or data is not None) else fit.w
+    train0 = (w > 0) & ~has
+    s0 = float(np.sqrt(np.mean((d.mag - p)[train0] ** 2))) if train0.any() else 0.0
+    noise = np.where(has, np.sqrt(np.where(has, d.mag_err, 0.0) ** 2 + s**2), s0)
+    obs = mags + noise[None, :] * rng.standard_normal(mags.shape)
+    return {"band": np.percentile(obs, [2.5, 16, 50, 84, 97.5], axis=0).T,
+            "param_sd": np.std(np.where(np.isfinite(mags), mags, np.nan), 0), "noise": noise}
 
 
 # --- posterior ---------------------------------------------------------------------------------------------------
@@ -556,16 +667,21 @@ def nuts_posterior(fit: SkyFit, n_draws: int = 300, n_warmup: int = 300, seed: i
 _PATH_KEYS = ("path", "terms_file", "fit_result", "posterior")
 
 
-def write_observe_config(fit: SkyFit, config_path, out_path) -> Path:
+def write_observe_config(fit: SkyFit, config_path, out_path, *, sections: dict | None = None,
+                         effects_written: bool = False, header: str | None = None) -> Path:
     """The fitted facet model as an observe config: ``config_path`` with each facet's area, cant and yaw and each
     refitted model's parameters replaced by the fit's values, every facet predicted by the family the fit used (no
     alternatives; a refitted model's ``fit_result`` dropped: its covariance belongs to the lab fit), relative paths
-    made absolute, and any ``[earthshine]`` table dropped (the fit had none).  ``brdfjax observe`` on it reproduces :meth:`SkyFit.predict` (a test).  Effects of
-    :mod:`.skygap` cannot be written: a fit with any of them freed raises :class:`InputError`."""
+    made absolute, and any ``[earthshine]`` table dropped (the problem has none of its own).  ``sections``: top-level
+    tables set as given (``brdfjax skygap`` writes ``[effects]``, ``[earthshine]`` and ``[sun]`` of the diagnosed
+    effects there).  ``brdfjax observe`` on it reproduces :meth:`SkyFit.predict` (a test).  A fit with effects of
+    :mod:`.skygap` freed raises :class:`InputError` unless ``effects_written`` (the caller wrote them in
+    ``sections``)."""
     prob = fit.problem
     free_effects = [p.key for i, p in enumerate(prob.params) if p.kind == "effect" and fit.free[i]]
-    if free_effects:
-        raise InputError(f"write_observe_config: effects {free_effects} have no observe-config form")
+    if free_effects and not effects_written:
+        raise InputError(f"write_observe_config: effects {free_effects} have no observe-config form here "
+                         "(brdfjax skygap writes them as [effects])")
     src = Path(config_path)
     data = read_toml(src, "observe config")
 
@@ -578,7 +694,8 @@ def write_observe_config(fit: SkyFit, config_path, out_path) -> Path:
         return node
 
     data = absolute(data)
-    data.pop("earthshine", None)  # the problem's facets carry no earthshine (skygap's candidate is not written)
+    data.pop("earthshine", None)  # the problem's facets carry no earthshine (skygap's candidate is written by it)
+    data.pop("effects", None)
     vals = fit.values()
     for f in prob.facets:
         fc = data["facets"][f.name]
@@ -601,6 +718,8 @@ def write_observe_config(fit: SkyFit, config_path, out_path) -> Path:
             term, par = name.split(".", 1)
             terms[term].setdefault("params", {})[par] = v
         m["terms"] = terms
+    for k, v in (sections or {}).items():
+        data[k] = v
     out = Path(out_path)
-    return toml.write(out, data, header=f"{src.name} with the facet model fitted to observations "
+    return toml.write(out, data, header=header or f"{src.name} with the facet model fitted to observations "
                       "(brdfjax.lightcurve.skyfit.write_observe_config)")

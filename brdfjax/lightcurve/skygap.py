@@ -1,82 +1,207 @@
 """The gap on the sky: which unmodelled effect explains where a facet model misses observed magnitudes.
 
 Given a :class:`~.skyfit.SkyProblem` (a base facet model over one
-observation set), the diagnosis
+observation set), the diagnosis is a search over *candidate effects*
+(:class:`SkyGapProblem`, implementing the search protocol shared with the
+frame and table diagnosis: :class:`SearchProblem`, :func:`search`):
 
-1. fits the base (facet areas free; the scatter profiled or the rows'
+1. the base is fitted (facet areas free; the scatter profiled or the rows'
    uncertainties);
-2. refits the base with each *candidate effect* added (its parameters
-   physically bounded, several starts where the likelihood is multimodal) and
-   ranks the candidates by BIC (``-2 ln L + k ln N``); a candidate whose
-   fitted parameters end on a bound (an amplitude at zero, a width at its
-   limit) is kept off the path, as on tables;
-3. builds the path: the best candidate improving BIC by more than
-   ``threshold`` joins, the remaining leading candidates are refitted on top,
-   until none does or ``max_steps``;
-4. reports *where* each step changes the residuals (zones in phase angle,
-   in each facet's incidence and scattering angle, in the Sun-observer
-   azimuth about the body's z axis at the satellite) and *how far* the gap
-   shrinks on held-out groups (whole nights, satellites or blocks of rows:
-   :func:`~.skyfit.group_folds`), base against path.
+2. at each step every candidate not yet on the path is refitted on top of the
+   current model (its parameters physically bounded, several starts where
+   the likelihood is multimodal, the current fit as the warm start), and the
+   ``pair_top`` best pairs of candidates too; a refit whose candidate
+   parameter ends on a bound (an amplitude at zero, a width at its limit) or
+   whose effect changes no row by 1 mmag (dead) is flagged and kept off the
+   path, as on tables;
+3. the best unflagged refit improving BIC (``-2 ln L + k ln N``) by more
+   than ``bic_threshold`` joins the path (a *generic* effect, the missing
+   facet, only when no specific one comes within the threshold of it), until
+   none does or ``max_steps``;
+4. each path step is cross-validated on held-out groups (whole nights,
+   satellites or blocks of rows: :func:`~.skyfit.group_folds`) and
+   :func:`zones` says *where* it changed the residuals (phase angle, each
+   facet's incidence and scattering angle, the Sun-observer azimuth about
+   body z).
 
-Candidates (:func:`candidates`; the names are the effect kinds):
+Candidates (:func:`add_effects`; the effect kinds, their fluxes in
+:mod:`.skyeffects`):
 
 ``earthshine``
-    a Lambertian Earth of albedo ``a`` in [0, 0.6]: ``a`` times each facet's
-    earthshine per unit albedo (:func:`~.earthshine.earthshine_flux` with the
-    base model, scaled with each facet's fitted area).
+    a Lambertian Earth of albedo ``a`` in [0, 1]: ``a`` times each facet's
+    earthshine per unit albedo (:func:`~.earthshine.earthshine_flux` on an
+    8 x 16 Earth grid with the configured facets and models, computed once),
+    scaled with each facet's fitted area.
 ``offset``
     a facet's normal canted about its x axis (a fixed facet) or a tracking
     array's axis turned about body z (``yaw``), +- 30 deg.
 ``missing_facet``
     a Lambertian plate the model lacks: ``A rho`` in [0, 5] m^2, its normal at
-    ``tilt`` in [0, 180] deg from body +z (nadir) and azimuth ``az`` about z.
+    ``tilt`` in [0, 180] deg from body +z and azimuth ``az`` about z (generic).
 ``wide_lobe``
-    a lobe beyond the lab's steepest measured incidence on a facet: ``k
-    exp(-(1 - h_z) / w^2)`` (sr^-1; ``h`` the half vector in the facet frame,
-    ~ a Gaussian of width ``w`` in the half-angle), ``k`` in [0, 2], ``w`` in
-    [5, 45] deg, switched on by ``sigmoid((theta_i - theta_max) / 2 deg)``
-    with ``theta_max`` the facet's lab table's largest incidence (75 deg when
-    unknown).
+    a lobe beyond the lab's steepest measured incidence on a facet: ``k`` in
+    [0, 2] sr^-1, width ``w`` in [5, 45] deg, switched on beyond the facet's
+    lab table's largest incidence (75 deg when unknown).
 ``out_of_plane``
     an offset peak out of the plane of incidence (anisotropy an in-plane lab
-    scan cannot see): two lobes ``k/2 exp(-(1 - h . h0) / w^2)`` around ``h0 =
-    cos(delta) z +- sin(delta) p`` (``p`` the normal of the plane of
-    incidence), ``k`` in [0, 2], ``delta`` in [5, 40] deg, ``w`` = 6 deg.
+    scan cannot see): ``k`` in [0, 2], ``delta`` in [5, 40] deg.
+``diffraction``
+    a facet-fixed out-of-plane term of the material: the first orders of a
+    grating with grooves along the facet's x axis, ``k`` in [0, 2], order
+    spacing ``s = lambda / Lambda`` in [0.02, 0.5].
+``solar_disk``
+    the finite Sun instead of a point Sun: each facet's BRDF integrated over
+    the solar disk (:class:`~.engine.SunDisk` ``rings(disk_rings,
+    limb_darkening)``, as ``brdfjax observe`` with ``[sun] disk = "rings"``);
+    no free parameter.  It matters only where a lobe is not much wider than
+    the Sun (0.27 deg radius); with lobes degrees wide it is dead.
 
-The solar disk is not a candidate: with lobes degrees wide (the V2 Mini's
-lab fits) the disk changes nothing measurable (``sun.disk = "point"`` in the
-shipped configs).
+A diagnosed model is written as an observe config by
+:func:`write_diagnosed_config` (offsets as facet cants and yaws, earthshine
+as ``[earthshine]``, the disk as ``[sun]``, the others as ``[effects]``).
 """
 
 from __future__ import annotations
 
+import itertools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.errors import InputError
 from .earthshine import earthshine_flux
-from .engine import Attitude, Satellite
+from .engine import Attitude, Satellite, SunDisk
+from .skyeffects import effects_flux
 from .skyfit import Param, SkyFit, SkyProblem, cross_validate
 
-__all__ = ["Candidate", "KINDS", "add_effects", "candidates", "diagnose_sky", "zones"]
+__all__ = ["Candidate", "KINDS", "SkyGapProblem", "Trial", "SearchProblem", "SearchResult", "search", "add_effects",
+           "candidates", "diagnose_sky", "zones"]
 
-KINDS = ("earthshine", "offset", "missing_facet", "wide_lobe", "out_of_plane")
-_OOP_WIDTH = np.deg2rad(6.0)
-_GATE = np.deg2rad(2.0)
+KINDS = ("earthshine", "offset", "missing_facet", "wide_lobe", "out_of_plane", "diffraction", "solar_disk")
+GENERIC = ("missing_facet",)
+DEAD_MAG = 1e-3  # an effect changing no row by more than this (mag) is dead
+
+
+# --- the search protocol -----------------------------------------------------------------------------------------
+# The frame/table diagnosis shares this protocol (brdfjax/diagnose/search.py); this is a local copy of its
+# dataclass, protocol and greedy search with the same names and signatures, to be replaced by an import of it.
+
+
+@dataclass
+class Trial:
+    """One refit: the effects it holds, whether it succeeded, its BIC, reduced chi^2, free parameter count, held-out
+    figure (lower is better; None until computed), flags (name -> the parameters or reasons; any flag keeps the
+    trial off the path) and the problem's own state (here the :class:`~.skyfit.SkyFit`)."""
+
+    effects: tuple[str, ...]
+    ok: bool
+    failure: str | None
+    bic: float
+    chi2_reduced: float
+    n_params: int
+    heldout: float | None
+    flags: dict[str, list[str]]
+    state: Any = None
+
+
+class SearchProblem(Protocol):
+    def candidates(self) -> list[str]: ...
+
+    def generic(self, effect: str) -> bool: ...
+
+    def base(self) -> Trial: ...
+
+    def refit(self, effects: tuple[str, ...], warm: Trial | None) -> Trial: ...
+
+
+@dataclass
+class SearchResult:
+    """The path (the base first, then one trial per step), every trial refitted at each step, the failed refits and
+    why the search stopped."""
+
+    path: list[Trial]
+    steps: list[list[Trial]] = field(default_factory=list)
+    failed: int = 0
+    stopped: str = ""
+
+    @property
+    def effects(self) -> tuple[str, ...]:
+        return self.path[-1].effects
+
+    @property
+    def named(self) -> str | None:
+        return self.path[1].effects[0] if len(self.path) > 1 else None
+
+
+def _admissible(t: Trial) -> bool:
+    return t.ok and not any(t.flags.values())
+
+
+def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair_top: int = 3,
+           progress: Callable[[str], None] | None = None) -> SearchResult:
+    """Greedy forward search (see the module docstring).  A problem with a ``heldout(trial)`` method gets each path
+    step's held-out figure filled in where its refit left it None."""
+    say = progress or (lambda s: None)
+    current = problem.base()
+    if not current.ok:
+        return SearchResult([current], [], 1, f"base fit failed: {current.failure}")
+    res = SearchResult([current])
+    for step in range(max_steps):
+        remaining = [c for c in problem.candidates() if c not in current.effects]
+        if not remaining:
+            res.stopped = "no candidate left"
+            break
+        singles = [problem.refit(current.effects + (c,), current) for c in remaining]
+        ranked = sorted([t for t in singles if t.ok], key=lambda t: t.bic)
+        pairs = []
+        for a, b in itertools.combinations(ranked[:pair_top], 2):
+            warm = a if a.bic <= b.bic else b
+            pairs.append(problem.refit(current.effects + (a.effects[-1], b.effects[-1]), warm))
+        tried = singles + pairs
+        res.steps.append(tried)
+        res.failed += sum(not t.ok for t in tried)
+        good = sorted([t for t in tried if _admissible(t) and current.bic - t.bic > bic_threshold], key=lambda t: t.bic)
+        best_single = min((t.bic for t in singles if _admissible(t)), default=np.inf)
+        good = [t for t in good if len(t.effects) - len(current.effects) == 1 or t.bic < best_single - bic_threshold]
+        if not good:
+            res.stopped = f"no refit improves BIC by more than {bic_threshold}"
+            break
+        best = good[0]
+        if any(problem.generic(e) for e in best.effects[len(current.effects):]):
+            specific = [t for t in good if not any(problem.generic(e) for e in t.effects[len(current.effects):])]
+            if specific and specific[0].bic < best.bic + bic_threshold:
+                best = specific[0]
+        say(f"step {step + 1}: {', '.join(best.effects[len(current.effects):])} (BIC {best.bic - current.bic:+.1f})")
+        current = best
+        res.path.append(best)
+    else:
+        res.stopped = f"max_steps ({max_steps}) reached"
+    fill = getattr(problem, "heldout", None)
+    if fill is not None:
+        for t in res.path:
+            if t.heldout is None:
+                t.heldout = fill(t)
+    return res
+
+
+# --- candidates --------------------------------------------------------------------------------------------------
 
 
 @dataclass
 class Candidate:
-    """An effect: its kind, the facet it acts on ('' for the satellite), its parameter keys and starting values."""
+    """An effect: its name, kind, the facet it acts on ('' for the satellite), its free parameter keys, starting
+    values, and fixed values it sets without freeing them (the solar disk's switch)."""
 
     name: str
     kind: str
     facet: str
     keys: list[str]
     starts: list[dict[str, float]] = field(default_factory=list)
+    fixed: dict[str, float] = field(default_factory=dict)
 
 
 def _earthshine_unit(problem: SkyProblem, n_psi: int, n_chi: int, earth_radius: float) -> np.ndarray:
@@ -84,7 +209,7 @@ def _earthshine_unit(problem: SkyProblem, n_psi: int, n_chi: int, earth_radius: 
     x0 = problem.x_of_u(jnp.asarray(problem.u0()))
     fac = problem._facets(x0)
     fams = list(dict.fromkeys(f.families[0] for f in problem.facets))
-    sat = Satellite(fac, tuple(problem.models[m] for m in fams), Attitude.nadir(),
+    sat = Satellite(fac, tuple(problem.models[m] for m in fams), Attitude.nadir(*np.deg2rad(problem.data.rpy)),
                     tuple(fams.index(f.families[0]) for f in problem.facets))
     es = np.asarray(earthshine_flux(sat, problem.data.engine, 1.0, n_psi=n_psi, n_chi=n_chi, earth_radius=earth_radius,
                                     wavelength=problem.wavelength))
@@ -92,11 +217,19 @@ def _earthshine_unit(problem: SkyProblem, n_psi: int, n_chi: int, earth_radius: 
 
 
 def add_effects(problem: SkyProblem, *, kinds=KINDS, facets: list[str] | None = None, earthshine_grid=(8, 16),
-                earth_radius: float = 6378137.0) -> list[Candidate]:
-    """Add every candidate's parameters to ``problem`` (each off: zero amplitude, no offset) and its flux function.
+                earth_radius: float | None = None, disk_rings: int = 4, limb_darkening: float = 0.6
+                ) -> list[Candidate]:
+    """Add every candidate's parameters to ``problem`` (each off: zero amplitude, no offset, a point Sun) and its flux
+    function; returns the candidates (also kept as ``problem.candidates_``).
 
-    ``facets``: the facets that get facet candidates (default: all).
+    ``facets``: the facets that get facet candidates (default: all).  ``earthshine_grid``: the Earth cap's polar x
+    azimuthal elements.  ``earth_radius``: default the rows' own.  ``disk_rings``, ``limb_darkening``: the solar
+    disk's rule.
     """
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        raise InputError(f"effect kinds {unknown} unknown; known: {', '.join(KINDS)}")
+    earth_radius = problem.data.geometry.earth_radius if earth_radius is None else earth_radius
     names = [f.name for f in problem.facets]
     facets = names if facets is None else list(facets)
     out: list[Candidate] = []
@@ -104,8 +237,15 @@ def add_effects(problem: SkyProblem, *, kinds=KINDS, facets: list[str] | None = 
     have = {p.key for p in problem.params}
     if "earthshine" in kinds:
         problem._es_unit = _earthshine_unit(problem, *earthshine_grid, earth_radius)
-        new.append(Param("es.albedo", "effect", 0.0, 0.0, 0.6, target="earthshine", name="albedo"))
+        problem._es_grid = tuple(earthshine_grid)
+        problem._es_radius = float(earth_radius)
+        new.append(Param("es.albedo", "effect", 0.0, 0.0, 1.0, target="earthshine", name="albedo"))
         out.append(Candidate("earthshine", "earthshine", "", ["es.albedo"], [{"es.albedo": 0.3}]))
+    if "solar_disk" in kinds:
+        problem.data = problem.data.with_disk(SunDisk.rings(disk_rings, limb_darkening=limb_darkening))
+        problem._disk_rule = (int(disk_rings), float(limb_darkening))
+        new.append(Param("disk.on", "effect", 0.0, 0.0, 1.0, target="disk", name="on"))
+        out.append(Candidate("solar_disk", "solar_disk", "", [], [{}], fixed={"disk.on": 1.0}))
     if "missing_facet" in kinds:
         new += [Param("miss.arho", "effect", 0.0, 0.0, 5.0, target="missing", name="arho"),
                 Param("miss.tilt", "effect", np.pi / 3, 0.0, np.pi, target="missing", name="tilt"),
@@ -139,76 +279,156 @@ def add_effects(problem: SkyProblem, *, kinds=KINDS, facets: list[str] | None = 
                           name="delta")]
             out.append(Candidate(f"out_of_plane.{f.name}", "out_of_plane", f.name, [ks, kd],
                                  [{ks: 0.1, kd: np.deg2rad(d)} for d in (12.0, 25.0)]))
+        if "diffraction" in kinds:
+            ks, kd = f"diff.{f.name}.k", f"diff.{f.name}.s"
+            new += [Param(ks, "effect", 0.0, 0.0, 2.0, index=j, target="diff", name="k"),
+                    Param(kd, "effect", 0.1, 0.02, 0.5, index=j, target="diff", name="s")]
+            out.append(Candidate(f"diffraction.{f.name}", "diffraction", f.name, [ks, kd],
+                                 [{ks: 0.1, kd: s} for s in (0.06, 0.15, 0.3)]))
     problem.add(new)
     problem.effect_flux = _effect_flux
     problem._theta_max = np.deg2rad([75.0 if f.max_theta_i_deg is None else f.max_theta_i_deg for f in problem.facets])
+    problem.candidates_ = out
     return out
 
 
 def _effect_flux(problem: SkyProblem, x, d, w_c, w_s):
     """The candidate effects' flux (N,) at parameters ``x`` (facet-frame directions ``w_c``, ``w_s`` (N, J, 3))."""
-    idx = {p.key: i for i, p in enumerate(problem.params)}
-    scale = jnp.asarray(d.scale)
+    vals = {p.key: x[i] for i, p in enumerate(problem.params)
+            if p.kind == "effect" and p.key not in ("es.albedo", "disk.on")}
     area = problem._facets(x).area
-    total = jnp.zeros(scale.shape[0])
-    if "es.albedo" in idx:
-        total = total + x[idx["es.albedo"]] * jnp.sum(jnp.asarray(problem._es_unit) * area[None, :], -1)
-    if "miss.arho" in idx:
-        t, a = x[idx["miss.tilt"]], x[idx["miss.az"]]
-        n = jnp.stack([jnp.sin(t) * jnp.cos(a), jnp.sin(t) * jnp.sin(a), jnp.cos(t)])
-        cs = jnp.maximum(jnp.asarray(d.s_b) @ n, 0.0)
-        co = jnp.maximum(jnp.asarray(d.o_b) @ n, 0.0)
-        total = total + x[idx["miss.arho"]] / np.pi * cs * co * scale
-    cos = jnp.maximum(w_c[..., 2], 0.0) * jnp.maximum(w_s[..., 2], 0.0)  # (N, J)
-    h = w_c + w_s
-    h = h / jnp.maximum(jnp.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
-    ti = jnp.arctan2(jnp.hypot(w_c[..., 0], w_c[..., 1]), w_c[..., 2])
-    pn = jnp.stack([w_c[..., 1], -w_c[..., 0], jnp.zeros_like(w_c[..., 0])], -1)
-    pn = pn / jnp.maximum(jnp.linalg.norm(pn, axis=-1, keepdims=True), 1e-12)
-    for j, f in enumerate(problem.facets):
-        geo = cos[:, j] * area[j] * scale
-        kw = f"wide.{f.name}.k"
-        if kw in idx:
-            k, w = x[idx[kw]], x[idx[f"wide.{f.name}.w"]]
-            gate = jnp.asarray(1.0 / (1.0 + jnp.exp(-(ti[:, j] - problem._theta_max[j]) / _GATE)))
-            total = total + k * jnp.exp(-(1.0 - h[:, j, 2]) / jnp.square(w)) * gate * geo
-        ko = f"oop.{f.name}.k"
-        if ko in idx:
-            k, dl = x[idx[ko]], x[idx[f"oop.{f.name}.delta"]]
-            hz, hp = h[:, j, 2], jnp.sum(h[:, j] * pn[:, j], -1)
-            lobe = 0.0
-            for sgn in (1.0, -1.0):
-                c = jnp.cos(dl) * hz + sgn * jnp.sin(dl) * hp
-                lobe = lobe + 0.5 * jnp.exp(-(1.0 - c) / _OOP_WIDTH**2)
-            total = total + k * lobe * geo
+    total = effects_flux(vals, [f.name for f in problem.facets], w_c, w_s, d.s_b, d.o_b, d.scale, area,
+                         problem._theta_max)
+    if any(p.key == "es.albedo" for p in problem.params):
+        # each facet's earthshine per m^2 at albedo 1, computed once with the configured facets and models, scaled by
+        # the fitted areas: evaluating the Earth grid inside the fit (differentiable in cants and model parameters)
+        # made every compiled fit 3-4 times slower to compile; a model diagnosed with earthshine *and* a refitted
+        # facet orientation or model therefore reruns in observe to within the earthshine's change with them
+        # (skygap.json's rerun_check says how close)
+        es = jnp.sum(jnp.asarray(problem._es_unit) * area[None, :], -1)
+        total = total + x[problem.index("es.albedo")] * es
     return total
 
 
 def candidates(problem: SkyProblem) -> list[Candidate]:
     """The candidates :func:`add_effects` registered (kept on the problem)."""
-    return list(getattr(problem, "_candidates", []))
+    return list(getattr(problem, "candidates_", []))
 
 
-def _mask(problem: SkyProblem, base: np.ndarray, keys) -> np.ndarray:
-    m = base.copy()
-    for k in keys:
-        m[problem.index(k)] = True
-    return m
+# --- the candidates' refits as a search problem ------------------------------------------------------------------
 
 
-def _starts(problem: SkyProblem, u: np.ndarray, cand: Candidate) -> list[np.ndarray]:
-    out = []
-    for st in cand.starts or [{}]:
-        v = u.copy()
-        for k, val in st.items():
-            v[problem.index(k)] = problem.params[problem.index(k)].to_u(val)
-        out.append(v)
-    return out
+class SkyGapProblem:
+    """The sky diagnosis's refits behind :class:`SearchProblem`: effects are :class:`Candidate` names.
 
+    ``folds``: held-out masks (:func:`~.skyfit.group_folds`); the held-out
+    figure of a trial (:meth:`heldout`) is the RMS of observed minus
+    predicted magnitude over every row, each predicted by the refit on the
+    other folds.  ``base_free``: the base's free mask (default: the areas and,
+    if asked, the scatter).
+    """
 
-def _edge_keys(fit: SkyFit, keys) -> list[str]:
-    on = set(fit.on_bound())
-    return [k for k in keys if k in on]
+    def __init__(self, problem: SkyProblem, cands: list[Candidate] | None = None,
+                 folds: list[np.ndarray] | None = None, base_free: np.ndarray | None = None, max_starts: int = 8):
+        self.problem = problem
+        self.cands = {c.name: c for c in (cands if cands is not None else candidates(problem))}
+        self.folds = folds
+        self.base_free = problem.default_free() if base_free is None else np.asarray(base_free, bool)
+        self.max_starts = max_starts
+        self.cv: dict[tuple[str, ...], dict] = {}
+        self.n_refits = 0
+        self._last: dict[str, dict[str, float]] = {}  # each effect's fitted u of its keys in its latest refit
+
+    def candidates(self) -> list[str]:
+        return list(self.cands)
+
+    def generic(self, effect: str) -> bool:
+        return self.cands[effect].kind in GENERIC
+
+    def mask(self, effects) -> np.ndarray:
+        m = self.base_free.copy()
+        for e in effects:
+            for k in self.cands[e].keys:
+                m[self.problem.index(k)] = True
+        return m
+
+    def _trial(self, effects: tuple[str, ...], fit: SkyFit | None, failure: str | None = None) -> Trial:
+        if fit is None:
+            return Trial(effects, False, failure, np.inf, np.inf, int(self.mask(effects).sum()), None, {})
+        P = self.problem
+        d = P.data
+        pred = fit.predict()
+        r = d.mag - pred
+        has = np.isfinite(d.mag_err) & (d.mag_err > 0)
+        s = fit.values()["scatter"]
+        var = np.where(has, np.where(has, d.mag_err, 1.0) ** 2 + s**2, np.mean(r[~has] ** 2) if (~has).any() else 1.0)
+        chi2 = float(np.sum(r**2 / var) / max(len(d) - fit.k, 1))
+        keys = [k for e in effects for k in self.cands[e].keys]
+        on = set(fit.on_bound())
+        flags = {"on_bound": [k for k in keys if k in on], "dead": []}
+        for e in effects:  # an effect that changes no row: its refit without it predicts the same
+            c = self.cands[e]
+            u = fit.u.copy()
+            for k in c.keys:
+                u[P.index(k)] = P.params[P.index(k)].to_u(P.params[P.index(k)].value)
+            for k in c.fixed:
+                u[P.index(k)] = P.params[P.index(k)].to_u(P.params[P.index(k)].value)
+            if np.max(np.abs(P.predict(u) - pred)) < DEAD_MAG:
+                flags["dead"].append(e)
+        return Trial(effects, True, None, float(fit.bic), chi2, fit.k, None, flags, fit)
+
+    def base(self) -> Trial:
+        return self._trial((), self.problem.fit(self.base_free))
+
+    def refit(self, effects: tuple[str, ...], warm: Trial | None) -> Trial:
+        P = self.problem
+        self.n_refits += 1
+        u = (warm.state.u if warm is not None and warm.state is not None else P.u0()).copy()
+        have = set(warm.effects) if warm is not None else set()
+        new = [self.cands[e] for e in effects if e not in have]
+        for c in self.cands.values():  # effects not in this trial are off (a warm start of another branch)
+            if c.name not in effects:
+                for k in [*c.keys, *c.fixed]:
+                    u[P.index(k)] = P.params[P.index(k)].to_u(P.params[P.index(k)].value)
+        for c in new:
+            for k, v in c.fixed.items():
+                u[P.index(k)] = P.params[P.index(k)].to_u(v)
+        # an effect refitted before (an earlier step or a single before a pair) starts where it ended and from its
+        # first listed start; a new one from each listed start (multimodal: the missing facet's orientation)
+        starts = []
+        opts = [[("u", self._last[c.name]), ("x", (c.starts or [{}])[0])] if c.name in self._last and c.keys
+                else [("x", st) for st in (c.starts or [{}])] for c in new]
+        for combo in itertools.islice(itertools.product(*opts), self.max_starts):
+            v = u.copy()
+            for how, st in combo:
+                for k, val in st.items():
+                    v[P.index(k)] = val if how == "u" else P.params[P.index(k)].to_u(val)
+            starts.append(v)
+        starts = starts or [u]
+        if warm is not None and warm.ok and len(new) == 1 and not new[0].keys:
+            # an effect without free parameters (the solar disk) that changes no row at the warm start is dead
+            # there: no refit (the disk's rule costs its node count in every evaluation)
+            if np.max(np.abs(P.predict(starts[0]) - warm.state.predict())) < DEAD_MAG:
+                w = warm.state
+                f0 = SkyFit(P, starts[0], w.free, P.m2ll(starts[0], w.w, w.joint), w.n, 0, w.w, w.joint)
+                t = self._trial(effects, f0)
+                t.flags["dead"] = sorted(set(t.flags["dead"]) | {new[0].name})
+                return t
+        try:
+            fit = P.fit(self.mask(effects), u0=starts[0], starts=starts[1:])
+        except Exception as e:  # noqa: BLE001 -- a refit that cannot be evaluated is a failed trial, counted
+            return self._trial(effects, None, f"{type(e).__name__}: {e}")
+        for e in effects:
+            self._last[e] = {k: float(fit.u[P.index(k)]) for k in self.cands[e].keys}
+        return self._trial(effects, fit)
+
+    def heldout(self, trial: Trial) -> float | None:
+        """Cross-validated RMS (mag) of the trial's model (its free mask, refitted on each training fold)."""
+        if self.folds is None or not trial.ok:
+            return None
+        cv = cross_validate(self.problem, trial.state.free, self.folds, u0=trial.state.u)
+        self.cv[trial.effects] = cv
+        return float(cv["rms"])
 
 
 def zones(problem: SkyProblem, before: np.ndarray, after: np.ndarray, min_rows: int = 10, top: int = 8) -> list[dict]:
@@ -243,66 +463,63 @@ def zones(problem: SkyProblem, before: np.ndarray, after: np.ndarray, min_rows: 
     return out[:top]
 
 
-def diagnose_sky(problem: SkyProblem, cands: list[Candidate], folds: list[np.ndarray] | None = None, *,
+
+
+def _step_entry(gp: SkyGapProblem, prev: Trial, t: Trial) -> dict:
+    P = gp.problem
+    added = t.effects[len(prev.effects):]
+    vals = t.state.values()
+    before, after = prev.state.predict(), t.state.predict()
+    return {"effect": added[0] if len(added) == 1 else "+".join(added), "effects": list(added),
+            "kind": "+".join(gp.cands[e].kind for e in added), "facet": "+".join(gp.cands[e].facet for e in added),
+            "delta_bic": t.bic - prev.bic, "chi2_reduced": t.chi2_reduced,
+            "values": {k: vals[k] for e in added for k in gp.cands[e].keys},
+            "fixed": {k: v for e in added for k, v in gp.cands[e].fixed.items()},
+            "zones": zones(P, before, after),
+            "rms_after": float(np.sqrt(np.mean((P.data.mag - after) ** 2))), "heldout_rms": t.heldout}
+
+
+def diagnose_sky(problem: SkyProblem, cands: list[Candidate] | None = None, folds: list[np.ndarray] | None = None, *,
                  base_free: np.ndarray | None = None, threshold: float = 10.0, max_steps: int = 3,
-                 refit_top: int = 4, log=lambda s: None) -> dict:
-    """The diagnosis (see the module docstring): ranking, path, zones and held-out figures (JSON-ready)."""
+                 pair_top: int = 3, log=lambda s: None) -> dict:
+    """The diagnosis (see the module docstring) through :func:`search`: ranking of the first step, path, zones and
+    held-out figures (JSON-ready; ``_search``, ``_final_fit`` and ``_heldout_pred`` are for callers)."""
     t0 = time.perf_counter()
-    base_free = problem.default_free() if base_free is None else base_free
-    base = problem.fit(base_free)
-    log(f"base: -2lnL {base.m2ll:.2f} ({time.perf_counter() - t0:.1f} s)")
+    gp = SkyGapProblem(problem, cands, folds, base_free)
+    res = search(gp, bic_threshold=threshold, max_steps=max_steps, pair_top=pair_top, progress=log)
+    base = res.path[0]
+    if not base.ok:
+        raise InputError(f"sky diagnosis: the base fit failed ({base.failure})")
     ranking = []
-    fits = {}
-    for c in cands:
-        f = problem.fit(_mask(problem, base_free, c.keys), starts=_starts(problem, base.u, c)[1:],
-                        u0=_starts(problem, base.u, c)[0])
-        fits[c.name] = f
-        edge = _edge_keys(f, c.keys)
-        ranking.append({"name": c.name, "kind": c.kind, "facet": c.facet, "delta_bic": f.bic - base.bic,
-                        "delta_m2ll": f.m2ll - base.m2ll, "k": len(c.keys), "on_bound": edge,
-                        "values": {k: f.values()[k] for k in c.keys}})
+    for t in (res.steps[0] if res.steps else []):
+        if len(t.effects) != 1:
+            continue
+        c = gp.cands[t.effects[0]]
+        ranking.append({"name": c.name, "kind": c.kind, "facet": c.facet, "ok": t.ok, "failure": t.failure,
+                        "delta_bic": t.bic - base.bic, "k": len(c.keys), "on_bound": t.flags.get("on_bound", []),
+                        "dead": bool(t.flags.get("dead")),
+                        "values": {k: t.state.values()[k] for k in c.keys} if t.ok else {}})
     ranking.sort(key=lambda r: r["delta_bic"])
-    log(f"ranked {len(cands)} candidates ({time.perf_counter() - t0:.1f} s)")
-    path = []
-    current, cur_free = base, base_free
-    remaining = [r for r in ranking if not r["on_bound"]]
-    step_cands = remaining
-    for _ in range(max_steps):
-        ok = [r for r in step_cands if not r["on_bound"] and r["delta_bic"] < -threshold]
-        if not ok:
-            break
-        best = ok[0]
-        c = next(c for c in cands if c.name == best["name"])
-        f = fits[c.name] if not path else fits[("step", c.name)]
-        before = current.predict()
-        after = f.predict()
-        path.append({"effect": c.name, "kind": c.kind, "facet": c.facet, "delta_bic": best["delta_bic"],
-                     "values": {k: f.values()[k] for k in c.keys}, "zones": zones(problem, before, after),
-                     "rms_after": float(np.sqrt(np.mean((problem.data.mag - after) ** 2)))})
-        current, cur_free = f, _mask(problem, cur_free, c.keys)
-        used = {p["effect"] for p in path}
-        step_cands = []
-        for r in [r for r in remaining if r["name"] not in used][:refit_top]:
-            c2 = next(c for c in cands if c.name == r["name"])
-            f2 = problem.fit(_mask(problem, cur_free, c2.keys), u0=_starts(problem, current.u, c2)[0],
-                             starts=_starts(problem, current.u, c2)[1:])
-            fits[("step", c2.name)] = f2
-            step_cands.append({**r, "delta_bic": f2.bic - current.bic, "on_bound": _edge_keys(f2, c2.keys)})
-        step_cands.sort(key=lambda r: r["delta_bic"])
-    out = {"n": len(problem.data), "base": {"m2ll": base.m2ll, "bic": base.bic, "k": base.k,
-                                            "rms": float(np.sqrt(np.mean((problem.data.mag - base.predict()) ** 2))),
-                                            "values": base.values()},
-           "ranking": ranking, "path": path, "named": path[0]["kind"] if path else None,
-           "threshold": threshold}
+    path = [_step_entry(gp, a, b) for a, b in zip(res.path[:-1], res.path[1:])]
+    current = res.path[-1]
+    d = problem.data
+    out = {"n": len(d), "base": {"m2ll": base.state.m2ll, "bic": base.bic, "k": base.n_params,
+                                 "rms": float(np.sqrt(np.mean((d.mag - base.state.predict()) ** 2))),
+                                 "chi2_reduced": base.chi2_reduced, "heldout_rms": base.heldout,
+                                 "values": base.state.values()},
+           "ranking": ranking, "path": path, "named": gp.cands[res.named].kind if res.named else None,
+           "effects": list(current.effects), "threshold": threshold, "stopped": res.stopped,
+           "refits": sum(len(s) for s in res.steps), "failed_refits": res.failed}
     if folds is not None:
-        cvb = cross_validate(problem, base_free, folds, u0=base.u)
-        out["heldout"] = {"base_rms": cvb["rms"], "base_bias": cvb["bias"], "folds": len(folds)}
+        out["heldout"] = {"base_rms": base.heldout, "base_bias": gp.cv[()]["bias"], "folds": len(folds)}
         if path:
-            cvp = cross_validate(problem, cur_free, folds, u0=current.u)
-            out["heldout"].update(path_rms=cvp["rms"], path_bias=cvp["bias"])
-        out["_heldout_pred"] = {"base": cvb["pred"], "path": cvp["pred"] if path else cvb["pred"]}
-    out["final"] = {"values": current.values(), "free": [p.key for i, p in enumerate(problem.params) if cur_free[i]]}
-    out["_final_fit"] = current
+            out["heldout"].update(path_rms=current.heldout, path_bias=gp.cv[current.effects]["bias"])
+        out["_heldout_pred"] = {"base": gp.cv[()]["pred"], "path": gp.cv[current.effects]["pred"]}
+    out["final"] = {"values": current.state.values(),
+                    "free": [p.key for i, p in enumerate(problem.params) if current.state.free[i]]}
+    out["_final_fit"] = current.state
+    out["_search"] = res
+    out["_gap_problem"] = gp
     out["seconds"] = time.perf_counter() - t0
     log(f"diagnosis done ({out['seconds']:.1f} s): path {[p['effect'] for p in path]}")
     return out

@@ -42,6 +42,7 @@ def _roots() -> list[tuple[str, str, list[tuple[str, type[BaseModel]]]]]:
     from brdfjax.fit.config import FitConfig
     from brdfjax.instrument.synthetic import InstrumentConfig
     from brdfjax.lightcurve.config import LightcurveConfig
+    from brdfjax.lightcurve.skygap_config import SkygapConfig
     from brdfjax.sample.config import SampleSection
 
     return [
@@ -51,6 +52,7 @@ def _roots() -> list[tuple[str, str, list[tuple[str, type[BaseModel]]]]]:
         ("Instrument configs", "`brdfjax synthesize --instrument`, `[data.synthetic]`", [("", InstrumentConfig)]),
         ("Capture configs", "`brdfjax capture`", [("", CaptureConfig)]),
         ("Light-curve configs", "`brdfjax lightcurve`", [("", LightcurveConfig)]),
+        ("Sky gap configs", "`brdfjax skygap`", [("", SkygapConfig)]),
         ("Study files", "`brdfjax batch`", [("", Study)]),
     ]
 
