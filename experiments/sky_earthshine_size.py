@@ -1,5 +1,5 @@
 """How much earthshine changes the predicted magnitudes of the V2 Mini at the real sets' geometry, and a check of
-brdfjax's earthshine against lumos-sat's on SCORE rows (tests/test_observe.py checks the Slingshot rows).
+brdfjax's earthshine against lumos-sat's on SCORE rows (tests/lightcurve/test_observe.py checks the Slingshot rows).
 
 For each shipped observe config (the lab fits, configs/observe_v2mini_<set>.toml) the rows are predicted with and
 without a Lambertian Earth of albedo 0.3 (32 x 64 cap elements): the magnitude change per row, its quantiles, and
