@@ -12,7 +12,6 @@ it imports neither.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -24,8 +23,8 @@ import numpy as np
 from ..core.geometry import Directions
 from ..core.render import Conditions, render, render_geometry
 from ..core.terms import Model
-from ..fit import FitResult, FrameData, Param, TableData
-from ..fit.internal import as_param
+from ..fit import FitResult, FrameData, TableData
+from ..fit.internal import warm_params
 from ..instrument.synthetic import convolve_footprint
 from .zones import specular_coordinates
 
@@ -111,44 +110,6 @@ def gap_measures(result: FitResult) -> dict[str, float]:
         "rms_log10": float(math.sqrt(ms) / LN10),
         "bic": float(result.m2ll + k * math.log(max(result.n_points, 2))),
     }
-
-
-def warm_params(params: Mapping[str, Any], result: FitResult, block_names: Sequence[str] | None = None) -> dict[str, Any]:
-    """``params`` with every free parameter's start moved to its fitted value (kept strictly inside its bounds).
-
-    Per-frame parameters (``name[block]`` in the result) become per-block lists.
-    """
-    names = [b.name for b in result.blocks] if block_names is None else list(block_names)
-    out: dict[str, Any] = {}
-    for name, spec in params.items():
-        p = as_param(name, spec)
-        if not p.free:
-            out[name] = p
-            continue
-        if name in result.parameters:
-            value: Any = _inside(result.value(name), p)
-        else:
-            keys = [f"{name}[{bn}]" for bn in names]
-            if all(k in result.parameters for k in keys):
-                value = [_inside(result.value(k), p) for k in keys]
-            else:
-                out[name] = p
-                continue
-        out[name] = dataclasses.replace(p, value=value)
-    return out
-
-
-def _inside(x: float, p: Param) -> float:
-    lo = -math.inf if p.lower is None else float(p.lower)
-    hi = math.inf if p.upper is None else float(p.upper)
-    if math.isfinite(lo) and math.isfinite(hi):
-        eps = 1e-6 * (hi - lo)
-        return float(min(max(x, lo + eps), hi - eps))
-    if math.isfinite(lo) and x <= lo:
-        return lo + max(1e-9, 1e-6 * abs(lo))
-    if math.isfinite(hi) and x >= hi:
-        return hi - max(1e-9, 1e-6 * abs(hi))
-    return float(x)
 
 
 # --- context of a fit ----------------------------------------------------------------------

@@ -83,11 +83,14 @@ def model_noise_weights(
     return dataclasses.replace(block, brdf=brdf, sigma_rel=sig, mask=keep)
 
 
-def warm_params(params: Mapping[str, Any], result: Any, block_names: Sequence[str]) -> dict[str, Any]:
+def warm_params(params: Mapping[str, Any], result: Any, block_names: Sequence[str] | None = None) -> dict[str, Any]:
     """``params`` with every free parameter's start moved to its value in ``result`` (strictly inside its bounds).
 
-    Per-frame parameters (``name[block]`` in the result) become per-block lists.
+    Per-frame parameters (``name[block]`` in the result) become per-block lists (``block_names``: the result's
+    blocks' names unless given).  The diagnosis's refits and the noise-weight refit both start here.
     """
+    if block_names is None:
+        block_names = [b.name for b in result.blocks]
     out: dict[str, Any] = {}
     for name, spec in params.items():
         p = as_param(name, spec)

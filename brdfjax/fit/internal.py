@@ -32,9 +32,11 @@ from ._resolution import (
     lobe_term as lobe_term,
     table_step as table_step,
 )
+from ._reweight import warm_params as warm_params
 from ._solvers import get_solver as get_solver
 
 __all__ = [
+    "warm_params",
     "FRAME_PARAMETERS",
     "LOSSES",
     "SPEC_KEYS",
