@@ -62,6 +62,7 @@ CONFIG_CASES = {
     "instrument": ["instrument_seed.toml"],
     "lightcurve": sorted(p.name for p in CONFIGS.glob("lightcurve_*.toml")),
     "observe": sorted(p.name for p in CONFIGS.glob("observe_*.toml")),
+    "skygap": sorted(p.name for p in CONFIGS.glob("skygap_*.toml")),
     "batch": sorted(p.name for p in CONFIGS.glob("batch_*.toml")),
 }
 

@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[2]
 DATA = Path(__file__).resolve().parents[1] / "data"
 FIT_CFG = ROOT / "configs" / "fit_synthetic_solar_cell.toml"  # only read as far as each case needs
 OBSERVE_CFG = ROOT / "configs" / "observe_v2mini_slingshot.toml"
+SKYGAP_CFG = ROOT / "configs" / "skygap_v2mini_slingshot.toml"
 
 FIT = """
 precision = "float64"
@@ -186,6 +187,10 @@ BAD_INPUTS = [
     ("observe", ["{w}/no_such.toml", "--out", "{w}/o"], "no_such.toml: observe config not found"),
     ("observe", [str(OBSERVE_CFG), "--out", "{w}/a_file.txt"], "is a file, not a folder"),
     ("observe", [str(OBSERVE_CFG), "--out", "/proc/x"], "cannot create anything in /proc"),
+    # skygap
+    ("skygap", ["{w}/no_such.toml", "--out", "{w}/o"], "no_such.toml: skygap config not found"),
+    ("skygap", [str(SKYGAP_CFG), "--out", "{w}/a_file.txt"], "is a file, not a folder"),
+    ("skygap", [str(SKYGAP_CFG), "--out", "/proc/x"], "cannot create anything in /proc"),
     # capture
     ("capture", ["{w}/no_such.toml", "--out", "{w}/c"], "no_such.toml"),
     ("capture", ["{w}/cap_nd.toml", "--out", "{w}/c"], "measurements[0].nd"),

@@ -46,6 +46,10 @@ def test_every_shipped_config_reads_and_its_model_builds(kind, name):
         from brdfjax.lightcurve.observe_config import load_observe_config
 
         assert load_observe_config(CONFIGS / name).facets, name
+    if kind == "skygap":  # its observe config, the set it names and its candidate kinds load
+        from brdfjax.lightcurve.skygap_config import load_skygap_config
+
+        assert load_skygap_config(CONFIGS / name).observe, name
     if kind == "batch":
         from brdfjax.batch import load_study
 
