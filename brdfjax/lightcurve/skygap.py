@@ -216,6 +216,17 @@ def _earthshine_unit(problem: SkyProblem, n_psi: int, n_chi: int, earth_radius: 
     return es / np.asarray(fac.area)[None, :]
 
 
+#: The effects with a strength ``k`` (0 = absent, bounded 0-2) and one shape parameter, per facet: kind ->
+#: (parameter prefix and flux target, shape name, shape start, lower, upper bound, the shape's second starts).
+_SHAPED = {
+    "wide_lobe": ("wide", "w", np.deg2rad(15.0), np.deg2rad(5.0), np.deg2rad(45.0),
+                  (np.deg2rad(10.0), np.deg2rad(25.0))),
+    "out_of_plane": ("oop", "delta", np.deg2rad(15.0), np.deg2rad(5.0), np.deg2rad(40.0),
+                     (np.deg2rad(12.0), np.deg2rad(25.0))),
+    "diffraction": ("diff", "s", 0.1, 0.02, 0.5, (0.06, 0.15, 0.3)),
+}
+
+
 def add_effects(problem: SkyProblem, *, kinds=KINDS, facets: list[str] | None = None, earthshine_grid=(8, 16),
                 earth_radius: float | None = None, disk_rings: int = 4, limb_darkening: float = 0.6
                 ) -> list[Candidate]:
@@ -265,26 +276,13 @@ def add_effects(problem: SkyProblem, *, kinds=KINDS, facets: list[str] | None = 
                 new.append(Param(key, kind, float(v), v - lim, v + lim, index=j))
             out.append(Candidate(f"offset.{f.name}", "offset", f.name, [key],
                                  [{key: np.deg2rad(10.0)}, {key: -np.deg2rad(10.0)}]))
-        if "wide_lobe" in kinds:
-            ks, kw = f"wide.{f.name}.k", f"wide.{f.name}.w"
-            new += [Param(ks, "effect", 0.0, 0.0, 2.0, index=j, target="wide", name="k"),
-                    Param(kw, "effect", np.deg2rad(15.0), np.deg2rad(5.0), np.deg2rad(45.0), index=j, target="wide",
-                          name="w")]
-            out.append(Candidate(f"wide_lobe.{f.name}", "wide_lobe", f.name, [ks, kw],
-                                 [{ks: 0.1, kw: np.deg2rad(w)} for w in (10.0, 25.0)]))
-        if "out_of_plane" in kinds:
-            ks, kd = f"oop.{f.name}.k", f"oop.{f.name}.delta"
-            new += [Param(ks, "effect", 0.0, 0.0, 2.0, index=j, target="oop", name="k"),
-                    Param(kd, "effect", np.deg2rad(15.0), np.deg2rad(5.0), np.deg2rad(40.0), index=j, target="oop",
-                          name="delta")]
-            out.append(Candidate(f"out_of_plane.{f.name}", "out_of_plane", f.name, [ks, kd],
-                                 [{ks: 0.1, kd: np.deg2rad(d)} for d in (12.0, 25.0)]))
-        if "diffraction" in kinds:
-            ks, kd = f"diff.{f.name}.k", f"diff.{f.name}.s"
-            new += [Param(ks, "effect", 0.0, 0.0, 2.0, index=j, target="diff", name="k"),
-                    Param(kd, "effect", 0.1, 0.02, 0.5, index=j, target="diff", name="s")]
-            out.append(Candidate(f"diffraction.{f.name}", "diffraction", f.name, [ks, kd],
-                                 [{ks: 0.1, kd: s} for s in (0.06, 0.15, 0.3)]))
+        for kind, (pre, shape, v0, lo, hi, tries) in _SHAPED.items():
+            if kind not in kinds:
+                continue
+            ks, kx = f"{pre}.{f.name}.k", f"{pre}.{f.name}.{shape}"
+            new += [Param(ks, "effect", 0.0, 0.0, 2.0, index=j, target=pre, name="k"),
+                    Param(kx, "effect", v0, lo, hi, index=j, target=pre, name=shape)]
+            out.append(Candidate(f"{kind}.{f.name}", kind, f.name, [ks, kx], [{ks: 0.1, kx: t} for t in tries]))
     problem.add(new)
     problem.effect_flux = _effect_flux
     problem._theta_max = np.deg2rad([75.0 if f.max_theta_i_deg is None else f.max_theta_i_deg for f in problem.facets])
