@@ -89,12 +89,20 @@ def test_a_pair_enters_jointly_only_when_it_beats_its_better_member_by_the_thres
 
 
 def test_a_generic_effect_does_not_enter_where_a_specific_one_explains_its_residual():
-    # the floor ranks first alone, but on the joint refit with the bars it adds almost nothing: the bars enter
-    p = Table({"floor": 120.0, "bars": 100.0}, generic=("floor",),
+    # the floor ranks first alone (by less than T), but on the joint refit with the bars it adds almost nothing:
+    # the bars enter
+    p = Table({"floor": 108.0, "bars": 100.0}, generic=("floor",),
               sets={frozenset({"floor", "bars"}): 1000.0 - 105.0})
     r = search(p, bic_threshold=T, max_steps=2)
     assert r.moves[0].effects == ("bars",) and r.final.effects == ("bars",)
     assert any("floor (generic) does not enter" in n for n in r.moves[0].notes)
+    # the same, but alone the floor beats the bars by 20 > T: the data prefer the floor, which enters alone
+    p = Table({"floor": 120.0, "bars": 100.0}, generic=("floor",),
+              sets={frozenset({"floor", "bars"}): 1000.0 - 105.0})
+    r = search(p, bic_threshold=T, max_steps=2)
+    assert r.moves[0].effects == ("floor",) and r.final.effects == ("floor",)
+    assert any("floor (generic) stays in the running beside bars" in n and "the data prefer floor" in n
+               for n in r.moves[0].notes)
     # a floor that the joint refit still needs stays in the running (and enters, being the larger gain)
     p = Table({"floor": 120.0, "bars": 100.0}, generic=("floor",))
     r = search(p, bic_threshold=T, max_steps=2)
