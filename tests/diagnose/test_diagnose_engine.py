@@ -430,7 +430,8 @@ def test_final_config_of_generated_frames_carries_the_diagnosis_likelihood(tmp_p
     """For generated frames the final config names the reduced files, the instrument's footprint (from the
     synthetic stamp), no nuisance parameters where the diagnosis had none, and no first stage: measured on the
     shipped example, without them ``brdfjax fit`` of the final model gave reduced chi^2 1.02e4 against 1.028,
-    with them 1411.8633 against 1411.8633."""
+    with them 1411.8633 against 1411.8633; with the noise weights at the readings, as every fit of the diagnosis
+    weighs them (brdfjax fit's default re-evaluates them at its model: 1442.36)."""
     import tomllib
     from types import SimpleNamespace
 
@@ -447,6 +448,7 @@ def test_final_config_of_generated_frames_carries_the_diagnosis_likelihood(tmp_p
               "fit": {"solver": "levenberg_marquardt"}, "diagnose": {"heldout": ["ti30"]}}
     doc = tomllib.loads(final_model_config(d, source, tmp_path, ["ti30"], tmp_path / "syn", nuisance_off=True))
     assert doc["data"]["footprint_w_px"] == 3.125 and "synthetic" not in doc["data"]
+    assert doc["data"]["noise_weights"] == "pixel"  # the diagnosis's weights, not the model's
     assert doc["data"]["frames"] == [str((tmp_path / "syn" / "reduced" / "ti20.exr").resolve())]
     assert doc["nuisance"] == {"enabled": False} and doc["fit"]["first_stage"] == "none"
     assert doc["params"]["spec.alpha"] == {"value": 0.08, "lower": 0.001} and "diagnose" not in doc
