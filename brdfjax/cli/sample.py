@@ -22,7 +22,7 @@ from ..runtime.cli_args import CONFIG, DIR, add_no_figures, positive_int
 from ..runtime.progress import make_console
 from ..sample import sample
 from ..sample.config import SampleSection, config_fingerprint, priors_from_config
-from ..sample.internal import ChainStore, SampleError, check_sampling, check_walkers
+from ..sample.internal import ChainStore, SampleError, check_sampling, check_walkers, spec_from_fit_json
 
 __all__ = ["add_arguments", "run"]
 
@@ -105,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     for note in job.notes:
         console.print(note, markup=False)
     start: Any = None
+    weights_note: str | None = None
     fit_path = args.fit_result or (None if sec.fit_result is None else str(cfg.resolve(sec.fit_result)))
     if fit_path is None and (out / "fit_result.json").is_file():
         fit_path = str(out / "fit_result.json")
@@ -116,6 +117,17 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, ValueError) as e:
             raise SampleError(f"{fit_path}: cannot read the fit result JSON: {e}") from None
         console.print(f"starting from the fit result {fit_path}", markup=False)
+        if (job.reweight and any(job.reweight) and isinstance(start, dict)
+                and isinstance(start.get("noise"), dict) and start["noise"].get("reweighted")):
+            # that fit weighed the pixels' noise at its model (noise_weights = "model"); the posterior must use the
+            # same weights, not the readings': the fit is repeated from the result's values, which re-evaluates them
+            # (two short fits that start at the optimum)
+            console.print("its noise weights were evaluated at its model: repeating that fit from its values to "
+                          "weigh the pixels the same way", markup=False)
+            job.params = spec_from_fit_json(job.params, start, [b.name for b in job.blocks])
+            start = job.run()
+            start.to_json(out / "fit_result.json")
+            weights_note = "noise weights at the model of the fit result (its fit repeated from its values)"
     elif not (args.resume and chain_exists):
         console.print("fitting first (no fit result given) ...", markup=False)
         start = job.run()
@@ -124,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
         fit_path = str(out / "fit_result.json")
     record = {"config": str(cfg.source), "fit_result": fit_path, "data_step": cfg.data.step, "data_roi": cfg.data.roi,
               "data_roi_deg": cfg.data.roi_deg}
+    if job.first_result is not None:
+        record["noise_weights"] = weights_note or "noise weights at the model of the fit (noise_weights = \"model\")"
     res = sample(
         job.likelihood(),
         priors,

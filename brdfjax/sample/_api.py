@@ -41,6 +41,7 @@ __all__ = [
     "problem_fingerprint",
     "sampling_record",
     "start_from_fit_json",
+    "spec_from_fit_json",
 ]
 
 #: The samplers of ``sample(sampler=...)`` / ``[sample] sampler``.
@@ -263,12 +264,24 @@ def start_from_fit_json(data: Mapping[str, Any], names: Sequence[str], units: Se
     return np.array(x), np.array(s)
 
 
-def _spec_from_result(spec: Mapping[str, Any], values: Mapping[str, float], block_names: Sequence[str]) -> dict[str, Any]:
-    """The parameter spec with each free 'auto' start replaced by the fit's value (no second auto-init)."""
+def fit_json_values(start_json: Mapping[str, Any]) -> dict[str, float]:
+    """The free parameters' values of a fit result JSON (brdfjax fit's ``result.json``), in stored units."""
+    values = {}
+    for k, p in (start_json.get("parameters") or {}).items():
+        if isinstance(p, Mapping) and p.get("free") and p.get("value") is not None:
+            unit = p.get("unit", "")
+            values[k] = float(p["value"]) * (math.pi / 180 if unit == "deg" else 1.0)
+    return values
+
+
+def _spec_from_result(spec: Mapping[str, Any], values: Mapping[str, float], block_names: Sequence[str],
+                      every: bool = False) -> dict[str, Any]:
+    """The parameter spec with each free 'auto' start (``every``: each free start) replaced by the fit's value
+    (no second auto-init)."""
     out = dict(spec)
     for k, v in spec.items():
         p = as_param(k, v)
-        if not (p.free and isinstance(p.value, str) and p.value == "auto"):
+        if not (p.free and (every or (isinstance(p.value, str) and p.value == "auto"))):
             continue
         if k in values:
             out[k] = replace(p, value=float(values[k]))
@@ -278,6 +291,11 @@ def _spec_from_result(spec: Mapping[str, Any], values: Mapping[str, float], bloc
             if all(h is not None for h in have):
                 out[k] = replace(p, value=[float(h) for h in have])
     return out
+
+
+def spec_from_fit_json(spec: Mapping[str, Any], start_json: Mapping[str, Any], block_names: Sequence[str]) -> dict[str, Any]:
+    """The parameter spec with every free start at a fit result JSON's value (a warm start of the same fit)."""
+    return _spec_from_result(spec, fit_json_values(start_json), block_names, every=True)
 
 
 @dataclass(eq=False)
@@ -470,11 +488,7 @@ def sample(
     if fit_res is not None:
         values = {k: p.value for k, p in fit_res.parameters.items() if p.free}
     elif start_json is not None:
-        values = {}
-        for k, p in (start_json.get("parameters") or {}).items():
-            if isinstance(p, Mapping) and p.get("free") and p.get("value") is not None:
-                unit = p.get("unit", "")
-                values[k] = float(p["value"]) * (math.pi / 180 if unit == "deg" else 1.0)
+        values = fit_json_values(start_json)
     else:
         values = {}
     spec_start = _spec_from_result(spec, values, names_b)

@@ -294,6 +294,27 @@ def _tiny(tmp_path, frame, priors="", figures="true") -> Path:
                         figures=figures)
 
 
+def test_a_fit_result_reweighted_at_its_model_is_sampled_with_the_same_weights(tmp_path, example_frame, capsys):
+    """A fit result whose noise weights were evaluated at its model (brdfjax fit's default): the posterior uses
+    the same weights, not the readings' (the fit is repeated from its values), and its record says so."""
+    cfg = _tiny(tmp_path, example_frame, figures="false")
+    start = dict(START, noise={"estimated": False, "reweighted": "noise weights evaluated at the model of a first fit"})
+    (tmp_path / "start.json").write_text(json.dumps(start))
+    out = tmp_path / "out"
+    assert main(["sample", str(cfg), "--out", str(out), "--no-progress", "--steps", "4"]) == 0
+    assert "its noise weights were evaluated at its model" in capsys.readouterr().err
+    doc = json.loads((out / "posterior.json").read_text())
+    assert doc["sampling"]["noise_weights"].startswith("noise weights at the model of the fit result")
+    refit = json.loads((out / "fit_result.json").read_text())
+    assert "reweighted" in refit["noise"]
+    # without the mark, the readings' weights are the fit result's: no refit, nothing recorded
+    (tmp_path / "start.json").write_text(json.dumps(START))
+    out2 = tmp_path / "out2"
+    assert main(["sample", str(cfg), "--out", str(out2), "--no-progress", "--steps", "4"]) == 0
+    assert "noise_weights" not in json.loads((out2 / "posterior.json").read_text())["sampling"]
+    assert not (out2 / "fit_result.json").exists()
+
+
 def test_cli_runs_resumes_and_writes_the_contract(tmp_path, example_frame, capsys):
     cfg = _tiny(tmp_path, example_frame)
     out = tmp_path / "out"
