@@ -2,9 +2,9 @@
 
 Runs ``python -m brdfjax diagnose CONFIG --out <tmp>`` in a child process with ``BRDFJAX_CACHE_DIR`` set to a
 fresh temporary folder (no compiled or exported program from an earlier run) and prints the wall time, the
-child's peak resident memory (``getrusage(RUSAGE_CHILDREN).ru_maxrss``), the load average before and after
+child's CPU seconds (user + system: comparable across loads), its peak resident memory (``getrusage(RUSAGE_CHILDREN).ru_maxrss``), the load average before and after
 (the box may be shared: the figures are only comparable at a similar load), and the diagnosis's own outcome
-(path, final explanation, held-out figures against the truth's).  Targets (issue 35): <= 120 s wall and <= 1 GB
+(path, final explanation, held-out figures against the truth's).  Targets: <= 120 s wall and <= 1 GB
 peak RSS on an idle 2-core box.
 
     python3 experiments/benchmark_diagnose.py [--config configs/diagnose_withheld_diffraction.toml]
