@@ -2,9 +2,9 @@
 
 Runs ``python -m brdfjax diagnose CONFIG --out <tmp>`` in a child process with ``BRDFJAX_CACHE_DIR`` set to a
 fresh temporary folder (no compiled or exported program from an earlier run) and prints the wall time, the
-child's peak resident memory (``getrusage(RUSAGE_CHILDREN).ru_maxrss``), the load average before and after
+child's CPU seconds (user + system: comparable across loads), its peak resident memory (``getrusage(RUSAGE_CHILDREN).ru_maxrss``), the load average before and after
 (the box may be shared: the figures are only comparable at a similar load), and the diagnosis's own outcome
-(path, final explanation, held-out figures against the truth's).  Targets (issue 35): <= 120 s wall and <= 1 GB
+(path, final explanation, held-out figures against the truth's).  Targets: <= 120 s wall and <= 1 GB
 peak RSS on an idle 2-core box.
 
     python3 experiments/benchmark_diagnose.py [--config configs/diagnose_withheld_diffraction.toml]
@@ -46,9 +46,11 @@ def main(argv=None) -> int:
                               env=env, capture_output=True, text=True)
         wall = time.perf_counter() - t0
         load1 = os.getloadavg()
-        rss_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0  # kB on Linux
+        ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+        rss_mb = ru.ru_maxrss / 1024.0  # kB on Linux
+        cpu = ru.ru_utime + ru.ru_stime  # the child's CPU seconds: comparable across loads, unlike the wall time
         rec = {"config": args.config, "cold": args.cache_dir is None, "exit": proc.returncode, "wall_s": wall,
-               "peak_rss_mb": rss_mb, "load_before": load0, "load_after": load1, "cpus": os.cpu_count()}
+               "cpu_s": cpu, "peak_rss_mb": rss_mb, "load_before": load0, "load_after": load1, "cpus": os.cpu_count()}
         if proc.returncode == 0:
             d = json.loads((out / "diagnosis.json").read_text())
             rec.update({
@@ -61,7 +63,7 @@ def main(argv=None) -> int:
         else:
             rec["stderr_tail"] = proc.stderr[-3000:]
     write_json_atomic(args.out, rec)
-    print(f"wall {wall:.1f} s, peak RSS {rss_mb:.0f} MB, exit {proc.returncode}, load {load0[0]:.1f} -> {load1[0]:.1f} "
+    print(f"wall {wall:.1f} s, CPU {cpu:.1f} s, peak RSS {rss_mb:.0f} MB, exit {proc.returncode}, load {load0[0]:.1f} -> {load1[0]:.1f} "
           f"on {os.cpu_count()} cores (targets: <= 120 s, <= 1024 MB on an idle 2-core box)")
     if proc.returncode == 0:
         print("path:", " -> ".join(f"{'-' if a == 'remove' else ('+' if a == 'add' else '')}{e} ({c:.4g}; held-out "

@@ -38,6 +38,7 @@ from ..config import ConfigError, ModelConfig, StrictModel, read_toml
 from ..fit.config import load_fit_config
 from ..fit.job import build_fit_job
 from ..runtime.choices import check_choices
+from ..runtime.compile_cache import release_compiled
 from .effects import EFFECT_LIBRARY
 from .engine import DiagnoseInputError, diagnose, final_model_config, truth_gap
 
@@ -90,6 +91,7 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
     if not fitted:
         raise ConfigError(str(cfg.source), [("diagnose.heldout", "holds out every frame; leave at least one to fit")])
     fit_kwargs = dict(job.fit_kwargs)
+    release_compiled()  # the programs that generated or read the frames (read back from the persistent cache if needed)
     notes: list[str] = []
     if cfg.nuisance.enabled is None and fit_kwargs.get("nuisance") is not None:
         # Measured at the merge of issues 15 and 18: with the frame-wide nuisance parameters free, the diffraction

@@ -31,8 +31,8 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    would return to a set already visited, or after ``max_steps`` steps.
 
 Trials are cached by their set of effects.  A set reached again by taking an effect out of a larger fit (rules 3
-and 5) is refitted from that larger fit as well, and the better of its two fits kept: the set's first fit,
-started from a smaller one, can sit in a poorer optimum.
+and 5) is refitted from that larger fit as well (once per larger fit), and the better of its two fits kept: the
+set's first fit, started from a smaller one, can sit in a poorer optimum.
 """
 
 from __future__ import annotations
@@ -128,6 +128,7 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
     T = float(bic_threshold)
     trials: list[Trial] = []
     cache: dict[frozenset, Trial] = {}
+    refreshed: set[tuple[frozenset, int]] = set()  # (set, id of the larger fit) refitted from that fit already
     applicable = getattr(problem, "applicable", None)
     within_noise = getattr(problem, "within_noise", None)
     order = getattr(problem, "order", None)
@@ -141,6 +142,10 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
         k = _key(effects)
         if k in cache and not (refresh and warm is not None and k != _key(warm.effects) and k != _key(())):
             return cache[k]
+        if refresh and warm is not None:
+            if k in cache and (k, id(warm)) in refreshed:
+                return cache[k]  # refitted from this very fit already (rules 3 and 4 ask for the same refit)
+            refreshed.add((k, id(warm)))
         t = problem.refit(tuple(effects), warm)
         trials.append(t)
         old = cache.get(k)

@@ -170,3 +170,26 @@ def test_a_set_reached_by_taking_an_effect_out_is_refitted_from_the_larger_fit()
     assert r.final.bic == pytest.approx(102.0)
     pair_at = [i for i, c in enumerate(p.calls) if set(c) == {"g", "s"}][0]
     assert ("s",) in p.calls[pair_at + 1:]  # refitted from the pair
+
+
+class Recording(StuckFromBase):
+    """StuckFromBase that records which fit each refit started from."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.starts = []
+
+    def refit(self, effects, warm):
+        self.starts.append((frozenset(effects), id(warm)))
+        return super().refit(effects, warm)
+
+
+def test_a_set_is_refitted_from_the_same_larger_fit_only_once():
+    # rules 3 (the generic one kept out) and 4 (the pair's generic member removable) both ask for s alone
+    # refitted from the pair g + s: one refit serves both, with the same outcome
+    p = Recording({"g": 300.0, "s": 898.0}, generic=("g",), sets={frozenset({"g", "s"}): 100.0})
+    r = search(p, bic_threshold=T, max_steps=3, pair_top=2)
+    assert r.final.effects == ("s",) and r.final.bic == pytest.approx(102.0)
+    assert len(p.starts) == len(set(p.starts))
+    assert p.calls.count(("s",)) == 2  # once from the base, once from the pair
+    assert any("g (generic) does not enter" in n for n in r.moves[0].notes)
