@@ -23,8 +23,7 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    alone it was 12 behind the floor, and the held-out frame at another incidence missed by 0.18 decades with
    it against 0.011 with the floor).
 4. Commit: the admissible single or pair with the largest gain enters when the gain exceeds T; a pair only
-   when it beats its better member's single by more than T (and both members are admissible in the pair).  A
-   pair that enters is refitted from its other member's single fit as well, and the better fit kept.
+   when it beats its better member's single by more than T (and both members are admissible in the pair).
 5. Backward elimination, after every commit: each effect of the set is taken out in turn (the model
    refitted); the cheapest whose removal costs less than T is taken out, and this repeats.  An effect stays
    only if removing it costs more than T: the test it passed to enter.
@@ -287,22 +286,6 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                         "(" + "; ".join(step_notes[-3:]) + ")" if step_notes else "no admissible move is left")
                 break
             g, added, t, why = max(options, key=lambda o: o[0])
-            members = next(((p, q) for p, q, tt in pair_info if tt is t), None)
-            if members is not None:
-                # a pair entering jointly was refitted from its better member's single fit; it is refitted from the
-                # other member's as well and the better kept (measured on a misalignment + offset peak trial: the
-                # pair's fit from one member stopped at reduced chi^2 2.14, where the right set reaches 0.94)
-                p, q = members
-                other = q if gain(p) >= gain(q) else p
-                say(f"step {step}: refitting {' + '.join(added)} from {new_of[id(other)]}'s fit as well")
-                alt = fit(t.effects, other, refresh=True)
-                best = cache.get(_key(t.effects), t)
-                if best is not t and best.ok and best.bic < t.bic and not best.own_flags(list(added)):
-                    why += (f"; refitted from {new_of[id(other)]}'s fit as well: BIC {best.bic:.6g} against "
-                            f"{t.bic:.6g} (kept)")
-                    t, g = best, gain(best)
-                elif alt.ok:
-                    why += f"; refitted from {new_of[id(other)]}'s fit as well: BIC {alt.bic:.6g} (not better)"
             if polish is not None:
                 t = polish(t)
                 cache[_key(t.effects)] = t

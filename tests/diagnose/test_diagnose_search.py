@@ -193,26 +193,3 @@ def test_a_set_is_refitted_from_the_same_larger_fit_only_once():
     assert len(p.starts) == len(set(p.starts))
     assert p.calls.count(("s",)) == 2  # once from the base, once from the pair
     assert any("g (generic) does not enter" in n for n in r.moves[0].notes)
-
-
-class PairStuckFromOneMember(Table):
-    """The pair {a, b} fitted from a's single fit sits in a poor optimum (BIC 700); from b's it reaches 300, as a
-    misalignment + offset peak pair did (reduced chi^2 2.14 from one start, 0.94 reachable)."""
-
-    def refit(self, effects, warm):
-        t = super().refit(effects, warm)
-        if set(effects) == {"a", "b"} and warm is not None and tuple(warm.effects) == ("a",):
-            return Trial(t.effects, True, None, 700.0, 7.0, t.n_params, None, t.flags)
-        return t
-
-
-def test_a_pair_that_enters_is_refitted_from_its_other_member_as_well():
-    p = PairStuckFromOneMember({"a": 100.0, "b": 90.0}, sets={frozenset({"a", "b"}): 300.0})
-    r = search(p, bic_threshold=T, max_steps=1, pair_top=2)
-    assert r.moves[0].effects == ("a", "b") and r.final.bic == pytest.approx(300.0)
-    assert r.moves[0].gain == pytest.approx(700.0)
-    assert any("refitted from b's fit as well: BIC 300 against 700 (kept)" in n for n in r.moves[0].notes)
-    # a pair whose first fit is already the better one keeps it, and says so
-    p = Table({"a": 100.0, "b": 90.0}, bonus={("a", "b"): 300.0})
-    r = search(p, bic_threshold=T, max_steps=1, pair_top=2)
-    assert any("(not better)" in n for n in r.moves[0].notes) and r.final.bic == pytest.approx(510.0)
