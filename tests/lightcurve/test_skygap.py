@@ -59,3 +59,6 @@ def test_null_set_nothing_significant_and_bounds_keep_effects_off(data):
     # an amplitude fitted to zero sits on its bound: such candidates are flagged, never on a path
     flagged = [r for r in res["ranking"] if r["on_bound"]]
     assert flagged and all(r["delta_bic"] > -res["threshold"] or r["on_bound"] for r in res["ranking"])
+    # the flags are the effect's own (the shared search keeps an effect with flags of its own off the path)
+    assert all(any(k in f and "on its bound" in f for f in r["flags"] for k in r["on_bound"]) for r in flagged)
+    assert all(not r["flags"] for r in res["ranking"] if not r["on_bound"] and not r["dead"])
