@@ -109,7 +109,7 @@ class SkygapCandidatesConfig(StrictModel):
 
 
 class SkygapSearchConfig(StrictModel):
-    """The greedy search over candidates (brdfjax.lightcurve.skygap.search)."""
+    """The search over candidates (brdfjax.diagnose.search, run by brdfjax.lightcurve.skygap)."""
 
     bic_threshold: float = Field(10.0, gt=0, description="a step must lower BIC by more than this")
     max_steps: int = Field(3, ge=1, le=8, description="at most this many effects on the path")
