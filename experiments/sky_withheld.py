@@ -222,6 +222,8 @@ def main(argv=None) -> int:
                     "nights until this many)")
     ap.add_argument("--effects", default=",".join(EFFECTS))
     ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--set", choices=("alternate", "slingshot", "score"), default="alternate",
+                    help="the real set whose geometry the trials take (alternate: Slingshot on even seeds, SCORE on odd)")
     ap.add_argument("--out", default=str(ROOT / "experiments/results/sky_withheld_full_rows.json"))
     ap.add_argument("--until", default=None, help="stop starting trials after this UTC time (HH:MM)")
     ap.add_argument("--sizes", action="store_true", help="only measure each effect's size at the rows (no diagnosis)")
@@ -238,11 +240,15 @@ def main(argv=None) -> int:
     seeds = range(a.first_seed, a.first_seed + a.trials)
     # seed by seed (every effect gets its first trial before any gets its second), nulls in between
     plan = []
+
+    def which_of(s: int) -> str:
+        return ("slingshot", "score")[s % 2] if a.set == "alternate" else a.set
+
     for s in range(a.first_seed, a.first_seed + max(a.trials, a.nulls)):
         if s in seeds:
-            plan += [(("slingshot", "score")[s % 2], e, s) for e in a.effects.split(",") if e]
+            plan += [(which_of(s), e, s) for e in a.effects.split(",") if e]
         if s < a.first_seed + a.nulls:
-            plan.append((("slingshot", "score")[s % 2], None, s))
+            plan.append((which_of(s), None, s))
     t0 = time.perf_counter()
     for which, eff, seed in plan:
         if (which, eff, seed) in seen:
