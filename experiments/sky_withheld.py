@@ -46,6 +46,9 @@ EFFECTS = {
     "earthshine": {"es.albedo": 0.3},
     # a bright (cloud-covered) Earth: twice lumos-sat's default albedo
     "earthshine@bright": {"es.albedo": 0.6},
+    # the same on all of the trial's rows (not only those near the terminator): the rows where earthshine is nil
+    # are where an effect that mimics it near the terminator (a chassis cant) shows
+    "earthshine@bright_all_rows": {"es.albedo": 0.6},
     "offset": {"yaw.array": np.deg2rad(15.0)},
     "missing_facet": {"miss.arho": 1.5, "miss.tilt": np.deg2rad(50.0), "miss.az": np.deg2rad(90.0)},
     "wide_lobe": {"wide.chassis.k": 0.4, "wide.chassis.w": np.deg2rad(20.0)},
@@ -140,7 +143,8 @@ def setup(which: str, effect: str | None, rows: int, seed: int):
     kind = None if effect is None else effect.split("@")[0]
     if kind == "solar_disk":
         which = "score"  # only SCORE rows come near a facet's specular direction
-    d, groups = geometry(which, rows, seed, select=kind if kind in ("earthshine", "solar_disk") else None)
+    select = kind if kind in ("earthshine", "solar_disk") and not effect.endswith("all_rows") else None
+    d, groups = geometry(which, rows, seed, select=select)
     facets, models = facets_and_models(sharp_side=kind == "solar_disk")
     P = SkyProblem.build(d, facets, models, normals="lumos")
     cands = add_effects(P, earth_radius=6378000.0 if which == "slingshot" else 6378137.0)
