@@ -13,6 +13,7 @@ approximation of each training fit, 200 draws: ``band_coverage_*``; brdfjax.ligh
 
     PYTHONPATH=$PWD python experiments/sky_v2mini_gap.py [--sets slingshot,score] [--nuts 150]
     PYTHONPATH=$PWD python experiments/sky_v2mini_gap.py --score-satellites   # SCORE held out by satellites
+    PYTHONPATH=$PWD python experiments/sky_v2mini_gap.py --diagnosis-only     # the diagnosis alone
 
 Writes experiments/results/sky_v2mini_gap.json.
 """
@@ -136,7 +137,17 @@ def run_set(which: str, n_nuts: int, log, diagnosis: bool = True) -> dict:
             f"({out['posterior']['seconds']:.0f} s)")
     if not diagnosis:
         return out
-    # the gap diagnosis: base = the lab models (areas free), candidates on the four facets carrying most light
+    out["diagnosis"] = run_diagnosis(which, log, (cfg, d, facets, models, labs), folds)
+    return out
+
+
+def run_diagnosis(which: str, log, built=None, folds=None) -> dict:
+    """The gap diagnosis: base = the lab models (areas free), candidates on the four facets carrying most light."""
+    cfg, d, facets, models, _ = built or setup(which)
+    scatter = which == "score"
+    if folds is None:
+        groups = night_groups(d.obs) if which == "score" else block_groups(len(d), 10)
+        folds = group_folds(groups, 5, seed=0)
     Pd = SkyProblem.build(d, facets, models, normals=cfg.attitude.normals, scatter=scatter,
                           wavelength=cfg.wavelength_nm * 1e-9)
     frac = np.asarray(Pd.flux(Pd.x_of_u(Pd.u0()))[0]).mean(0)
@@ -144,10 +155,10 @@ def run_set(which: str, n_nuts: int, log, diagnosis: bool = True) -> dict:
     cands = add_effects(Pd, facets=top, earth_radius=d.geometry.earth_radius)
     t2 = time.perf_counter()
     res = diagnose_sky(Pd, cands, folds, log=log)
-    out["diagnosis"] = {k: v for k, v in res.items() if not k.startswith("_")}
-    out["diagnosis"]["candidate_facets"] = top
-    out["diagnosis"]["wall_s"] = time.perf_counter() - t2
-    log(f"{which}: diagnosis of {len(d)} rows, {len(cands)} candidates in {out['diagnosis']['wall_s']:.0f} s: path "
+    out = {k: v for k, v in res.items() if not k.startswith("_")}
+    out["candidate_facets"] = top
+    out["wall_s"] = time.perf_counter() - t2
+    log(f"{which}: diagnosis of {len(d)} rows, {len(cands)} candidates in {out['wall_s']:.0f} s: path "
         f"{[p['effect'] for p in res['path']]}, held-out {res['heldout']}")
     return out
 
@@ -176,6 +187,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "experiments/results/sky_v2mini_gap.json"))
     ap.add_argument("--score-satellites", action="store_true", help="only: SCORE held out by whole satellites")
     ap.add_argument("--no-diagnosis", action="store_true", help="the fits, held-out figures and bands only")
+    ap.add_argument("--diagnosis-only", action="store_true", help="only the diagnosis (the fits kept from the JSON)")
     a = ap.parse_args(argv)
     out = Path(a.out)
     res = json.loads(out.read_text()) if out.exists() else {}
@@ -185,6 +197,11 @@ def main(argv=None) -> int:
         return 0
     for which in a.sets.split(","):
         prev = res.get(which, {})
+        if a.diagnosis_only:
+            res.setdefault(which, {})["diagnosis"] = run_diagnosis(which, log=lambda s: print(s, flush=True))
+            res[which].pop("diagnosis_from_an_earlier_run", None)
+            write_json_atomic(out, json.loads(json.dumps(res, default=lambda o: np.asarray(o).tolist())))
+            continue
         res[which] = run_set(which, a.nuts, log=lambda s: print(s, flush=True), diagnosis=not a.no_diagnosis)
         if a.no_diagnosis and "diagnosis" in prev:  # keep the earlier run's diagnosis, marked as such
             res[which]["diagnosis_from_an_earlier_run"] = prev["diagnosis"]

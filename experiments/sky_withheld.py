@@ -46,6 +46,9 @@ EFFECTS = {
     "earthshine": {"es.albedo": 0.3},
     # a bright (cloud-covered) Earth: twice lumos-sat's default albedo
     "earthshine@bright": {"es.albedo": 0.6},
+    # the same on all of the trial's rows (not only those near the terminator): the rows where earthshine is nil
+    # are where an effect that mimics it near the terminator (a chassis cant) shows
+    "earthshine@bright_all_rows": {"es.albedo": 0.6},
     "offset": {"yaw.array": np.deg2rad(15.0)},
     "missing_facet": {"miss.arho": 1.5, "miss.tilt": np.deg2rad(50.0), "miss.az": np.deg2rad(90.0)},
     "wide_lobe": {"wide.chassis.k": 0.4, "wide.chassis.w": np.deg2rad(20.0)},
@@ -140,7 +143,8 @@ def setup(which: str, effect: str | None, rows: int, seed: int):
     kind = None if effect is None else effect.split("@")[0]
     if kind == "solar_disk":
         which = "score"  # only SCORE rows come near a facet's specular direction
-    d, groups = geometry(which, rows, seed, select=kind if kind in ("earthshine", "solar_disk") else None)
+    select = kind if kind in ("earthshine", "solar_disk") and not effect.endswith("all_rows") else None
+    d, groups = geometry(which, rows, seed, select=select)
     facets, models = facets_and_models(sharp_side=kind == "solar_disk")
     P = SkyProblem.build(d, facets, models, normals="lumos")
     cands = add_effects(P, earth_radius=6378000.0 if which == "slingshot" else 6378137.0)
@@ -167,6 +171,14 @@ def trial(which: str, effect: str | None, rows: int, seed: int, log) -> dict:
     folds = group_folds(groups, 5, seed=seed)
     res = diagnose_sky(P, cands, folds, log=log)
     truth_rms = float(np.sqrt(np.mean(noise**2)))
+    # how detectable the withheld effect is at these rows and this noise: its noiseless change of the magnitudes
+    # in units of the noise (chi^2 of truth - base), against what it must gain to enter (the threshold plus its
+    # parameters' BIC penalty); an effect below that cannot be named by any test on these rows
+    dm = clean - P.predict(P.u0())
+    sig = np.where(np.isfinite(err), err, 0.15)
+    signal_chi2 = float(np.sum((dm / sig) ** 2))
+    k_eff = max(len(EFFECTS[effect]) if effect else 0, 1)
+    needed = float(res["threshold"] + k_eff * np.log(len(d)))
     h = res["heldout"]
     path_rms = h.get("path_rms", h["base_rms"])
     named = res["named"]
@@ -175,7 +187,10 @@ def trial(which: str, effect: str | None, rows: int, seed: int, log) -> dict:
             "path": [p["effect"] for p in res["path"]], "truth_rms": truth_rms, "base_heldout_rms": h["base_rms"],
             "path_heldout_rms": path_rms, "pass": bool(ok), "seconds": res["seconds"],
             "refits": res["refits"], "failed_refits": res["failed_refits"],
-            "effect_rms_mag": float(np.sqrt(np.mean((clean - P.predict(P.u0())) ** 2))),
+            "effect_rms_mag": float(np.sqrt(np.mean(dm**2))), "noise_rms_mag": float(np.sqrt(np.mean(noise**2))),
+            "signal_chi2": signal_chi2, "signal_chi2_needed": needed,
+            "detectable": bool(effect is None or signal_chi2 > needed),
+            "gap_ratio": float(path_rms / truth_rms), "stopped": res["stopped"],
             "ranking_top3": [{k: r[k] for k in ("name", "delta_bic", "on_bound", "dead")} for r in res["ranking"][:3]],
             "zones_first_step": res["path"][0]["zones"][:3] if res["path"] else []}
 
@@ -207,10 +222,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--trials", type=int, default=3)
     ap.add_argument("--nulls", type=int, default=6)
-    ap.add_argument("--rows", type=int, default=300)
+    ap.add_argument("--rows", type=int, default=1583, help="rows per trial (1583: every Slingshot row; SCORE: whole "
+                    "nights until this many)")
     ap.add_argument("--effects", default=",".join(EFFECTS))
     ap.add_argument("--first-seed", type=int, default=0)
-    ap.add_argument("--out", default=str(ROOT / "experiments/results/sky_withheld.json"))
+    ap.add_argument("--set", choices=("alternate", "slingshot", "score"), default="alternate",
+                    help="the real set whose geometry the trials take (alternate: Slingshot on even seeds, SCORE on odd)")
+    ap.add_argument("--out", default=str(ROOT / "experiments/results/sky_withheld_full_rows.json"))
+    ap.add_argument("--until", default=None, help="stop starting trials after this UTC time (HH:MM)")
     ap.add_argument("--sizes", action="store_true", help="only measure each effect's size at the rows (no diagnosis)")
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -225,25 +244,34 @@ def main(argv=None) -> int:
     seeds = range(a.first_seed, a.first_seed + a.trials)
     # seed by seed (every effect gets its first trial before any gets its second), nulls in between
     plan = []
+
+    def which_of(s: int) -> str:
+        return ("slingshot", "score")[s % 2] if a.set == "alternate" else a.set
+
     for s in range(a.first_seed, a.first_seed + max(a.trials, a.nulls)):
         if s in seeds:
-            plan += [(("slingshot", "score")[s % 2], e, s) for e in a.effects.split(",") if e]
+            plan += [(which_of(s), e, s) for e in a.effects.split(",") if e]
         if s < a.first_seed + a.nulls:
-            plan.append((("slingshot", "score")[s % 2], None, s))
+            plan.append((which_of(s), None, s))
     t0 = time.perf_counter()
     for which, eff, seed in plan:
         if (which, eff, seed) in seen:
             continue
+        if a.until and time.strftime("%H:%M", time.gmtime()) >= a.until:
+            print(f"stopped at {a.until} UTC: trials not run from ({which}, {eff}, seed {seed}) on")
+            break
         r = trial(which, eff, a.rows, seed, log=lambda s: None)
         done.append(r)
-        print(f"{which:9s} {str(eff):14s} seed {seed}: named {r['named']} path {r['path']} held-out "
-              f"{r['path_heldout_rms']:.3f} (base {r['base_heldout_rms']:.3f}, truth {r['truth_rms']:.3f}) "
+        print(f"{which:9s} {str(eff):14s} seed {seed} {r['n']} rows: named {r['named']} path {r['path']} held-out "
+              f"{r['path_heldout_rms']:.3f} (base {r['base_heldout_rms']:.3f}, truth {r['truth_rms']:.3f}); effect "
+              f"RMS {r['effect_rms_mag']:.3f} mag, signal chi2 {r['signal_chi2']:.0f} (needs {r['signal_chi2_needed']:.0f}) "
               f"{'PASS' if r['pass'] else 'FAIL'} {r['seconds']:.0f} s", flush=True)
         summary = {}
         for t in done:
-            s = summary.setdefault(str(t["withheld"]), {"trials": 0, "passed": 0, "named_first": 0})
+            s = summary.setdefault(str(t["withheld"]), {"trials": 0, "passed": 0, "named_first": 0, "detectable": 0})
             s["trials"] += 1
             s["passed"] += t["pass"]
+            s["detectable"] += bool(t.get("detectable", True))
             s["named_first"] += ((t["named"] == t["withheld"].split("@")[0]) if t["withheld"]
                                  else (t["named"] is None))
         old = json.loads(out.read_text()) if out.exists() else {}

@@ -287,6 +287,13 @@ class SkyProblem:
     effect_flux: object = None  # callable(problem, x, w_c, w_s, cos) -> (N,) extra flux, or None
     _fns: dict = field(default_factory=dict, repr=False)
 
+    def __setattr__(self, name, value):
+        # the compiled functions hold the rows as constants: new rows (a synthetic set's magnitudes, the solar
+        # disk's nodes) drop them
+        if name == "data" and "_fns" in self.__dict__:
+            self.__dict__["_fns"].clear()
+        object.__setattr__(self, name, value)
+
     # --- construction helpers
     @classmethod
     def build(cls, data: SkyData, facets: list[FacetSpec], models: dict[str, Model], *, normals: str = "body",
@@ -431,33 +438,57 @@ class SkyProblem:
         integral = jnp.sum(wts * fv * jnp.maximum(w_i[..., 2], 0.0), -1)
         return jnp.nan_to_num(integral * jnp.maximum(w_s[..., 2], 0.0))
 
-    def flux(self, x, d: SkyData | None = None):
-        """Per-facet flux (N, J) and the effects' flux (N,), in units of the solar irradiance at 1 AU."""
+    def disk_at(self, u, free: np.ndarray | None = None) -> bool | None:
+        """Whether the solar disk is on at ``u``: a Python bool that the compiled functions specialise on (the
+        switch ``disk.on`` is a fixed entry), or None where the problem has no disk or the switch is free (then a
+        ``lax.cond`` chooses inside, and under a gradient that costs about 20 times an evaluation without the disk:
+        the disk branch's residuals are carried whether taken or not)."""
+        if self.data.disk is None or not any(p.key == "disk.on" for p in self.params):
+            return None
+        i = self.index("disk.on")
+        if free is not None and bool(np.asarray(free)[i]) or isinstance(u, jax.core.Tracer):
+            return None
+        return bool(float(np.asarray(self.x_of_u(jnp.asarray(u)))[i]) > 0.5)
+
+    def flux(self, x, d: SkyData | None = None, disk: bool | None = None):
+        """Per-facet flux (N, J) and the effects' flux (N,), in units of the solar irradiance at 1 AU.  ``disk``:
+        the solar disk on or off (None: by ``x``'s switch, :meth:`disk_at`)."""
         d = d or self.data
         s_b, o_b, scale = jnp.asarray(d.s_b), jnp.asarray(d.o_b), jnp.asarray(d.scale)
         w_c, w_s, fc, area = self.facet_terms(x, s_b, o_b)
         if d.disk is not None and any(p.key == "disk.on" for p in self.params):
-            on = x[self.index("disk.on")] > 0.5
-            fc = jax.lax.cond(on, lambda: self.disk_terms(x, d), lambda: fc)
+            if disk is None and not isinstance(x, jax.core.Tracer):
+                disk = bool(float(np.asarray(x)[self.index("disk.on")]) > 0.5)
+            if disk is None:
+                on = x[self.index("disk.on")] > 0.5
+                fc = jax.lax.cond(on, lambda: self.disk_terms(x, d), lambda: fc)
+            elif disk:
+                fc = self.disk_terms(x, d)
         per = fc * area[None, :] * scale[:, None]
         extra = (self.effect_flux(self, x, d, w_c, w_s) if self.effect_flux is not None
                  else jnp.zeros(per.shape[0]))
         return per, extra
 
-    def mag_of_x(self, x, d: SkyData | None = None):
+    def mag_of_x(self, x, d: SkyData | None = None, disk: bool | None = None):
         d = d or self.data
-        per, extra = self.flux(x, d)
+        per, extra = self.flux(x, d, disk)
         total = per.sum(-1) + extra
         return jnp.asarray(d.sun_mag) - 2.5 * jnp.log10(jnp.maximum(total, 1e-300))
 
     def predict(self, u, data: SkyData | None = None) -> np.ndarray:
-        return np.asarray(self.mag_of_x(self.x_of_u(jnp.asarray(u)), data))
+        if data is not None:
+            return np.asarray(self.mag_of_x(self.x_of_u(jnp.asarray(u)), data))
+        disk = self.disk_at(u)
+        key = ("predict", disk)
+        if key not in self._fns:  # compiled once per problem (the fit's own rows), as the solve
+            self._fns[key] = jax.jit(lambda v: self.mag_of_x(self.x_of_u(v), None, disk))
+        return np.asarray(self._fns[key](jnp.asarray(u, float)))
 
     # --- the likelihood
-    def _m2ll(self, u, w, joint):
+    def _m2ll(self, u, w, joint, disk: bool | None = None):
         x = self.x_of_u(u)
         d = self.data
-        r = jnp.asarray(d.mag) - self.mag_of_x(x, d)
+        r = jnp.asarray(d.mag) - self.mag_of_x(x, d, disk)
         err = np.asarray(d.mag_err)
         has = np.isfinite(err) & (err > 0)
         s2 = jnp.square(x[self.index("scatter")])
@@ -479,13 +510,17 @@ class SkyProblem:
 
     def m2ll(self, u, w=None, joint: float = 1.0) -> float:
         w = np.ones(len(self.data)) if w is None else np.asarray(w, float)
-        return float(self._compiled()["m2ll"](jnp.asarray(u), jnp.asarray(w), jnp.asarray(joint)))
+        return float(self._compiled(self.disk_at(u))["m2ll"](jnp.asarray(u), jnp.asarray(w), jnp.asarray(joint)))
 
-    def _compiled(self):
-        if not self._fns:
+    def _compiled(self, disk: bool | None = None):
+        """The compiled solve and ``-2 ln L``, one pair per solar-disk state (a static choice: see :meth:`disk_at`).
+        The free mask, start, weights and joint factor are arguments, so every refit and held-out fold of a problem
+        reuses one compilation."""
+        key = ("fns", disk)
+        if key not in self._fns:
             def obj(v, args):
                 u0, free, w, joint = args
-                return self._m2ll(jnp.where(free, v, u0), w, joint)
+                return self._m2ll(jnp.where(free, v, u0), w, joint, disk)
 
             solver = optx.BFGS(rtol=1e-7, atol=1e-7)
 
@@ -493,20 +528,19 @@ class SkyProblem:
             def solve(u0, free, w, joint):
                 sol = optx.minimise(obj, solver, u0, args=(u0, free, w, joint), max_steps=4000, throw=False)
                 u = jnp.where(free, sol.value, u0)
-                return u, self._m2ll(u, w, joint), sol.stats["num_steps"]
+                return u, self._m2ll(u, w, joint, disk), sol.stats["num_steps"]
 
-            self._fns["solve"] = solve
-            self._fns["m2ll"] = jax.jit(self._m2ll)
-        return self._fns
+            self._fns[key] = {"solve": solve, "m2ll": jax.jit(lambda u, w, joint: self._m2ll(u, w, joint, disk))}
+        return self._fns[key]
 
     def fit(self, free: np.ndarray | None = None, u0: np.ndarray | None = None, w: np.ndarray | None = None,
             joint: float = 1.0, starts: list[np.ndarray] | None = None) -> SkyFit:
         """Minimise ``-2 ln L`` over the ``free`` entries from ``u0`` (and from each of ``starts``; the best is kept)."""
         free = self.default_free() if free is None else np.asarray(free, bool)
         w = np.ones(len(self.data)) if w is None else np.asarray(w, float)
-        fn = self._compiled()["solve"]
         best = None
         for start in [self.u0() if u0 is None else u0] + list(starts or []):
+            fn = self._compiled(self.disk_at(start, free))["solve"]
             u, m, steps = fn(jnp.asarray(start, float), jnp.asarray(free), jnp.asarray(w), jnp.asarray(joint))
             m = float(m)
             if np.isfinite(m) and (best is None or m < best.m2ll):
@@ -576,7 +610,8 @@ def laplace_covariance(fit: SkyFit, max_sd_u: float = 1.0) -> tuple[np.ndarray, 
     idx = np.flatnonzero(fit.free)
     w = jnp.asarray(np.ones(len(prob.data)) if fit.w is None else fit.w)
     ufull = jnp.asarray(fit.u)
-    H = np.asarray(jax.hessian(lambda z: prob._m2ll(ufull.at[idx].set(z), w, fit.joint))(ufull[idx]))
+    disk = prob.disk_at(fit.u, fit.free)
+    H = np.asarray(jax.hessian(lambda z: prob._m2ll(ufull.at[idx].set(z), w, fit.joint, disk))(ufull[idx]))
     # a non-finite second derivative (a parameter saturated on its bound: sigmoid' underflows) says nothing about
     # that direction: it gets the floor below
     H = np.nan_to_num(H, nan=0.0, posinf=0.0, neginf=0.0)
@@ -603,7 +638,8 @@ def predictive_band(fit: SkyFit, n_draws: int = 200, seed: int = 0, data: SkyDat
     L = V * np.sqrt(np.clip(ev, 0, None))
     u = np.tile(fit.u, (n_draws, 1))
     u[:, idx] += rng.standard_normal((n_draws, idx.size)) @ L.T
-    mags = np.asarray(jax.lax.map(lambda v: prob.mag_of_x(prob.x_of_u(v), d), jnp.asarray(u), batch_size=16))
+    disk = prob.disk_at(fit.u, fit.free)
+    mags = np.asarray(jax.lax.map(lambda v: prob.mag_of_x(prob.x_of_u(v), d, disk), jnp.asarray(u), batch_size=16))
     mags = np.nan_to_num(mags, nan=np.inf)
     has = np.isfinite(d.mag_err) & (d.mag_err > 0)
     s = fit.values()["scatter"]
@@ -636,8 +672,10 @@ def nuts_posterior(fit: SkyFit, n_draws: int = 300, n_warmup: int = 300, seed: i
     ufull = jnp.asarray(fit.u)
     w = jnp.ones(len(prob.data))
 
+    disk = prob.disk_at(fit.u, fit.free)
+
     def logdensity(z):
-        return -0.5 * prob._m2ll(ufull.at[idx].set(z), w, joint)
+        return -0.5 * prob._m2ll(ufull.at[idx].set(z), w, joint, disk)
 
     key = jax.random.PRNGKey(seed)
     k1, k2 = jax.random.split(key)

@@ -7,22 +7,23 @@ frame and table diagnosis: :class:`SearchProblem`, :func:`search`):
 
 1. the base is fitted (facet areas free; the scatter profiled or the rows'
    uncertainties);
-2. at each step every candidate not yet on the path is refitted on top of the
+2. the search of :mod:`brdfjax.diagnose.search` (the rule in its docstring):
+   at each step every candidate not yet in the set is refitted on top of the
    current model (its parameters physically bounded, several starts where
-   the likelihood is multimodal, the current fit as the warm start), and the
-   ``pair_top`` best pairs of candidates too; a refit whose candidate
-   parameter ends on a bound (an amplitude at zero, a width at its limit) or
-   whose effect changes no row by 1 mmag (dead) is flagged and kept off the
-   path, as on tables;
-3. the best unflagged refit improving BIC (``-2 ln L + k ln N``) by more
-   than ``bic_threshold`` joins the path (a *generic* effect, the missing
-   facet, only when no specific one comes within the threshold of it), until
-   none does or ``max_steps``;
-4. each path step is cross-validated on held-out groups (whole nights,
+   the likelihood is multimodal, the current fit as the warm start), the
+   ``pair_top`` best in pairs; a refit whose candidate parameter ends on a
+   bound (an amplitude at zero, a width at its limit) or whose effect changes
+   no row by 1 mmag (dead) is flagged for that effect, which never enters, as
+   on tables; the best admissible move improving BIC (``-2 ln L + k ln N``)
+   by more than ``bic_threshold`` enters (a *generic* effect, the missing
+   facet, not where a specific one explains its residual on their joint
+   refit), and after each entry every effect of the set is taken out in turn
+   and stays only if its removal costs more than the threshold;
+3. each set on the path is cross-validated on held-out groups (whole nights,
    satellites or blocks of rows: :func:`~.skyfit.group_folds`) and
-   :func:`zones` says *where* it changed the residuals (phase angle, each
-   facet's incidence and scattering angle, the Sun-observer azimuth about
-   body z).
+   :func:`zones` says *where* each move changed the residuals (phase angle,
+   each facet's incidence and scattering angle, the Sun-observer azimuth
+   about body z).
 
 Candidates (:func:`add_effects`; the effect kinds, their fluxes in
 :mod:`.skyeffects`):
@@ -65,13 +66,12 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
 
 import jax.numpy as jnp
 import numpy as np
 
+from ..diagnose.search import SearchProblem, SearchResult, Trial, search
 from ..runtime.errors import InputError
 from .earthshine import earthshine_flux
 from .engine import Attitude, Satellite, SunDisk
@@ -84,108 +84,6 @@ __all__ = ["Candidate", "KINDS", "SkyGapProblem", "Trial", "SearchProblem", "Sea
 KINDS = ("earthshine", "offset", "missing_facet", "wide_lobe", "out_of_plane", "diffraction", "solar_disk")
 GENERIC = ("missing_facet",)
 DEAD_MAG = 1e-3  # an effect changing no row by more than this (mag) is dead
-
-
-# --- the search protocol -----------------------------------------------------------------------------------------
-# The frame/table diagnosis shares this protocol (brdfjax/diagnose/search.py); this is a local copy of its
-# dataclass, protocol and greedy search with the same names and signatures, to be replaced by an import of it.
-
-
-@dataclass
-class Trial:
-    """One refit: the effects it holds, whether it succeeded, its BIC, reduced chi^2, free parameter count, held-out
-    figure (lower is better; None until computed), flags (name -> the parameters or reasons; any flag keeps the
-    trial off the path) and the problem's own state (here the :class:`~.skyfit.SkyFit`)."""
-
-    effects: tuple[str, ...]
-    ok: bool
-    failure: str | None
-    bic: float
-    chi2_reduced: float
-    n_params: int
-    heldout: float | None
-    flags: dict[str, list[str]]
-    state: Any = None
-
-
-class SearchProblem(Protocol):
-    def candidates(self) -> list[str]: ...
-
-    def generic(self, effect: str) -> bool: ...
-
-    def base(self) -> Trial: ...
-
-    def refit(self, effects: tuple[str, ...], warm: Trial | None) -> Trial: ...
-
-
-@dataclass
-class SearchResult:
-    """The path (the base first, then one trial per step), every trial refitted at each step, the failed refits and
-    why the search stopped."""
-
-    path: list[Trial]
-    steps: list[list[Trial]] = field(default_factory=list)
-    failed: int = 0
-    stopped: str = ""
-
-    @property
-    def effects(self) -> tuple[str, ...]:
-        return self.path[-1].effects
-
-    @property
-    def named(self) -> str | None:
-        return self.path[1].effects[0] if len(self.path) > 1 else None
-
-
-def _admissible(t: Trial) -> bool:
-    return t.ok and not any(t.flags.values())
-
-
-def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair_top: int = 3,
-           progress: Callable[[str], None] | None = None) -> SearchResult:
-    """Greedy forward search (see the module docstring).  A problem with a ``heldout(trial)`` method gets each path
-    step's held-out figure filled in where its refit left it None."""
-    say = progress or (lambda s: None)
-    current = problem.base()
-    if not current.ok:
-        return SearchResult([current], [], 1, f"base fit failed: {current.failure}")
-    res = SearchResult([current])
-    for step in range(max_steps):
-        remaining = [c for c in problem.candidates() if c not in current.effects]
-        if not remaining:
-            res.stopped = "no candidate left"
-            break
-        singles = [problem.refit(current.effects + (c,), current) for c in remaining]
-        ranked = sorted([t for t in singles if t.ok], key=lambda t: t.bic)
-        pairs = []
-        for a, b in itertools.combinations(ranked[:pair_top], 2):
-            warm = a if a.bic <= b.bic else b
-            pairs.append(problem.refit(current.effects + (a.effects[-1], b.effects[-1]), warm))
-        tried = singles + pairs
-        res.steps.append(tried)
-        res.failed += sum(not t.ok for t in tried)
-        good = sorted([t for t in tried if _admissible(t) and current.bic - t.bic > bic_threshold], key=lambda t: t.bic)
-        best_single = min((t.bic for t in singles if _admissible(t)), default=np.inf)
-        good = [t for t in good if len(t.effects) - len(current.effects) == 1 or t.bic < best_single - bic_threshold]
-        if not good:
-            res.stopped = f"no refit improves BIC by more than {bic_threshold}"
-            break
-        best = good[0]
-        if any(problem.generic(e) for e in best.effects[len(current.effects):]):
-            specific = [t for t in good if not any(problem.generic(e) for e in t.effects[len(current.effects):])]
-            if specific and specific[0].bic < best.bic + bic_threshold:
-                best = specific[0]
-        say(f"step {step + 1}: {', '.join(best.effects[len(current.effects):])} (BIC {best.bic - current.bic:+.1f})")
-        current = best
-        res.path.append(best)
-    else:
-        res.stopped = f"max_steps ({max_steps}) reached"
-    fill = getattr(problem, "heldout", None)
-    if fill is not None:
-        for t in res.path:
-            if t.heldout is None:
-                t.heldout = fill(t)
-    return res
 
 
 # --- candidates --------------------------------------------------------------------------------------------------
@@ -361,18 +259,17 @@ class SkyGapProblem:
         s = fit.values()["scatter"]
         var = np.where(has, np.where(has, d.mag_err, 1.0) ** 2 + s**2, np.mean(r[~has] ** 2) if (~has).any() else 1.0)
         chi2 = float(np.sum(r**2 / var) / max(len(d) - fit.k, 1))
-        keys = [k for e in effects for k in self.cands[e].keys]
         on = set(fit.on_bound())
-        flags = {"on_bound": [k for k in keys if k in on], "dead": []}
-        for e in effects:  # an effect that changes no row: its refit without it predicts the same
+        flags: dict[str, list[str]] = {}
+        for e in effects:
             c = self.cands[e]
+            flags[e] = [f"{k} on its bound" for k in c.keys if k in on]
+            # an effect that changes no row: the fit with its parameters set back to off predicts the same
             u = fit.u.copy()
-            for k in c.keys:
-                u[P.index(k)] = P.params[P.index(k)].to_u(P.params[P.index(k)].value)
-            for k in c.fixed:
+            for k in [*c.keys, *c.fixed]:
                 u[P.index(k)] = P.params[P.index(k)].to_u(P.params[P.index(k)].value)
             if np.max(np.abs(P.predict(u) - pred)) < DEAD_MAG:
-                flags["dead"].append(e)
+                flags[e].append(f"dead (changes no row by {DEAD_MAG * 1e3:g} mmag)")
         return Trial(effects, True, None, float(fit.bic), chi2, fit.k, None, flags, fit)
 
     def base(self) -> Trial:
@@ -410,7 +307,9 @@ class SkyGapProblem:
                 w = warm.state
                 f0 = SkyFit(P, starts[0], w.free, P.m2ll(starts[0], w.w, w.joint), w.n, 0, w.w, w.joint)
                 t = self._trial(effects, f0)
-                t.flags["dead"] = sorted(set(t.flags["dead"]) | {new[0].name})
+                dead = f"dead (changes no row by {DEAD_MAG * 1e3:g} mmag)"
+                if dead not in t.flags[new[0].name]:
+                    t.flags[new[0].name].append(dead)
                 return t
         try:
             fit = P.fit(self.mask(effects), u0=starts[0], starts=starts[1:])
@@ -461,18 +360,20 @@ def zones(problem: SkyProblem, before: np.ndarray, after: np.ndarray, min_rows: 
     return out[:top]
 
 
-
-
-def _step_entry(gp: SkyGapProblem, prev: Trial, t: Trial) -> dict:
+def _step_entry(gp: SkyGapProblem, prev: Trial, t: Trial, action: str = "add") -> dict:
+    """One move of the path: the effects it added (one, or a pair jointly) or removed, its BIC change, the values
+    of the added effects' parameters, where it changed the residuals and the held-out figure of the set after it."""
     P = gp.problem
-    added = t.effects[len(prev.effects):]
+    moved = [e for e in t.effects if e not in prev.effects] if action == "add" else \
+        [e for e in prev.effects if e not in t.effects]
     vals = t.state.values()
     before, after = prev.state.predict(), t.state.predict()
-    return {"effect": added[0] if len(added) == 1 else "+".join(added), "effects": list(added),
-            "kind": "+".join(gp.cands[e].kind for e in added), "facet": "+".join(gp.cands[e].facet for e in added),
-            "delta_bic": t.bic - prev.bic, "chi2_reduced": t.chi2_reduced,
-            "values": {k: vals[k] for e in added for k in gp.cands[e].keys},
-            "fixed": {k: v for e in added for k, v in gp.cands[e].fixed.items()},
+    sign = "" if action == "add" else "-"
+    return {"action": action, "effect": sign + "+".join(moved), "effects": moved,
+            "kind": "+".join(gp.cands[e].kind for e in moved), "facet": "+".join(gp.cands[e].facet for e in moved),
+            "set": list(t.effects), "delta_bic": t.bic - prev.bic, "chi2_reduced": t.chi2_reduced,
+            "values": {k: vals[k] for e in moved for k in gp.cands[e].keys} if action == "add" else {},
+            "fixed": {k: v for e in moved for k, v in gp.cands[e].fixed.items()} if action == "add" else {},
             "zones": zones(P, before, after),
             "rms_after": float(np.sqrt(np.mean((P.data.mag - after) ** 2))), "heldout_rms": t.heldout}
 
@@ -480,34 +381,41 @@ def _step_entry(gp: SkyGapProblem, prev: Trial, t: Trial) -> dict:
 def diagnose_sky(problem: SkyProblem, cands: list[Candidate] | None = None, folds: list[np.ndarray] | None = None, *,
                  base_free: np.ndarray | None = None, threshold: float = 10.0, max_steps: int = 3,
                  pair_top: int = 3, log=lambda s: None) -> dict:
-    """The diagnosis (see the module docstring) through :func:`search`: ranking of the first step, path, zones and
-    held-out figures (JSON-ready; ``_search``, ``_final_fit`` and ``_heldout_pred`` are for callers)."""
+    """The diagnosis (see the module docstring) through :func:`search`: ranking of the first step, path (each
+    accepted move: an effect or a pair added, an effect taken out), zones and held-out figures (JSON-ready;
+    ``_search``, ``_path`` (the base and the set after each move), ``_final_fit`` and ``_heldout_pred`` are for
+    callers)."""
     t0 = time.perf_counter()
     gp = SkyGapProblem(problem, cands, folds, base_free)
     res = search(gp, bic_threshold=threshold, max_steps=max_steps, pair_top=pair_top, progress=log)
-    base = res.path[0]
+    base = res.base
     if not base.ok:
         raise InputError(f"sky diagnosis: the base fit failed ({base.failure})")
+    trials = [base] + [m.trial for m in res.moves]
+    for t in trials:  # the held-out figure of every set on the path (the search itself ranks by BIC)
+        if t.heldout is None:
+            t.heldout = gp.heldout(t)
     ranking = []
-    for t in (res.steps[0] if res.steps else []):
-        if len(t.effects) != 1:
-            continue
-        c = gp.cands[t.effects[0]]
+    for t in (res.singles[0] if res.singles else []):
+        c = gp.cands[t.effects[-1]]
         ranking.append({"name": c.name, "kind": c.kind, "facet": c.facet, "ok": t.ok, "failure": t.failure,
-                        "delta_bic": t.bic - base.bic, "k": len(c.keys), "on_bound": t.flags.get("on_bound", []),
-                        "dead": bool(t.flags.get("dead")),
+                        "delta_bic": t.bic - base.bic, "k": len(c.keys),
+                        "on_bound": [k for k in c.keys if t.ok and k in t.state.on_bound()],
+                        "dead": any(f.startswith("dead") for f in t.flags.get(c.name, [])),
+                        "flags": list(t.flags.get(c.name, [])),
                         "values": {k: t.state.values()[k] for k in c.keys} if t.ok else {}})
     ranking.sort(key=lambda r: r["delta_bic"])
-    path = [_step_entry(gp, a, b) for a, b in zip(res.path[:-1], res.path[1:])]
-    current = res.path[-1]
+    path = [_step_entry(gp, a, m.trial, m.action) for a, m in zip(trials[:-1], res.moves)]
+    current = res.final
+    first = res.moves[0].effects[0] if res.moves else None
     d = problem.data
     out = {"n": len(d), "base": {"m2ll": base.state.m2ll, "bic": base.bic, "k": base.n_params,
                                  "rms": float(np.sqrt(np.mean((d.mag - base.state.predict()) ** 2))),
                                  "chi2_reduced": base.chi2_reduced, "heldout_rms": base.heldout,
                                  "values": base.state.values()},
-           "ranking": ranking, "path": path, "named": gp.cands[res.named].kind if res.named else None,
-           "effects": list(current.effects), "threshold": threshold, "stopped": res.stopped,
-           "refits": sum(len(s) for s in res.steps), "failed_refits": res.failed}
+           "ranking": ranking, "path": path, "named": gp.cands[first].kind if first else None,
+           "effects": list(current.effects), "threshold": threshold, "stopped": res.stop_reason,
+           "refits": len(res.trials) - 1, "failed_refits": res.n_failed}
     if folds is not None:
         out["heldout"] = {"base_rms": base.heldout, "base_bias": gp.cv[()]["bias"], "folds": len(folds)}
         if path:
@@ -517,6 +425,7 @@ def diagnose_sky(problem: SkyProblem, cands: list[Candidate] | None = None, fold
                     "free": [p.key for i, p in enumerate(problem.params) if current.state.free[i]]}
     out["_final_fit"] = current.state
     out["_search"] = res
+    out["_path"] = trials
     out["_gap_problem"] = gp
     out["seconds"] = time.perf_counter() - t0
     log(f"diagnosis done ({out['seconds']:.1f} s): path {[p['effect'] for p in path]}")

@@ -109,7 +109,7 @@ class SkygapCandidatesConfig(StrictModel):
 
 
 class SkygapSearchConfig(StrictModel):
-    """The greedy search over candidates (brdfjax.lightcurve.skygap.search)."""
+    """The search over candidates (brdfjax.diagnose.search, run by brdfjax.lightcurve.skygap)."""
 
     bic_threshold: float = Field(10.0, gt=0, description="a step must lower BIC by more than this")
     max_steps: int = Field(3, ge=1, le=8, description="at most this many effects on the path")
@@ -266,8 +266,7 @@ def diagnosed_sections(fit, gp, effects, ocfg) -> dict[str, Any]:
 def _figure(res: dict, P, out: Path) -> str:
     from matplotlib.figure import Figure  # noqa: PLC0415 -- matplotlib only when figures are drawn
 
-    s = res["_search"]
-    trials = s.path
+    trials = res["_path"]
     n = len(trials)
     fig = Figure(figsize=(7, 2.6 * n))
     d = P.data
@@ -279,7 +278,7 @@ def _figure(res: dict, P, out: Path) -> str:
             ax.scatter(d.phase_deg, rb, s=3, c="0.7", label="before this step")
         ax.scatter(d.phase_deg, r, s=3, c="C0" if i == 0 else "C3", label="after" if i else "base")
         ax.axhline(0, c="k", lw=0.8)
-        title = "base" if i == 0 else f"step {i}: + {', '.join(t.effects[len(trials[i - 1].effects):])}"
+        title = "base" if i == 0 else f"step {i}: {res['path'][i - 1]['effect'].replace('+', ' + ')}"
         ho = f", held-out RMS {t.heldout:.3f}" if t.heldout is not None else ""
         ax.set_title(f"{title} (RMS {np.sqrt(np.mean(r**2)):.3f} mag{ho})", fontsize=9)
         ax.set_ylabel("obs - pred (mag)")
@@ -297,7 +296,7 @@ def _report(res: dict, summary: dict) -> str:
     lines = [f"# Sky gap diagnosis: {summary['set']}", ""]
     if path:
         named = ", ".join(p["effect"] for p in path)
-        lines.append(f"**{len(path)} effect(s) on the path: {named}.** Held-out RMS "
+        lines.append(f"**Path: {named} (final set: {', '.join(res['effects'])}).** Held-out RMS "
                      f"{h.get('base_rms', float('nan')):.3f} mag (base) -> {h.get('path_rms', float('nan')):.3f} mag "
                      f"(path), {h.get('folds')} folds by {summary['holdout']}; in-sample RMS "
                      f"{res['base']['rms']:.3f} -> {path[-1]['rms_after']:.3f} mag over {res['n']} rows.")
@@ -392,7 +391,7 @@ def run_skygap(cfg: SkygapConfig, out_dir: str | Path, log=lambda s: sys.stderr.
     summary["path_held_out"] = [{"step": 0, "effects": [], "heldout_rms": res["base"]["heldout_rms"],
                                  "bic": res["base"]["bic"]}] + [
         {"step": i + 1, "effects": list(t.effects), "heldout_rms": t.heldout, "bic": t.bic}
-        for i, t in enumerate(res["_search"].path[1:])]
+        for i, t in enumerate(res["_path"][1:])]
     cols = ["line", "observed_mag", "mag_err", "phase_deg", "base_mag", "final_mag", "heldout_base_mag",
             "heldout_final_mag"]
     band = None
@@ -407,7 +406,7 @@ def run_skygap(cfg: SkygapConfig, out_dir: str | Path, log=lambda s: sys.stderr.
                            "heldout_coverage_95_noise_only": cvb["coverage_95"]}
         cols += ["band_2p5", "band_16", "band_50", "band_84", "band_97p5"]
         log(f"band: held-out coverage 68 % {cvb['band_coverage_68']:.2f}, 95 % {cvb['band_coverage_95']:.2f}")
-    base_pred = res["_search"].path[0].state.predict()
+    base_pred = res["_path"][0].state.predict()
     hp = res.get("_heldout_pred", {"base": np.full(len(d), np.nan), "path": np.full(len(d), np.nan)})
     lines = [",".join(cols)]
     for i in range(len(d)):

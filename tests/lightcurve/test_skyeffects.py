@@ -1,5 +1,5 @@
-"""Every sky gap effect written as an observe config reruns in ``brdfjax observe`` to the fit's magnitudes; the
-search protocol's rules on a hand-built problem."""
+"""Every sky gap effect written as an observe config reruns in ``brdfjax observe`` to the fit's magnitudes (the
+search they enter is tested in tests/diagnose/test_diagnose_search.py)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,6 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-
-from brdfjax.lightcurve.skygap import Trial, search
 
 jax.config.update("jax_enable_x64", True)
 
@@ -110,45 +108,3 @@ def test_every_effect_reruns_in_observe(tmp_path):
         assert np.max(np.abs(pred.mag - fit.predict())) < 1e-6, names
     with pytest.raises(Exception, match="no observe-config form"):
         write_observe_config(fit, src, tmp_path / "bad.toml")
-
-
-class Toy:
-    """A hand-built search problem: BIC per effect set from a table; 'g' generic, 'b' ends on a bound."""
-
-    def __init__(self, bic, generic=(), bound=()):
-        self.bic, self.gen, self.bound, self.calls = bic, set(generic), set(bound), []
-
-    def candidates(self):
-        return ["a", "b", "c", "g"]
-
-    def generic(self, e):
-        return e in self.gen
-
-    def _t(self, eff):
-        key = "".join(sorted(eff))
-        return Trial(tuple(eff), True, None, self.bic.get(key, 100.0), 1.0, len(eff), None,
-                     {"on_bound": [e for e in eff if e in self.bound]})
-
-    def base(self):
-        return self._t(())
-
-    def refit(self, effects, warm):
-        self.calls.append(effects)
-        return self._t(effects)
-
-    def heldout(self, t):
-        return 1.0 / (1 + len(t.effects))
-
-
-def test_search_rules():
-    # the best single joins; a bound-ending candidate never does, however good its BIC
-    r = search(Toy({"": 100, "a": 80, "b": 10, "ab": 75}, bound="b"), bic_threshold=10, max_steps=3)
-    assert [t.effects for t in r.path] == [(), ("a",)] and r.named == "a" and r.path[1].heldout == 0.5
-    # a generic effect yields to a specific one within the threshold of it
-    r = search(Toy({"": 100, "a": 75, "g": 70}, generic="g"), bic_threshold=10, max_steps=1)
-    assert r.effects == ("a",)
-    r = search(Toy({"": 100, "a": 75, "g": 50}, generic="g"), bic_threshold=10, max_steps=1)
-    assert r.effects == ("g",)
-    # a pair that only together clears the threshold joins as one step
-    r = search(Toy({"": 100, "a": 95, "c": 96, "ac": 60}), bic_threshold=10, max_steps=2)
-    assert r.path[1].effects == ("a", "c") and "no refit" in r.stopped

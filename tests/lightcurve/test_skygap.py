@@ -59,3 +59,28 @@ def test_null_set_nothing_significant_and_bounds_keep_effects_off(data):
     # an amplitude fitted to zero sits on its bound: such candidates are flagged, never on a path
     flagged = [r for r in res["ranking"] if r["on_bound"]]
     assert flagged and all(r["delta_bic"] > -res["threshold"] or r["on_bound"] for r in res["ranking"])
+    # the flags are the effect's own (the shared search keeps an effect with flags of its own off the path)
+    assert all(any(k in f and "on its bound" in f for f in r["flags"] for k in r["on_bound"]) for r in flagged)
+    assert all(not r["flags"] for r in res["ranking"] if not r["on_bound"] and not r["dead"])
+
+
+def test_solar_disk_as_a_static_choice_matches_the_switch_inside(data):
+    # the compiled fits choose the disk by its (fixed) switch before tracing; the lax.cond on the switch (a free
+    # or traced switch) gives the same -2 ln L with the disk off and on
+    import jax.numpy as jnp
+
+    models = {"chassis": lumos_phong(0.05, 0.4, 8.0)}
+    P = SkyProblem.build(data, [FacetSpec("chassis", 12.0, (0, 0, -1.0), ["chassis"])], models, normals="lumos")
+    add_effects(P, kinds=("solar_disk",), earth_radius=6378000.0)
+    u_off = P.u0()
+    u_on = u_off.copy()
+    u_on[P.index("disk.on")] = P.params[P.index("disk.on")].to_u(1.0)
+    assert P.disk_at(u_off) is False and P.disk_at(u_on) is True
+    free = P.default_free()
+    free[P.index("disk.on")] = True
+    assert P.disk_at(u_on, free) is None
+    w = jnp.ones(len(P.data))
+    cond = jax.jit(lambda u: P._m2ll(u, w, 1.0))
+    for u in (u_off, u_on):
+        assert P.m2ll(u) == pytest.approx(float(cond(jnp.asarray(u))), rel=1e-10)
+    assert np.max(np.abs(P.predict(u_on) - P.predict(u_off))) > 0  # the disk changes something on these rows

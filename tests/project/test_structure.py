@@ -27,7 +27,8 @@ LAYERS: dict[str, set[str]] = {
     "instrument": {"brdfjax", "core", "runtime", "io", "config", "plotting"},
     "simulate": {"brdfjax", "core", "runtime", "io", "config", "plotting"},
     "fit": {"core", "runtime", "io", "config", "plotting", "instrument"},
-    "lightcurve": {"core", "runtime", "io", "config", "plotting", "instrument", "fit", "sample"},
+    # lightcurve -> diagnose: the sky gap diagnosis runs the frame/table diagnosis's search (diagnose/search.py)
+    "lightcurve": {"core", "runtime", "io", "config", "plotting", "instrument", "fit", "sample", "diagnose"},
     "devices": {"core", "runtime", "io", "config", "plotting", "instrument"},
     "sample": {"core", "runtime", "io", "config", "plotting", "instrument", "fit"},
     "diagnose": {"core", "runtime", "io", "config", "plotting", "instrument", "fit", "sample", "reference"},
