@@ -84,6 +84,8 @@ __all__ = ["Candidate", "KINDS", "SkyGapProblem", "Trial", "SearchProblem", "Sea
 KINDS = ("earthshine", "offset", "missing_facet", "wide_lobe", "out_of_plane", "diffraction", "solar_disk")
 GENERIC = ("missing_facet",)
 DEAD_MAG = 1e-3  # an effect changing no row by more than this (mag) is dead
+#: the flag of a dead effect (its refit changes no row by DEAD_MAG)
+DEAD_FLAG = f"dead (changes no row by {DEAD_MAG * 1e3:g} mmag)"
 
 
 # --- candidates --------------------------------------------------------------------------------------------------
@@ -269,7 +271,7 @@ class SkyGapProblem:
             for k in [*c.keys, *c.fixed]:
                 u[P.index(k)] = P.params[P.index(k)].to_u(P.params[P.index(k)].value)
             if np.max(np.abs(P.predict(u) - pred)) < DEAD_MAG:
-                flags[e].append(f"dead (changes no row by {DEAD_MAG * 1e3:g} mmag)")
+                flags[e].append(DEAD_FLAG)
         return Trial(effects, True, None, float(fit.bic), chi2, fit.k, None, flags, fit)
 
     def base(self) -> Trial:
@@ -307,9 +309,8 @@ class SkyGapProblem:
                 w = warm.state
                 f0 = SkyFit(P, starts[0], w.free, P.m2ll(starts[0], w.w, w.joint), w.n, 0, w.w, w.joint)
                 t = self._trial(effects, f0)
-                dead = f"dead (changes no row by {DEAD_MAG * 1e3:g} mmag)"
-                if dead not in t.flags[new[0].name]:
-                    t.flags[new[0].name].append(dead)
+                if DEAD_FLAG not in t.flags[new[0].name]:
+                    t.flags[new[0].name].append(DEAD_FLAG)
                 return t
         try:
             fit = P.fit(self.mask(effects), u0=starts[0], starts=starts[1:])
