@@ -302,3 +302,31 @@ def test_offset_peak_start_inside_a_blended_base_lobe():
     r2 = fit(ext.model, blocks, ext.params, **ext.fit_kwargs)
     print(f"base chi2_reduced {res.chi2_reduced:.1f} -> with the offset peak {r2.chi2_reduced:.1f} ({ext.note})")
     assert r2.chi2_reduced < 0.2 * res.chi2_reduced
+
+
+def test_offset_peak_index_fitted_across_incidences():
+    """The offset peak's index n is fitted when the frames span incidences, held at one incidence.
+
+    The evaluation trial ``single:offset_normal_peak:0`` of seed 9605 (cover glass n = 1.4, frames at 27.7 and
+    54.7 deg): with n held at 1.5 the refit stopped at reduced chi^2 2.13 against the truth's 0.976, and a
+    spurious ``pixel_nonlinearity`` entered after it.
+    """
+    import zlib
+
+    seed = zlib.crc32(b"9605:single:offset_normal_peak:0")
+    rng = np.random.default_rng(seed)
+    sc = E.inject("offset_normal_peak", rng, E.base_scenario(rng, n_frames=3, step=16))
+    blocks = E.synthesize(sc, seed, None, path="render")[:-1]
+    res = fit(sc.base_model, blocks, sc.params)
+    ctx = build_context(sc.base_model, sc.params, res, blocks)
+    eff = E.EFFECT_LIBRARY["offset_normal_peak"]
+    ext = eff.extend(ctx)
+    assert ext.params["offset.n"].free and ext.n_new == 5, ext.note
+    r2 = fit(ext.model, blocks, ext.params, **ext.fit_kwargs)
+    n = r2.parameters["offset.n"]
+    print(f"reduced chi2 {res.chi2_reduced:.1f} -> {r2.chi2_reduced:.4f}; n {n.value:.4f} +- {n.sigma:.4f}")
+    assert r2.chi2_reduced < 1.1
+    assert abs(n.value - 1.4) < 3 * n.sigma + 0.01
+    one = build_context(sc.base_model, sc.params, fit(sc.base_model, blocks[:1], sc.params), blocks[:1])
+    ext1 = eff.extend(one)
+    assert "offset.n" not in ext1.params and ext1.n_new == 4 and "n held at 1.5" in ext1.note
