@@ -19,6 +19,7 @@ import numpy as np
 from ..core.terms import Model
 from ..fit import FitResult, FrameData, Param, TableData, fit
 from ..fit.internal import as_param, get_solver, natural_unit
+from ..runtime.errors import FitInputError
 from .context import build_context, gap_measures, residual_maps
 from .effects import camera_params, response_features
 from .effects.base import drop_missing, with_terms
@@ -301,7 +302,11 @@ def _without(state: _State, effect: str, base: _State, library: Mapping[str, Any
 
     An effect that only added terms is taken out by dropping them (warm start
     at ``state``); any other (a changed distribution, an instrument response, a
-    data-side footprint) by replaying the path's other effects on the base.
+    data-side footprint) by replaying the path's other effects on the base, and
+    so is an effect whose warm start cannot be fitted (measured: with a second
+    lobe dropped from {lobe, stray light, diffraction} the model was zero on
+    pixels the lobe alone had lit, and the Jacobian of ``bars.rho`` at the start
+    was not finite).
     """
     added = state.added_terms.get(effect)
     rest = [e for e in state.effects if e != effect]
@@ -310,7 +315,10 @@ def _without(state: _State, effect: str, base: _State, library: Mapping[str, Any
         params = drop_missing(state.params, model)
         starts = {e: v for e, v in state.starts.items() if e != effect}
         terms = {e: v for e, v in state.added_terms.items() if e != effect}
-        return _with_context(_fit_state(model, state.blocks, params, state.fit_kwargs, rest, starts, terms))
+        try:
+            return _with_context(_fit_state(model, state.blocks, params, state.fit_kwargs, rest, starts, terms))
+        except FitInputError:
+            pass  # the warm start is not fittable: replay the other effects on the base below
     cur = base
     for e in rest:
         ext = library[e].extend(cur.ctx)

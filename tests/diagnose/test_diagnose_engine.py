@@ -452,3 +452,35 @@ def test_final_config_of_generated_frames_carries_the_diagnosis_likelihood(tmp_p
     assert doc["data"]["frames"] == [str((tmp_path / "syn" / "reduced" / "ti20.exr").resolve())]
     assert doc["nuisance"] == {"enabled": False} and doc["fit"]["first_stage"] == "none"
     assert doc["params"]["spec.alpha"] == {"value": 0.08, "lower": 0.001} and "diagnose" not in doc
+
+
+def test_removal_replays_on_the_base_when_its_warm_start_cannot_be_fitted(monkeypatch):
+    """Taking out a term whose warm-started refit cannot be set up replays the path's other effects on the base.
+
+    Measured on the reference generator: a second lobe taken out of {lobe, stray light, diffraction} stopped on
+    "parameter 'bars.rho': the Jacobian at the start is not finite", and the removal test counted a failed
+    refit.  Here the warm start (the floor dropped from a fitted lobe + floor) is made to raise the same error.
+    """
+    import brdfjax.diagnose.refits as R
+    from brdfjax.runtime.errors import FitInputError
+
+    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.05)})
+    table, _ = _table(truth)
+    base = R._with_context(R._fit_state(bj.Model(terms=LOBE), [table], dict(START), {}, ()))
+    ext = EFFECT_LIBRARY["lambertian"].extend(base.ctx)
+    state = R._with_context(R._fit_state(ext.model, [table], ext.params, {}, ("lambertian",),
+                                         {"lambertian": {"floor.rho_d": ext.params["floor.rho_d"]}},
+                                         {"lambertian": ("floor",)}))
+    assert state.result.chi2 < 0.5 * base.result.chi2
+    real, calls = R._fit_state, []
+
+    def warm_fails(model, blocks, params, *a, **k):
+        calls.append(sorted(model.terms))
+        if len(calls) == 1:
+            raise FitInputError("parameter 'spec.rho_s': the Jacobian at the start is not finite; check the start values and data")
+        return real(model, blocks, params, *a, **k)
+
+    monkeypatch.setattr(R, "_fit_state", warm_fails)
+    out = R._without(state, "lambertian", base, EFFECT_LIBRARY)
+    assert calls == [["spec"]]  # the warm start only: with no other effect the replay is the base itself
+    assert out is base and out.effects == ()
