@@ -270,6 +270,9 @@ PATH_RULES = (
     "on their joint refit, taking the generic effect out costs less than the threshold.",
     "Every effect must pass the same test to stay: after every step each effect is taken out in turn (the model "
     "refitted); one whose removal costs less BIC than the threshold is taken out.",
+    "Generic effects stand in for one another: after the removals each generic effect of the set is replaced in turn "
+    "by each other generic candidate (refitted); the replacement of lowest BIC is made when it is admissible and its "
+    "BIC is below the set's (shown as a removal and an addition).",
     "A refit that fails (raises, ends non-finite, or above the model it extends) is retried once from a second start; "
     "a refit that fails twice is reported and counted (diagnosis.json settings.failed_refits), never ranked.",
 )
