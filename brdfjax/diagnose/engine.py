@@ -40,6 +40,7 @@ The engine never sees a generator's truth: only the blocks and the library.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -80,11 +81,13 @@ from .refits import (  # noqa: F401 - truth_gap and the refit budget, importable
     _with_context,
     _without,
     _zone_stats,
+    model_weighted_blocks,
+    refit_on,
     truth_gap,
 )
 from .report import heldout_grew
 from .results import Candidate, Diagnosis, Step, finite_or_none
-from .search import Trial, search
+from .search import SearchMove, Trial, search
 from .zones import find_regions, zone_masks
 
 __all__ = ["DiagnoseInputError", "diagnose", "final_model_config", "model_terms_config", "toml_text", "truth_gap"]
@@ -350,6 +353,74 @@ class FrameProblem:
         return Trial(tuple(effects), False, why, math.nan, math.nan, 0, None, {}, _Fitted(None, cand))
 
 
+def _confirm_with_model_weights(problem: FrameProblem, result: Any, library: Mapping[str, Any], T: float,
+                                notes: list[str], say: Any) -> Any:
+    """Rule 7: every term the final set added stays only if it also pays for itself with noise weights evaluated
+    at the final model.
+
+    The search weighs every fit by the readings' own noise (one weighting for every candidate).  A reading's
+    relative noise falls as the reading rises, so the upward fluctuations of the faint pixels weigh more (and
+    a detection cut keeps only those): a floor or a wide lobe then gains BIC from the weighting, not from the
+    surface (measured on the reference generator, diffraction withheld, every 4th pixel: a floor entered
+    jointly with diffraction at 13.8; with the weights at the diffraction fit it gains 4.4 in chi^2, below
+    the BIC's own penalty).  Each effect that added terms is taken out of the final fit refitted on the
+    frames weighted at that fit's model; the cheapest whose removal costs less than ``T`` there is removed
+    (the path's row is the set refitted with the readings' weights, as every other row) and the test repeats.
+    Effects that changed the model otherwise (a footprint, a response, a swap) are not retested.
+    """
+    cur = result.final
+    moves = list(result.moves)
+    step = moves[-1].step if moves else 1
+    while cur.ok and cur.effects:
+        F = problem._ctx(cur.state.state)
+        terms = [e for e in cur.effects if F.added_terms.get(e)]
+        if not terms:
+            break
+        rw = model_weighted_blocks(F)
+        if rw is None:
+            break
+        say("confirming the final set with noise weights evaluated at its model")
+        try:
+            Fm = refit_on(F, rw)
+        except Exception as ex:  # noqa: BLE001 - reported; the search's set stands
+            notes.append(f"the final set could not be refitted with noise weights at its model ({type(ex).__name__}: {ex}); "
+                         "it stands as the search left it")
+            break
+        bic_m = gap_measures(Fm.result)["bic"]
+        costs = []
+        for e in terms:
+            try:
+                Sm = _without(Fm, e, None, library)  # term-adding effects: dropped, not replayed (no base on these weights)
+            except Exception as ex:  # noqa: BLE001 - reported; the effect stays
+                notes.append(f"with noise weights at the final model, taking out {e} could not be refitted "
+                             f"({type(ex).__name__}: {ex}); it stays")
+                continue
+            costs.append((gap_measures(Sm.result)["bic"] - bic_m, e))
+        text = ", ".join(f"{e} {c:+.4g}" for c, e in costs)
+        below = sorted(c for c in costs if c[0] < T)
+        if not below:
+            notes.append(f"confirmed with noise weights evaluated at the final model: taking out each term-adding "
+                         f"effect costs (BIC) {text} (each >= {T:g})")
+            break
+        cost, e = below[0]
+        rest = tuple(x for x in cur.effects if x != e)
+        t = problem.refit(rest, cur)
+        if not t.ok:
+            notes.append(f"with noise weights at the final model taking out {e} costs {cost:.4g} < {T:g}, but the set "
+                         f"without it could not be refitted ({t.failure}); it stays")
+            break
+        problem.remember(t)
+        note = (f"taken out with noise weights evaluated at the final model: there its removal costs {cost:+.4g} "
+                f"(< {T:g}; removals there: {text}), against {t.bic - cur.bic:+.4g} with the readings' own weights, "
+                "which favour the upward fluctuations of faint pixels (rule 7)")
+        say(f"removed {e} with the noise weights at the final model (BIC {cost:+.1f} < {T:g})")
+        moves.append(SearchMove("remove", (e,), t, cur.bic - t.bic, step, [note]))
+        cur = t
+    if cur is result.final:
+        return result
+    return dataclasses.replace(result, final=cur, moves=moves)
+
+
 def _key(effects: Sequence[str]) -> frozenset:
     return frozenset(effects)
 
@@ -470,6 +541,7 @@ def diagnose(
 
     problem.polish = polish  # type: ignore[method-assign]
     result = search(problem, bic_threshold=bic_threshold, max_steps=max_steps, pair_top=pair_top, progress=say)
+    result = _confirm_with_model_weights(problem, result, library, bic_threshold, notes, say)
 
     # --- the search's record as the Diagnosis (ranking, path, rankings per step) ---
     rankings: list[list[Candidate]] = []

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..core.terms import Model
 from ..fit import FitResult, FrameData, Param, TableData, fit
-from ..fit.internal import as_param, get_solver, natural_unit
+from ..fit.internal import as_param, get_solver, model_noise_weights, natural_unit
 from ..runtime.errors import FitInputError
 from .context import build_context, gap_measures, residual_maps
 from .effects import camera_params, response_features
@@ -508,3 +508,32 @@ def _params_report(result: FitResult) -> dict[str, Any]:
     return {k: p.natural() for k, p in result.parameters.items()}
 
 
+
+
+def model_weighted_blocks(state: _State) -> list[Any] | None:
+    """``state``'s blocks with each frame's noise weights evaluated at ``state``'s fitted model (None: no frame).
+
+    A reading's relative noise is its absolute noise divided by the reading itself, so an upward fluctuation
+    gets more weight, and at a detection cut only the upward fluctuations of the faint pixels stay: with the
+    readings' own weights every faint wing fits too bright, as a floor would make it
+    (:mod:`brdfjax.fit._reweight`).  Here the whole relative sigma of a frame is taken as its noise (the
+    diagnosis sees the blocks, not the reduction's noise components) and evaluated at the model as the fit
+    compared it (footprint, per-frame terms and nuisance included); tables keep their weights.
+    """
+    ctx = state.ctx if state.ctx is not None else _with_context(state).ctx
+    out, any_frame = [], False
+    for k, b in enumerate(state.blocks):
+        if not isinstance(b, FrameData):
+            out.append(b)
+            continue
+        any_frame = True
+        d = np.asarray(b.brdf, float)
+        u = np.broadcast_to(np.asarray(b.sigma_rel, float), d.shape)
+        out.append(model_noise_weights(b, d, u, np.zeros(d.shape), b.usable(), np.asarray(ctx.model_values[k], float)))
+    return out if any_frame else None
+
+
+def refit_on(state: _State, blocks: Sequence[Any]) -> _State:
+    """``state``'s model refitted on other blocks (the same frames, other weights), warm-started at its optimum."""
+    return _with_context(_fit_state(state.model, blocks, state.params, state.fit_kwargs, state.effects, state.starts,
+                                    state.added_terms))

@@ -273,6 +273,10 @@ PATH_RULES = (
     "Generic effects stand in for one another: after the removals each generic effect of the set is replaced in turn "
     "by each other generic candidate (refitted); the replacement of lowest BIC is made when it is admissible and its "
     "BIC is below the set's (shown as a removal and an addition).",
+    "The final set is confirmed with noise weights evaluated at its model (a reading's relative noise falls as the "
+    "reading rises, so the readings' own weights favour the upward fluctuations of faint pixels, as a floor would): "
+    "each effect that added terms is taken out of the final fit refitted on those weights; one whose removal costs "
+    "less than the threshold there is removed (its row is the set refitted with the readings' weights).",
     "A refit that fails (raises, ends non-finite, or above the model it extends) is retried once from a second start; "
     "a refit that fails twice is reported and counted (diagnosis.json settings.failed_refits), never ranked.",
 )

@@ -32,11 +32,12 @@ from ._resolution import (
     lobe_term as lobe_term,
     table_step as table_step,
 )
-from ._reweight import warm_params as warm_params
+from ._reweight import model_noise_weights as model_noise_weights, warm_params as warm_params
 from ._solvers import get_solver as get_solver
 
 __all__ = [
     "warm_params",
+    "model_noise_weights",
     "FRAME_PARAMETERS",
     "LOSSES",
     "SPEC_KEYS",

@@ -484,3 +484,28 @@ def test_removal_replays_on_the_base_when_its_warm_start_cannot_be_fitted(monkey
     out = R._without(state, "lambertian", base, EFFECT_LIBRARY)
     assert calls == [["spec"]]  # the warm start only: with no other effect the replay is the base itself
     assert out is base and out.effects == ()
+
+
+def test_model_weighted_blocks_take_the_noise_at_the_model_not_at_the_reading():
+    """Rule 7's weights: a frame's relative sigma re-evaluated at the fitted model (u = u0 d / m), its data
+    raised by exp(u^2 / 2) so that E[log d] = log m; tables keep theirs; no frame at all gives None."""
+    import brdfjax.diagnose.effects as E
+    from brdfjax.diagnose.refits import _fit_state, _with_context, model_weighted_blocks
+
+    rng = np.random.default_rng(3)
+    sc = E.base_scenario(rng, n_frames=1, step=32)
+    (blk,) = E.synthesize(sc, 3)
+    st = _with_context(_fit_state(sc.base_model, [blk], sc.params, {}, ()))
+    (rw,) = model_weighted_blocks(st)
+    d, m = np.asarray(blk.brdf, float), np.asarray(st.ctx.model_values[0], float)
+    u = np.asarray(rw.sigma_rel, float)
+    ok = blk.usable()
+    assert np.allclose(u[ok], sc.noise_rel * d[ok] / m[ok], rtol=1e-12)
+    assert np.allclose(np.asarray(rw.brdf, float)[ok], d[ok] * np.exp(0.5 * u[ok] ** 2), rtol=1e-12)
+    # an upward fluctuation (d > m) now weighs less, a downward one more
+    up, down = ok & (d > 1.02 * m), ok & (d < m / 1.02)
+    assert up.any() and down.any()
+    assert np.all(u[up] > sc.noise_rel) and np.all(u[down] < sc.noise_rel)
+    table, _ = _table(bj.Model(terms=LOBE))
+    tst = _with_context(_fit_state(bj.Model(terms=LOBE), [table], dict(START), {}, ()))
+    assert model_weighted_blocks(tst) is None
