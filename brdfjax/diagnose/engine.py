@@ -82,6 +82,7 @@ from .refits import (  # noqa: F401 - truth_gap and the refit budget, importable
     _without,
     _zone_stats,
     model_weighted_blocks,
+    refine_data_side,
     refit_on,
     truth_gap,
 )
@@ -219,7 +220,22 @@ class FrameProblem:
         return sorted(effects, key=lambda e: -_score(self.check(current.effects, e)))
 
     def polish(self, trial: Trial) -> Trial:
-        """The committed set refitted jointly from fresh starts as well; the lower chi^2 is kept."""
+        """The committed set refitted jointly from fresh starts as well (the lower chi^2 kept), then its data-side
+        parameters (the footprint's width) rescanned on that fit and refitted (:func:`refine_data_side`)."""
+        out = self._polish_fresh(trial)
+        if not any(hasattr(self._lib[e], "refine") for e in out.effects):
+            return out
+        st = self._ctx(out.state.state)
+        new, note = refine_data_side(st, self._base.blocks, self._lib)
+        if not note:
+            return out
+        t = self._trial(new, out.state.cand, None, out.effects)
+        t.flags = out.flags | {e: effect_flags(new, e, None) for e in out.effects}
+        t.state.polish_note = "; ".join(x for x in (out.state.polish_note, note) if x)
+        t.state.polish_failed = out.state.polish_failed
+        return t
+
+    def _polish_fresh(self, trial: Trial) -> Trial:
         f = trial.state
         if f.cand is not None and f.cand.refit_start == "fresh":
             f.polish_note = "refitted from the fresh starts already (the fit had moved far from them); no second joint refit"
