@@ -30,7 +30,8 @@ import jax
 from . import export_cache
 from .export_cache import activate as activate_export
 
-__all__ = ["cache_dir", "cache_disabled", "enable_compilation_cache", "persistent_cache_on", "release_compiled", "resident_mb"]
+__all__ = ["cache_dir", "cache_disabled", "enable_compilation_cache", "map_count", "maps_near_limit", "persistent_cache_on",
+           "release_compiled", "resident_mb"]
 
 
 def cache_dir() -> Path:
@@ -99,6 +100,35 @@ def resident_mb() -> float | None:
     return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+#: Programs are dropped, with or without the persistent cache, once the process's memory mappings pass this
+#: fraction of the kernel's limit (``vm.max_map_count``): every compiled CPU program maps memory of its own,
+#: and a long diagnosis without the persistent cache (the Python API's default) died with LLVM "Cannot allocate
+#: memory" near 65,000 mappings at about 2.3 GB resident (a two-effect trial of the withheld-effect benchmark;
+#: the mappings grew by about 170 a second).
+MAPS_FRACTION = 0.5
+
+
+def map_count() -> int | None:
+    """The number of this process's memory mappings (Linux ``/proc/self/maps``; None where there is none)."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return None
+
+
+def maps_near_limit(fraction: float = MAPS_FRACTION) -> bool:
+    """Whether the process's memory mappings passed ``fraction`` of ``vm.max_map_count`` (False where unknown)."""
+    n = map_count()
+    if n is None:
+        return False
+    try:
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return False
+    return n > fraction * limit
+
+
 def release_compiled(force: bool = False, above_mb: float | None = None) -> bool:
     """Drop the compiled programs, traces and exported programs this process holds, when they can be read back.
 
@@ -111,11 +141,14 @@ def release_compiled(force: bool = False, above_mb: float | None = None) -> bool
     freed heap back to the system.  Without the persistent cache nothing is dropped (a program needed again
     would be compiled again) unless ``force``.  ``above_mb``: only when the resident memory is above this many
     MB (each drop costs the small programs' reloads: about 0.6 s on the shipped example).  Returns whether
-    anything was dropped.  Process-wide: call it where no other thread is tracing or compiling.
+    anything was dropped.  Process-wide: call it where no other thread is tracing or compiling.  Whatever the
+    cache, programs are dropped when the process's memory mappings near the kernel's limit
+    (:func:`maps_near_limit`): a program compiled again is slower than one kept, a process out of mappings dies.
     """
-    if not (force or persistent_cache_on()):
+    near = maps_near_limit()
+    if not (force or near or persistent_cache_on()):
         return False
-    if above_mb is not None:
+    if above_mb is not None and not near:
         now = resident_mb()
         if now is not None and now <= above_mb:
             return False

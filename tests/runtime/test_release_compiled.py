@@ -55,3 +55,21 @@ def test_a_memory_threshold_above_the_resident_memory_drops_nothing(monkeypatch)
     assert release_compiled(above_mb=1.0) is True
     f(jnp.arange(3.0))
     assert len(traces) == 2
+
+
+def test_programs_dropped_near_the_mapping_limit_without_the_persistent_cache(monkeypatch):
+    """Without the persistent cache nothing is dropped, unless the process's memory mappings near the kernel's
+    limit: a long diagnosis through the Python API died with LLVM "Cannot allocate memory" near 65,000
+    mappings."""
+    import brdfjax.runtime.compile_cache as cc
+
+    n = cc.map_count()
+    assert n is None or n > 0
+    monkeypatch.setattr(cc, "persistent_cache_on", lambda: False)
+    monkeypatch.setattr(cc, "maps_near_limit", lambda fraction=cc.MAPS_FRACTION: False)
+    assert cc.release_compiled(above_mb=0.0) is False
+    monkeypatch.setattr(cc, "maps_near_limit", lambda fraction=cc.MAPS_FRACTION: True)
+    assert cc.release_compiled(above_mb=1e9) is True  # near the limit the memory threshold does not hold it back
+    monkeypatch.setattr(cc, "map_count", lambda: 10**9)
+    monkeypatch.undo()
+    assert cc.maps_near_limit(fraction=0.0) is (cc.map_count() is not None)
