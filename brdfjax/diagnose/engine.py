@@ -406,7 +406,7 @@ def _confirm_with_model_weights(problem: FrameProblem, result: Any, library: Map
         costs = []
         for e in terms:
             try:
-                Sm = _without(Fm, e, None, library)  # term-adding effects: dropped, not replayed (no base on these weights)
+                Sm = _without(Fm, e, None, library)  # dropped, never replayed: the base was fitted on other weights
             except Exception as ex:  # noqa: BLE001 - reported; the effect stays
                 notes.append(f"with noise weights at the final model, taking out {e} could not be refitted "
                              f"({type(ex).__name__}: {ex}); it stays")

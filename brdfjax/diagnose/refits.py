@@ -301,7 +301,7 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     return c
 
 
-def _without(state: _State, effect: str, base: _State, library: Mapping[str, Any]) -> _State:
+def _without(state: _State, effect: str, base: _State | None, library: Mapping[str, Any]) -> _State:
     """``state`` with ``effect`` taken out, refitted (backward elimination).
 
     An effect that only added terms is taken out by dropping them (warm start
@@ -310,7 +310,8 @@ def _without(state: _State, effect: str, base: _State, library: Mapping[str, Any
     so is an effect whose warm start cannot be fitted (measured: with a second
     lobe dropped from {lobe, stray light, diffraction} the model was zero on
     pixels the lobe alone had lit, and the Jacobian of ``bars.rho`` at the start
-    was not finite).
+    was not finite).  ``base=None``: no replay (the blocks are not the base's);
+    the drop's own error is raised instead.
     """
     added = state.added_terms.get(effect)
     rest = [e for e in state.effects if e != effect]
@@ -322,7 +323,11 @@ def _without(state: _State, effect: str, base: _State, library: Mapping[str, Any
         try:
             return _with_context(_fit_state(model, state.blocks, params, state.fit_kwargs, rest, starts, terms))
         except FitInputError:
-            pass  # the warm start is not fittable: replay the other effects on the base below
+            if base is None:
+                raise
+            # the warm start is not fittable: replay the other effects on the base below
+    if base is None:
+        raise ValueError(f"taking out {effect} needs a replay on the base: it did not only add terms")
     cur = base
     for e in rest:
         ext = library[e].extend(cur.ctx)
@@ -560,8 +565,7 @@ def refine_data_side(state: _State, bare_blocks: Sequence[Any], library: Mapping
             st = state if state.ctx is not None else _with_context(state)
             try:
                 blocks, w = eff.refine(st.ctx, bare_blocks)
-                new = _with_context(_fit_state(st.model, blocks, st.params, st.fit_kwargs, st.effects, st.starts,
-                                               st.added_terms))
+                new = refit_on(st, blocks)
             except Exception as ex:  # noqa: BLE001 - the state stands; the note says so
                 notes.append(f"{e}: rescanning on this fit failed ({type(ex).__name__}: {ex})")
                 break

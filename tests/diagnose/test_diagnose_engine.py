@@ -484,6 +484,9 @@ def test_removal_replays_on_the_base_when_its_warm_start_cannot_be_fitted(monkey
     out = R._without(state, "lambertian", base, EFFECT_LIBRARY)
     assert calls == [["spec"]]  # the warm start only: with no other effect the replay is the base itself
     assert out is base and out.effects == ()
+    calls.clear()
+    with pytest.raises(FitInputError, match="not finite"):  # no base to replay on (rule 7's other weights)
+        R._without(state, "lambertian", None, EFFECT_LIBRARY)
 
 
 def test_model_weighted_blocks_take_the_noise_at_the_model_not_at_the_reading():

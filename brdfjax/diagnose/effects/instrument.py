@@ -88,20 +88,29 @@ class InstrumentFunctionEffect(Effect):
             return "every frame already carries an instrument function (footprint)"
         return None
 
-    def _blocks(self, ctx, w):
+    @staticmethod
+    def _with_footprint(blocks, w, replace: bool = False):
+        """``blocks`` with the footprint of width ``w`` on each frame (``replace``: also where one is already)."""
         ker = footprint_kernel(w)
-        return [dataclasses.replace(b, footprint=ker) if isinstance(b, FrameData) and b.footprint is None else b for b in ctx.blocks]
+        return [dataclasses.replace(b, footprint=ker) if isinstance(b, FrameData) and (replace or b.footprint is None)
+                else b for b in blocks]
 
-    def _profile(self, ctx, w):
-        return profiled_chi2(ctx, lambda m: m, ctx.frames(), self._blocks(ctx, w))
+    def _blocks(self, ctx, w):
+        return self._with_footprint(ctx.blocks, w)
+
+    def _best_width(self, ctx, blocks_at) -> float:
+        """The width of lowest profiled chi^2 on ``blocks_at(w)``: the grid ``widths``, then a golden-section search."""
+        def prof(w):
+            return profiled_chi2(ctx, lambda m: m, ctx.frames(), blocks_at(w))
+
+        _, w = min((prof(w), w) for w in self.widths)
+        lw, _ = golden(lambda x: prof(math.exp(x)), math.log(w / 1.4), math.log(w * 1.4), 14)
+        return float(math.exp(lw))
 
     def _scan(self, ctx):
-        rows = [(self._profile(ctx, w), w) for w in self.widths]
-        _, w = min(rows)
-        lw, _ = golden(lambda x: self._profile(ctx, math.exp(x)), math.log(w / 1.4), math.log(w * 1.4), 14)
-        w = math.exp(lw)
-        z = template_z(ctx, lambda m: m, ctx.frames(), self._blocks(ctx, float(w)))
-        return z, float(w)
+        w = self._best_width(ctx, lambda w: self._blocks(ctx, w))
+        z = template_z(ctx, lambda m: m, ctx.frames(), self._blocks(ctx, w))
+        return z, w
 
     def signature(self, ctx):
         z, w = self._scan(ctx)
@@ -119,17 +128,8 @@ class InstrumentFunctionEffect(Effect):
         extends, it takes up what that model lacks (measured with diffraction withheld with it: 1.44 grid pixels
         scanned on the base, 1.29 rescanned on the fit with diffraction, truth 1.27; that fit's reduced chi^2
         34.7 -> 6.4).  :func:`~brdfjax.diagnose.refits.refine_data_side` refits at the new width."""
-        def prof(w):
-            blocks = [dataclasses.replace(b, footprint=footprint_kernel(w)) if isinstance(b, FrameData) else b
-                      for b in bare_blocks]
-            return profiled_chi2(ctx, lambda m: m, ctx.frames(), blocks)
-
-        rows = [(prof(w), w) for w in self.widths]
-        _, w = min(rows)
-        lw, _ = golden(lambda x: prof(math.exp(x)), math.log(w / 1.4), math.log(w * 1.4), 14)
-        w = float(math.exp(lw))
-        return [dataclasses.replace(b, footprint=footprint_kernel(w)) if isinstance(b, FrameData) else b
-                for b in bare_blocks], w
+        w = self._best_width(ctx, lambda w: self._with_footprint(bare_blocks, w, replace=True))
+        return self._with_footprint(bare_blocks, w, replace=True), w
 
 
 class FluxScaleEffect(Effect):
