@@ -186,7 +186,23 @@ def _perturbed_starts(scenario: Any, rng: np.random.Generator) -> dict[str, Any]
     return out
 
 
-def run_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+def _oracle(t: dict[str, Any], base: Any, fitted: list, params: Any, held: list, say: Any) -> dict[str, Any]:
+    """Whether the withheld set is identifiable at the search's threshold: the same search with the withheld
+    effects as its only candidates and no stop within the noise.  Its backward elimination takes out any
+    effect whose removal from the jointly refitted set costs less than the threshold, so where it does not end
+    on the whole withheld set, no search held to that test can (the data at this sampling do not carry the
+    effect above the threshold), and the trial is counted apart from the identifiable ones."""
+    t0 = time.perf_counter()
+    d = diagnose(base, fitted, params, heldout_blocks=held, effects=list(t["effects"]), max_steps=len(t["effects"]) + 1,
+                 noise_stop=False, progress=say)
+    j = d.to_dict()
+    costs = [n for s in j["path"] for n in s.get("notes", []) if n.startswith("without ")]
+    return {"identifiable": sorted(d.explained_by) == sorted(t["effects"]),
+            "oracle_path": [(s["action"], s["effect"], s["chi2_reduced"]) for s in j["path"]],
+            "oracle_removal_costs": costs, "oracle_notes": [s.get("notes", []) for s in j["path"]], "oracle_stop": j["stop_reason"], "oracle_wall_s": time.perf_counter() - t0}
+
+
+def run_trial(t: dict[str, Any], args: argparse.Namespace, oracle: bool = False) -> dict[str, Any]:
     seed = zlib.crc32(f"{args.seed}:{t['id']}".encode())
     rng = np.random.default_rng(seed)
     wide = [e for e in t["effects"] if e in WIDE_TABLE]
@@ -211,6 +227,8 @@ def run_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     say = (lambda m: print(f"    {time.perf_counter() - t0:7.1f} s  {m}", flush=True)) if args.verbose else None
     # a path long enough to hold every withheld effect and one spurious step (two-effect trials: 3)
     steps = max(args.max_steps, len(t["effects"]) + 1)
+    if oracle:
+        return _oracle(t, sc.base_model, fitted, params, held, say)
     d = diagnose(sc.base_model, fitted, params, heldout_blocks=held, max_steps=steps, pair_top=args.pair_top,
                  progress=say, **_fresh(args))
     wall = time.perf_counter() - t0
@@ -304,7 +322,7 @@ def _truth_chi2(blocks, clean) -> dict[str, float]:
     return {"chi2_reduced": num / n, "rms_log10": math.sqrt(sq / n) / math.log(10.0)}
 
 
-def run_reference_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+def run_reference_trial(t: dict[str, Any], args: argparse.Namespace, oracle: bool = False) -> dict[str, Any]:
     seed = zlib.crc32(f"{args.seed}:{t['id']}".encode())
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory(prefix="brdfjax-reference-") as tmp:
@@ -312,6 +330,8 @@ def run_reference_trial(t: dict[str, Any], args: argparse.Namespace) -> dict[str
         t0 = time.perf_counter()
         say = (lambda m: print(f"    {time.perf_counter() - t0:7.1f} s  {m}", flush=True)) if args.verbose else None
         steps = max(args.max_steps, len(t["effects"]) + 1)
+        if oracle:
+            return _oracle(t, base, fitted, starts, held, say)
         effects = None if args.candidates is None else args.candidates.split(",")
         d = diagnose(base, fitted, starts, heldout_blocks=held, max_steps=steps, pair_top=args.pair_top,
                      effects=effects, progress=say, **_fresh(args))
@@ -395,6 +415,9 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
         "failed_refits_total": sum(int((r.get("failed_refits") or {}).get("candidates", 0))
                                    + int((r.get("failed_refits") or {}).get("fresh_start_on_path", 0)) for r in ok),
         "exact_set_rate": rate([r.get("exact_set") for r in single + two + null]),
+        # the same without the trials whose withheld set is not identifiable at the threshold (--identifiability)
+        "exact_set_rate_identifiable": rate([r.get("exact_set") for r in single + two + null if r.get("identifiable") is not False]),
+        "not_identifiable_trials": [r["id"] for r in two if r.get("identifiable") is False],
         "diffraction_first_rate": rate([r["top1"] == "diffraction" and r["significant"]
                                         for r in single + two if "diffraction" in r["effects"]]),
         "spurious_generic_trials": [r["id"] for r in ok if r.get("spurious_generic")],
@@ -421,6 +444,9 @@ def print_summary(s: dict[str, Any], names: list[str]) -> None:
     show("chi2_after_within_20pct_of_true_rate", "all")
     show("heldout_smaller_rate", ">= 90 %")
     show("exact_set_rate", ">= 90 %")
+    show("exact_set_rate_identifiable", ">= 90 %")
+    if s.get("not_identifiable_trials"):
+        print(f"not identifiable at the threshold: {s['not_identifiable_trials']}")
     show("diffraction_first_rate", ">= 90 %")
     print(f"failed candidate refits {s['failed_refits_total']} (target 0); trials with a spurious generic term: "
           f"{s['spurious_generic_trials'] or 'none'} (target none)")
@@ -485,6 +511,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="'library': the effect generators (brdfjax.diagnose.effects); 'reference': frames from the NumPy "
                         "reference (brdfjax.reference) with detector noise, written to EXR and read back (kinds: "
                         + ", ".join(REFERENCE_KINDS) + "; --effects selects kinds)")
+    p.add_argument("--identifiability", action="store_true",
+                   help="two-effect trials: also run the search with the withheld effects as its only candidates and no "
+                        "stop within the noise (finished trials in --out get it added); where that does not end on the "
+                        "withheld set, the set is not identifiable at the threshold and the exact-set rate is also "
+                        "given without those trials")
     p.add_argument("--candidates", default=None, help="reference generator: comma-separated candidate effects (default: the library)")
     p.add_argument("--fresh-top", type=int, default=None,
                    help="diagnose(fresh_top=N): candidates also refitted from the fresh starts (default: the library's)")
@@ -523,13 +554,16 @@ def main(argv: list[str] | None = None) -> int:
         i, n = (int(x) for x in args.shard.split("/"))
         trials = trials[i::n]
     results = []
+    runner = run_reference_trial if args.generator == "reference" else run_trial
     for i, t in enumerate(trials):
-        if t["id"] in done:
+        if t["id"] in done and not (args.identifiability and t["kind"] == "two" and "identifiable" not in done[t["id"]]):
             results.append(done[t["id"]])
             continue
         t0 = time.perf_counter()
         try:
-            r = run_reference_trial(t, args) if args.generator == "reference" else run_trial(t, args)
+            r = done[t["id"]] if t["id"] in done else runner(t, args)
+            if args.identifiability and t["kind"] == "two" and "error" not in r:
+                r = {**r, **runner(t, args, oracle=True)}
         except Exception as e:  # noqa: BLE001 - a failing trial is recorded, the benchmark goes on
             r = {**t, "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc(limit=6)}
         results.append(r)

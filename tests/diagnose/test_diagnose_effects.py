@@ -360,5 +360,45 @@ def test_footprint_width_rescanned_on_the_fit_that_holds_it():
     # without the footprint's convolution)
     assert new.result.chi2_reduced < 1.3 < 0.1 * s2.result.chi2_reduced
     assert abs(new.result.value("bars.a") / sc.truth["bars.a"] - 1) < 0.02
-    w = float(note.split("width ")[-1].split(" grid")[0])
+    w = E.EFFECT_LIBRARY["instrument_function"].width_of(new.blocks)
     assert abs(w / (sc.truth["footprint_w_px"] / 16) - 1) < 0.05
+
+
+def test_footprint_width_read_back_from_its_kernel():
+    from brdfjax.instrument.synthetic import footprint_kernel
+
+    eff = E.EFFECT_LIBRARY["instrument_function"]
+    frame = E.synthesize(E.base_scenario(np.random.default_rng(3), n_frames=1, step=16), 3, None, path="render")[0]
+    assert eff.width_of([frame]) is None
+    for w in (0.3, 0.52, 1.03, 2.4, 11.0):
+        (b,) = eff.with_width([frame], w)
+        assert np.array_equal(b.footprint, footprint_kernel(w))
+        assert abs(eff.width_of([b]) / w - 1) < 1e-6
+
+
+def test_footprint_width_moved_along_the_refitted_chi2(monkeypatch):
+    """The line search of :func:`refine_data_side` on a hand-built chi^2 of the width (every refit replaced by
+    chi^2(w) = 100 + 1000 ln(w / 1.03)^2): from 0.52, where the profiled rescans crawled (seed 9613's offset
+    peak + footprint trial), it climbs in steps of 1.4 to the minimum and refines by half a step; a surface
+    rising both ways leaves the width where it is."""
+    from types import SimpleNamespace
+
+    from brdfjax.diagnose import refits
+
+    def state(w, chi2):
+        return SimpleNamespace(blocks={"w": w}, result=SimpleNamespace(chi2=chi2), effects=("footprint",), ctx=None)
+
+    eff = SimpleNamespace(width_of=lambda blocks: blocks["w"], with_width=lambda bare, w: {"w": w})
+    for best, start in ((1.03, 0.52), (0.61, 2.0), (0.9, 0.9)):
+        surface = lambda w, best=best: 100.0 + 1000.0 * np.log(w / best) ** 2  # noqa: E731
+        calls = []
+        monkeypatch.setattr(refits, "refit_on", lambda st, blocks, s=surface: calls.append(blocks["w"]) or state(blocks["w"], s(blocks["w"])))
+        notes: list[str] = []
+        out = refits._width_line_search(state(start, surface(start)), eff, "footprint", [], notes)
+        w = out.blocks["w"]
+        assert abs(np.log(w / best)) <= np.log(np.sqrt(1.4)) / 2 + 1e-9, (best, start, w, calls)
+        assert out.result.chi2 == surface(w) and out.result.chi2 <= surface(start)
+        if start == best:
+            assert calls == [best * 1.4, best / 1.4, best * np.sqrt(1.4), best / np.sqrt(1.4)] and not notes
+        else:
+            assert "width moved on the refitted chi2" in notes[0]

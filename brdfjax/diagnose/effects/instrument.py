@@ -131,6 +131,31 @@ class InstrumentFunctionEffect(Effect):
         w = self._best_width(ctx, lambda w: self._with_footprint(bare_blocks, w, replace=True))
         return self._with_footprint(bare_blocks, w, replace=True), w
 
+    @staticmethod
+    def _variance(k) -> float:
+        g = np.asarray(k, np.float64).sum(axis=0)
+        n = np.arange(g.size) - (g.size - 1) / 2.0
+        return float(np.sum(g * n**2) / np.sum(g))
+
+    def width_of(self, blocks) -> float | None:
+        """The footprint width the frames of ``blocks`` carry, or None without one: the width whose kernel has
+        the same second moment (a bisection in log width; the moment rises with the width, and for widths
+        near a pixel it is not w^2 / 4 + 1/12, the kernel being sampled at whole pixels)."""
+        for b in blocks:
+            k = getattr(b, "footprint", None) if isinstance(b, FrameData) else None
+            if k is not None:
+                var = self._variance(k)
+                lo, hi = math.log(0.05), math.log(64.0)
+                for _ in range(60):
+                    mid = 0.5 * (lo + hi)
+                    lo, hi = (mid, hi) if self._variance(footprint_kernel(math.exp(mid))) < var else (lo, mid)
+                return math.exp(0.5 * (lo + hi))
+        return None
+
+    def with_width(self, bare_blocks, w: float) -> list:
+        """``bare_blocks`` with the footprint of width ``w`` on every frame."""
+        return self._with_footprint(bare_blocks, w, replace=True)
+
 
 class FluxScaleEffect(Effect):
     side = "instrument"
