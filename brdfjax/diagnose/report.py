@@ -269,7 +269,8 @@ PATH_RULES = (
     "A generic effect (a floor, a response curve) does not enter where a specific candidate explains its residual: "
     "on their joint refit, taking the generic effect out costs less than the threshold.",
     "Every effect must pass the same test to stay: after every step each effect is taken out in turn (the model "
-    "refitted); one whose removal costs less BIC than the threshold is taken out.",
+    "refitted from the larger fit and, where two effects or more are left, also forward from their fitted subset of "
+    "lowest BIC, the better kept); one whose removal costs less BIC than the threshold is taken out.",
     "Generic effects stand in for one another: after the removals each generic effect of the set is replaced in turn "
     "by each other generic candidate (refitted); the replacement of lowest BIC is made when it is admissible and its "
     "BIC is below the set's (shown as a removal and an addition).",

@@ -25,8 +25,9 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
 4. Commit: the admissible single or pair with the largest gain enters when the gain exceeds T; a pair only
    when it beats its better member's single by more than T (and both members are admissible in the pair).
 5. Backward elimination, after every commit: each effect of the set is taken out in turn (the model
-   refitted); the cheapest whose removal costs less than T is taken out, and this repeats.  An effect stays
-   only if removing it costs more than T: the test it passed to enter.
+   refitted, from the larger fit and, for two effects or more left, also forward from their fitted subset of
+   lowest BIC, the better kept); the cheapest whose removal costs less than T is taken out, and this repeats.
+   An effect stays only if removing it costs more than T: the test it passed to enter.
 6. Exchange among generic effects, after the elimination: each generic effect G of the set is replaced in turn
    by each generic candidate G' outside it (the set without G, plus G', refitted); the replacement of lowest
    BIC is made when it is admissible and its BIC is below the set's.  Generic effects stand in for one
@@ -308,6 +309,7 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                     rest = tuple(x for x in cur.effects if x != e)
                     say(f"step {step}: trying the set without {e}")
                     w = fit(rest, cur, refresh=True)
+                    w = _forward_route(rest, w, cache, fit, applicable, say, step)
                     if not w.ok:
                         moves[-1].notes.append(f"without {e}: the refit failed ({w.failure}); it stays")
                         continue
@@ -331,6 +333,32 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                 stop = f"the reduced chi^2 {cur.chi2_reduced:.4g} is within the noise"
                 break
     return SearchResult(base, cur, moves, trials, singles_by_step, pairs_by_step, stop, notes)
+
+
+def _forward_route(rest: tuple[str, ...], w: Trial, cache: dict[frozenset, Trial], fit: Callable[..., Trial],
+                   applicable: Callable[..., str | None] | None, say: Callable[[str], None], step: int) -> Trial:
+    """The set ``rest`` (a removal's, two effects or more) also fitted forward: the fitted subset of ``rest``
+    of lowest BIC with the missing effect added, the better fit kept (rule 5).
+
+    Taken out of a larger fit, the other effects start where they had traded with the removed one, and the
+    refit can stay there: measured on a trial with an offset peak and a footprint withheld (every 16th pixel),
+    {offset peak, misalignment, footprint} reached 1.091 against the truth's 1.068, and taking the misalignment
+    out refitted to a BIC 6,701 higher, while {offset peak} with the footprint added reaches 1.123, a removal
+    cost below the threshold.  Singles are always fitted forward (step 1 refits every candidate)."""
+    if len(rest) < 2:
+        return w
+    subs = []
+    for x in rest:
+        k = _key(tuple(y for y in rest if y != x))
+        t = cache.get(k)
+        if t is not None and t.ok and (applicable is None or applicable(t.effects, x) is None):
+            subs.append(t)
+    if not subs:
+        return w
+    start = min(subs, key=lambda t: t.bic)
+    say(f"step {step}: fitting {' + '.join(rest)} forward from {' + '.join(start.effects)}")
+    better = fit(rest, start, refresh=True)
+    return better if better.ok and (not w.ok or better.bic <= w.bic) else w
 
 
 def _generic_removable(problem: SearchProblem, p: Trial, q: Trial, t: Trial, T: float, fit: Callable[..., Trial]) -> bool:
