@@ -241,3 +241,26 @@ def test_a_removal_is_also_fitted_forward_from_the_smaller_sets():
     assert any(n.startswith("without mis: BIC +5") for n in r.moves[1].notes), r.moves[1].notes
     # without the forward fit the removal would have cost 6,706 and the misalignment stayed
     assert ("off", "fp") in p.calls and sum(1 for c in p.calls if set(c) == {"off", "fp"}) == 2
+
+
+def test_two_effects_that_hold_each_other_in_are_taken_out_together():
+    # seed 9616's offset peak + footprint trial: stray light and a misalignment entered beside them and each cost
+    # more than the threshold to take out alone (167, 249), while the two withheld effects alone fit better
+    sets = {frozenset({"off", "stray"}): 5000.0, frozenset({"off", "stray", "fp"}): 3249.0,
+            frozenset({"off", "stray", "mis"}): 4500.0, frozenset({"off", "fp", "mis"}): 3167.0,
+            frozenset({"off", "stray", "fp", "mis"}): 3000.0, frozenset({"off", "fp"}): 2995.0,
+            frozenset({"stray", "fp", "mis"}): 8000.0}
+    p = Table({"off": 3000.0, "stray": 2000.0, "fp": 1000.0, "mis": 900.0}, base_bic=10000.0, sets=sets)
+    r = search(p, bic_threshold=T, max_steps=3, pair_top=2)
+    actions = [(m.action, m.effects) for m in r.moves]
+    assert actions[:4] == [("add", ("off", "stray")), ("add", ("fp", "mis")), ("remove", ("stray",)),
+                           ("remove", ("mis",))], actions
+    assert set(r.final.effects) == {"off", "fp"} and r.final.bic == 2995.0
+    assert any("without stray: BIC +167 (stays)" in n for n in r.moves[1].notes)
+    assert "taken out with mis: without both the BIC changes by -5" in r.moves[2].notes[0]
+    # one effect that can go alone goes alone: no pair is tried
+    p = Table({"off": 3000.0, "stray": 2000.0, "fp": 1000.0, "mis": 900.0}, base_bic=10000.0,
+              sets={**sets, frozenset({"off", "fp", "mis"}): 2995.0})
+    r = search(p, bic_threshold=T, max_steps=3, pair_top=2)
+    assert [(m.action, m.effects) for m in r.moves][2] == ("remove", ("stray",))
+    assert not any("taken out with" in n for m in r.moves for n in m.notes)
