@@ -602,28 +602,29 @@ def _width_line_search(state: _State, eff: Any, name: str, bare_blocks: Sequence
     if w is None:
         return state
 
-    def at(wn: float) -> _State | None:
+    def better(cur: _State, wn: float) -> _State | None:
+        """``cur`` refitted at width ``wn`` (warm start), or None when that does not lower its chi^2."""
         if not WIDTH_RANGE[0] <= wn <= WIDTH_RANGE[1]:
             return None
         try:
-            new = refit_on(state, eff.with_width(bare_blocks, wn))
+            new = refit_on(cur, eff.with_width(bare_blocks, wn))
         except Exception:  # noqa: BLE001 - a width the fit cannot take is not taken
             return None
-        ok = math.isfinite(float(new.result.chi2)) and float(new.result.chi2) < float(state.result.chi2) * (1 - 1e-4)
-        return new if ok else None
+        chi2 = float(new.result.chi2)
+        return new if math.isfinite(chi2) and chi2 < float(cur.result.chi2) * (1 - 1e-4) else None
 
     w0, chi0 = w, float(state.result.chi2)
     for f in (WIDTH_STEP, 1.0 / WIDTH_STEP):
         moved = 0
         while moved < WIDTH_STEPS:
-            new = at(w * f)
+            new = better(state, w * f)
             if new is None:
                 break
             state, w, moved = new, w * f, moved + 1
         if moved:
             break
     for f in (math.sqrt(WIDTH_STEP), 1.0 / math.sqrt(WIDTH_STEP)):
-        new = at(w * f)
+        new = better(state, w * f)
         if new is not None:
             state, w = new, w * f
             break

@@ -324,13 +324,12 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                     pair = _pair_removal(cur, costs, T, cache, fit, applicable, say, step)
                     if pair is not None:
                         (e1, w1, c1), (e2, w2, c2) = pair
-                        for e_, w_, c_, g_ in ((e1, w1, c1, -c1), (e2, w2, c2, c1 - c2)):
+                        why = f"without both the BIC changes by {c2:+.4g}, less than the {T:g} (each alone cost more: " \
+                              "they stood in for one another)"
+                        for e_, other, w_, gain in ((e1, e2, w1, -c1), (e2, e1, w2, c1 - c2)):
                             visited.add(_key(w_.effects))
-                            say(f"step {step}: removed {e_} (with {e2 if e_ == e1 else e1}: BIC without both {c2:+.1f} < {T:g})")
-                            moves.append(SearchMove("remove", (e_,), w_, g_, step,
-                                                    [f"taken out with {e2 if e_ == e1 else e1}: without both the BIC changes by "
-                                                     f"{c2:+.4g}, less than the {T:g} (each alone cost more: they stood in "
-                                                     "for one another)"]))
+                            say(f"step {step}: removed {e_} (with {other}: BIC without both {c2:+.1f} < {T:g})")
+                            moves.append(SearchMove("remove", (e_,), w_, gain, step, [f"taken out with {other}: {why}"]))
                         cur = w2
                         continue
                 if not below:
@@ -376,8 +375,9 @@ def _forward_route(rest: tuple[str, ...], w: Trial, cache: dict[frozenset, Trial
     return better if better.ok and (not w.ok or better.bic <= w.bic) else w
 
 
-def _pair_removal(cur: Trial, costs: list, T: float, cache: dict[frozenset, Trial], fit: Callable[..., Trial],
-                  applicable: Callable[..., str | None] | None, say: Callable[[str], None], step: int):
+def _pair_removal(cur: Trial, costs: list[tuple[float, str, Trial]], T: float, cache: dict[frozenset, Trial],
+                  fit: Callable[..., Trial], applicable: Callable[..., str | None] | None, say: Callable[[str], None],
+                  step: int) -> tuple[tuple[str, Trial, float], tuple[str, Trial, float]] | None:
     """Two effects taken out together where neither can be alone (rule 5, three effects or more): the pair
     whose removal costs least, when that is below ``T``.  Two effects that entered for one another can each
     hold the other in: measured on a trial with an offset peak and a footprint withheld (every 16th pixel), the
@@ -404,8 +404,8 @@ def _pair_removal(cur: Trial, costs: list, T: float, cache: dict[frozenset, Tria
     if best is None:
         return None
     cost, a, b, w = best
-    first = min((a, b), key=lambda e: single.get(e, (math.inf,))[0])  # the cheaper alone goes first in the record
-    second = b if first == a else a
+    # the cheaper alone goes first in the record (its own refit is the intermediate set)
+    first, second = (a, b) if single.get(a, (math.inf,))[0] <= single.get(b, (math.inf,))[0] else (b, a)
     if first not in single:
         return None
     return (first, single[first][1], single[first][0]), (second, w, cost)
