@@ -196,10 +196,11 @@ def _oracle(t: dict[str, Any], base: Any, fitted: list, params: Any, held: list,
     d = diagnose(base, fitted, params, heldout_blocks=held, effects=list(t["effects"]), max_steps=len(t["effects"]) + 1,
                  noise_stop=False, progress=say)
     j = d.to_dict()
-    costs = [n for s in j["path"] for n in s.get("notes", []) if n.startswith("without ")]
     return {"identifiable": sorted(d.explained_by) == sorted(t["effects"]),
             "oracle_path": [(s["action"], s["effect"], s["chi2_reduced"]) for s in j["path"]],
-            "oracle_removal_costs": costs, "oracle_notes": [s.get("notes", []) for s in j["path"]], "oracle_stop": j["stop_reason"], "oracle_wall_s": time.perf_counter() - t0}
+            # every step's notes, the removal costs ("without X: BIC ...") among them
+            "oracle_notes": [s.get("notes", []) for s in j["path"]],
+            "oracle_stop": j["stop_reason"], "oracle_wall_s": time.perf_counter() - t0}
 
 
 def run_trial(t: dict[str, Any], args: argparse.Namespace, oracle: bool = False) -> dict[str, Any]:
@@ -524,11 +525,12 @@ def main(argv: list[str] | None = None) -> int:
     names = list(fx.EFFECT_LIBRARY) if args.effects is None else [e.strip() for e in args.effects.split(",")]
     if args.summarize:
         # shards resumed from one shared earlier file (e.g. the quick set copied into each) carry the same
-        # finished trials: each trial id counts once, the first file's record kept
-        by_id: dict[str, dict] = {}
+        # finished trials: each trial counts once, the first file's record kept; the trial's own seed is part of the
+        # key (files of different --seed reuse the same trial ids)
+        by_id: dict[tuple, dict] = {}
         for f in args.summarize:
             for r in json.loads(Path(f).read_text())["trials"]:
-                by_id.setdefault(r["id"], r)
+                by_id.setdefault((r.get("seed"), r["id"]), r)
         results = list(by_id.values())
         s = summarise(results, names)
         _atomic_json(out, {"sources": args.summarize, "trials": results, "summary": _clean(s)})

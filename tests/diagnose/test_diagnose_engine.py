@@ -334,7 +334,8 @@ def test_benchmark_output_keeps_the_trials_a_run_did_not_reach():
 
 
 def test_benchmark_summary_of_shards_counts_a_shared_trial_once(tmp_path):
-    """Shards resumed from one copied earlier file both hold its trials: --summarize counts each id once."""
+    """Shards resumed from one copied earlier file both hold its trials: --summarize counts each id once (per
+    trial seed)."""
     import json
 
     mod = _withheld_module()
@@ -352,6 +353,12 @@ def test_benchmark_summary_of_shards_counts_a_shared_trial_once(tmp_path):
     assert [r["id"] for r in merged["trials"]] == ["null:0", "null:1", "null:2"]
     assert merged["summary"]["n_trials"] == 3
     assert merged["summary"]["null_nothing_significant_rate"] == [2 / 3, 3]
+    # files of two --seed runs reuse the trial ids; their trials (each with its own seed) all count
+    (tmp_path / "s1.json").write_text(json.dumps({"trials": [{**null(0, False), "seed": 11}]}))
+    (tmp_path / "s2.json").write_text(json.dumps({"trials": [{**null(0, True), "seed": 22}]}))
+    assert mod.main(["--summarize", str(tmp_path / "s1.json"), str(tmp_path / "s2.json"), "--out", str(out),
+                     "--effects", "lambertian"]) == 0
+    assert json.loads(out.read_text())["summary"]["null_nothing_significant_rate"] == [0.5, 2]
 
 
 def test_an_oriented_term_is_written_to_a_config_and_read_back():
