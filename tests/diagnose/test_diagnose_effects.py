@@ -391,8 +391,13 @@ def test_footprint_width_moved_along_the_refitted_chi2(monkeypatch):
     eff = SimpleNamespace(width_of=lambda blocks: blocks["w"], with_width=lambda bare, w: {"w": w})
     for best, start in ((1.03, 0.52), (0.61, 2.0), (0.9, 0.9)):
         surface = lambda w, best=best: 100.0 + 1000.0 * np.log(w / best) ** 2  # noqa: E731
-        calls = []
-        monkeypatch.setattr(refits, "refit_on", lambda st, blocks, s=surface: calls.append(blocks["w"]) or state(blocks["w"], s(blocks["w"])))
+        calls: list[float] = []
+
+        def fake_refit(st, blocks, s=surface, calls=calls):
+            calls.append(blocks["w"])
+            return state(blocks["w"], s(blocks["w"]))
+
+        monkeypatch.setattr(refits, "refit_on", fake_refit)
         notes: list[str] = []
         out = refits._width_line_search(state(start, surface(start)), eff, "footprint", [], notes)
         w = out.blocks["w"]
