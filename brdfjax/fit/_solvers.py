@@ -55,6 +55,9 @@ class SolveOutcome:
     status: SolveStatus
     message: str
     n_steps: int
+    #: d r~ / d v at ``v`` of the problem that was solved, where the solver had it at hand (Levenberg-Marquardt's
+    #: last linearisation); None where it did not
+    jacobian: np.ndarray | None = None
 
 
 class AbstractSolver(eqx.Module):
@@ -120,10 +123,17 @@ def _lm(rtol, atol, ftol):
 @eqx.filter_jit
 def _lm_solve(v0, problem, rtol, atol, max_steps, ftol=0.0):
     """The whole solve as one program: the solution, optimistix's result code (an integer array, so the
-    program can be exported: :mod:`brdfjax.runtime.export_cache`) and the number of steps."""
+    program can be exported: :mod:`brdfjax.runtime.export_cache`), the number of steps and the Jacobian at
+    the solution.
+
+    The Jacobian is the last accepted linearisation the solver made (optimistix keeps the residuals' linear
+    map at the accepted point in its state; with the structured Jacobian that map holds the matrix itself,
+    so materialising it is one small product).  The covariance then needs no Jacobian program of its own: on
+    the diagnosis' shipped example a second program per model shape was 23 compilations, 39 s of a 148 s
+    run (``experiments/profile_diagnose_compiles.py``)."""
     solver = _lm(rtol, atol, ftol)
     sol = optx.least_squares(residuals, solver, v0, args=problem, max_steps=max_steps, throw=False)
-    return sol.value, sol.result._value, sol.stats["num_steps"]
+    return sol.value, sol.result._value, sol.stats["num_steps"], sol.state.f_info.jac.as_matrix()
 
 
 _lm_solve_exported = exportable("lm_solve", _lm_solve, switches)
@@ -174,7 +184,8 @@ def _lm_stepwise(v0, problem, rtol, atol, max_steps, report, ftol=0.0):
         report(float(chi2))
     if result == optx.RESULTS.successful and not bool(terminate):
         result = optx.RESULTS.nonlinear_max_steps_reached
-    return v, result, n
+    # the last accepted linearisation, as _lm_solve returns it (a product with the stored matrix, run eagerly)
+    return v, result, n, state.f_info.jac.as_matrix()
 
 
 class LevenbergMarquardt(AbstractSolver):
@@ -203,30 +214,39 @@ class LevenbergMarquardt(AbstractSolver):
         # somebody listens to is stepped from Python and reports the chi^2 after each step.
         problem = dataclasses.replace(problem, report=False)
         if listening():
-            value, result, steps = _lm_stepwise(
+            value, result, steps, jac = _lm_stepwise(
                 jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, _emit, float(self.ftol)
             )
+            J = np.asarray(jac, np.float64)
         else:
-            value, code, steps = _lm_solve_exported(
+            value, code, steps, jac = _lm_solve_exported(
                 jnp.asarray(v0), problem, self.rtol, self.atol, self.max_steps, float(self.ftol)
             )
             result = _result(code)
+            J = np.asarray(jac, np.float64)
         v = np.asarray(value)
         n = int(steps)
+        # (the solver's linearisation replaces a non-finite derivative by 0, so that a far trial step is rejected,
+        # not fatal: the caller differences a zero column itself)
+        if J is not None and (n == 0 or not np.all(np.isfinite(v))):
+            J = None
         if result == optx.RESULTS.successful:
             if not np.all(np.isfinite(v)):
                 return SolveOutcome(v, False, SolveStatus.failed, "the solution is not finite", n)
-            return SolveOutcome(v, True, SolveStatus.successful, f"converged in {n} steps (rtol={self.rtol:g}, atol={self.atol:g}, ftol={self.ftol:g})", n)
+            return SolveOutcome(
+                v, True, SolveStatus.successful,
+                f"converged in {n} steps (rtol={self.rtol:g}, atol={self.atol:g}, ftol={self.ftol:g})", n, J,
+            )
         message = str(optx.RESULTS[result])
         if result == optx.RESULTS.nonlinear_max_steps_reached:
             return SolveOutcome(
                 v, False, SolveStatus.max_steps_reached,
                 f"not converged: max_steps={self.max_steps} reached; increase max_steps, or check the start "
-                f"(optimistix: {message})", n,
+                f"(optimistix: {message})", n, J,
             )
         if result == optx.RESULTS.nonlinear_divergence:
-            return SolveOutcome(v, False, SolveStatus.diverged, f"not converged: the solve diverged (optimistix: {message})", n)
-        return SolveOutcome(v, False, SolveStatus.failed, f"not converged (optimistix: {message})", n)
+            return SolveOutcome(v, False, SolveStatus.diverged, f"not converged: the solve diverged (optimistix: {message})", n, J)
+        return SolveOutcome(v, False, SolveStatus.failed, f"not converged (optimistix: {message})", n, J)
 
 
 def _jaxopt():

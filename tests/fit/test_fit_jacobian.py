@@ -134,3 +134,39 @@ def test_structured_jacobian_equals_jacfwd_for_the_standard_microfacet_form(asse
     spec = {"peak.alpha": 0.06, "peak.rho_s": 0.6, "peak.n": 1.4, "floor.rho_d": 1.2e-3, "phi_ref": 0.001}
     p = prepare_problem(model, frames, spec, solver=LevenbergMarquardt()).problem
     assert_jacobian_matches_jacfwd(p, np.resize(V, p.u0.shape[0]))
+
+
+
+@pytest.mark.parametrize("listen", [False, True])
+def test_the_solvers_jacobian_and_the_differenced_start_equal_the_jacobian_program(monkeypatch, listen):
+    """The step scales come from central differences of the residuals at the start and the covariance from
+    the solver's last linearisation, so a fit compiles no Jacobian program: the differences equal the
+    program's columns, and the fit's parameters and sigmas equal those of the same fit whose covariance takes
+    the program's Jacobian; the solve stepped from Python (a listener) does the same."""
+    import dataclasses
+
+    from brdfjax.fit import _fit as fit_mod
+    from brdfjax.fit._problem import jacobian, with_scale
+
+    frames = _frames(footprint_kernel(25.0 / 8, tail=1e-6))
+    prep = prepare_problem(MODEL, frames, SPEC, solver=LevenbergMarquardt())
+    n = prep.problem.u0.shape[0]
+    p = with_scale(prep.problem, np.asarray(prep.problem.u0) + 0.01 * np.resize(V, n), np.ones(n))
+    fd = fit_mod._difference_columns(p, np.zeros(n), range(n))
+    J0 = np.asarray(jacobian(np.zeros(n), p), np.float64)
+    assert np.max(np.linalg.norm(fd - J0, axis=0) / np.linalg.norm(J0, axis=0)) < 1e-6
+
+    spec = {"peak.m": 1.05e-4, "peak.rho_s": 0.65, "bars.c": 4.1e-5, "phi_ref": 0.0}
+    kw = {"progress": (lambda k, chi2: None)} if listen else {}
+    calls = []
+    monkeypatch.setattr(fit_mod, "jacobian", lambda *a: calls.append(1) or jacobian(*a))
+    a = fit(MODEL, frames, spec, first_stage=None, **kw)
+    assert a.converged and calls == []
+    solve = LevenbergMarquardt.solve
+    monkeypatch.setattr(LevenbergMarquardt, "solve",
+                        lambda self, *x: dataclasses.replace(solve(self, *x), jacobian=None))
+    b = fit(MODEL, frames, spec, first_stage=None, **kw)
+    assert calls == [1] and a.chi2 == b.chi2
+    for name in spec:
+        if name != "phi_ref":
+            assert a.value(name) == b.value(name) and a.sigma(name) == pytest.approx(b.sigma(name), rel=1e-9)
