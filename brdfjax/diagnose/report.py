@@ -270,7 +270,7 @@ PATH_RULES = (
     "on their joint refit, taking the generic effect out costs less than the threshold.",
     "Every effect must pass the same test to stay: after every step each effect is taken out in turn (the model "
     "refitted from the larger fit and, where two effects or more are left, also forward from their fitted subset of "
-    "lowest BIC, the better kept); one whose removal costs less BIC than the threshold is taken out.  Where none can "
+    "lowest BIC, from each of its fits, the best kept); one whose removal costs less BIC than the threshold is taken out.  Where none can "
     "go alone and three effects or more are in, two are taken out together when that costs less than the threshold "
     "(two effects that stood in for one another hold each other in).",
     "Generic effects stand in for one another: after the removals each generic effect of the set is replaced in turn "

@@ -26,7 +26,8 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    when it beats its better member's single by more than T (and both members are admissible in the pair).
 5. Backward elimination, after every commit: each effect of the set is taken out in turn (the model
    refitted, from the larger fit and, for two effects or more left, also forward from their fitted subset of
-   lowest BIC, the better kept); the cheapest whose removal costs less than T is taken out, and this repeats.
+   lowest BIC (from each of its fits where it was fitted forward and again from a larger fit), the best
+   kept); the cheapest whose removal costs less than T is taken out, and this repeats.
    Where none can go alone and three effects or more are in, two are taken out together when that costs less
    than T (two effects that stood in for one another hold each other in; recorded as two removals).
    An effect stays only if removing it costs more than T: the test it passed to enter.
@@ -139,6 +140,7 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
     T = float(bic_threshold)
     trials: list[Trial] = []
     cache: dict[frozenset, Trial] = {}
+    first: dict[frozenset, Trial] = {}  # each set's first good fit (rule 5's forward route)
     refreshed: set[tuple[frozenset, int]] = set()  # (set, id of the larger fit) refitted from that fit already
     applicable = getattr(problem, "applicable", None)
     within_noise = getattr(problem, "within_noise", None)
@@ -159,6 +161,8 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
             refreshed.add((k, id(warm)))
         t = problem.refit(tuple(effects), warm)
         trials.append(t)
+        if t.ok:
+            first.setdefault(k, t)
         old = cache.get(k)
         if old is not None and old.ok and not (t.ok and t.bic < old.bic):
             return old
@@ -311,7 +315,7 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                     rest = tuple(x for x in cur.effects if x != e)
                     say(f"step {step}: trying the set without {e}")
                     w = fit(rest, cur, refresh=True)
-                    w = _forward_route(rest, w, cache, fit, applicable, say, step)
+                    w = _forward_route(rest, w, cache, fit, applicable, say, step, first)
                     if not w.ok:
                         moves[-1].notes.append(f"without {e}: the refit failed ({w.failure}); it stays")
                         continue
@@ -321,7 +325,7 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                     costs.append((cost, e, w))
                 below = sorted((c for c in costs if c[0] < T), key=lambda c: c[0])
                 if not below and len(cur.effects) >= 3:
-                    pair = _pair_removal(cur, costs, T, cache, fit, applicable, say, step)
+                    pair = _pair_removal(cur, costs, T, cache, fit, applicable, say, step, first)
                     if pair is not None:
                         (e1, w1, c1), (e2, w2, c2) = pair
                         why = f"without both the BIC changes by {c2:+.4g}, less than the {T:g} (each alone cost more: " \
@@ -350,9 +354,13 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
 
 
 def _forward_route(rest: tuple[str, ...], w: Trial, cache: dict[frozenset, Trial], fit: Callable[..., Trial],
-                   applicable: Callable[..., str | None] | None, say: Callable[[str], None], step: int) -> Trial:
+                   applicable: Callable[..., str | None] | None, say: Callable[[str], None], step: int,
+                   first: dict[frozenset, Trial] | None = None) -> Trial:
     """The set ``rest`` (a removal's, two effects or more) also fitted forward: the fitted subset of ``rest``
-    of lowest BIC with the missing effect added, the better fit kept (rule 5).
+    of lowest BIC with the missing effect added, the better fit kept (rule 5).  Where that subset was fitted
+    twice (forward, and again from a larger fit that held it, its cached fit being the better of the two), the
+    set is fitted forward from both: the better start for the subset alone need not be the better one for the
+    set.
 
     Taken out of a larger fit, the other effects start where they had traded with the removed one, and the
     refit can stay there: measured on a trial with an offset peak and a footprint withheld (every 16th pixel),
@@ -370,14 +378,23 @@ def _forward_route(rest: tuple[str, ...], w: Trial, cache: dict[frozenset, Trial
     if not subs:
         return w
     start = min(subs, key=lambda t: t.bic)
-    say(f"step {step}: fitting {' + '.join(rest)} forward from {' + '.join(start.effects)}")
-    better = fit(rest, start, refresh=True)
-    return better if better.ok and (not w.ok or better.bic <= w.bic) else w
+    starts = [start]
+    forward = (first or {}).get(_key(start.effects))
+    if forward is not None and forward is not start and forward.ok:
+        starts.append(forward)
+    for s in starts:
+        how = "" if s is start else " (its forward fit)"
+        say(f"step {step}: fitting {' + '.join(rest)} forward from {' + '.join(s.effects)}{how}")
+        t = fit(rest, s, refresh=True)
+        if t.ok and (not w.ok or t.bic <= w.bic):
+            w = t
+    return w
 
 
 def _pair_removal(cur: Trial, costs: list[tuple[float, str, Trial]], T: float, cache: dict[frozenset, Trial],
                   fit: Callable[..., Trial], applicable: Callable[..., str | None] | None, say: Callable[[str], None],
-                  step: int) -> tuple[tuple[str, Trial, float], tuple[str, Trial, float]] | None:
+                  step: int, first: dict[frozenset, Trial] | None = None
+                  ) -> tuple[tuple[str, Trial, float], tuple[str, Trial, float]] | None:
     """Two effects taken out together where neither can be alone (rule 5, three effects or more): the pair
     whose removal costs least, when that is below ``T``.  Two effects that entered for one another can each
     hold the other in: measured on a trial with an offset peak and a footprint withheld (every 16th pixel), the
@@ -395,7 +412,7 @@ def _pair_removal(cur: Trial, costs: list[tuple[float, str, Trial]], T: float, c
             if len(rest) >= 2:
                 say(f"step {step}: trying the set without {a} and {b}")
                 stub = w if w is not None else Trial(rest, False, "not fitted", math.nan, math.nan, 0, None, {})
-                w = _forward_route(rest, stub, cache, fit, applicable, say, step)
+                w = _forward_route(rest, stub, cache, fit, applicable, say, step, first)
             if w is None or not w.ok:
                 continue
             cost = w.bic - cur.bic

@@ -139,7 +139,7 @@ def test_structured_jacobian_equals_jacfwd_for_the_standard_microfacet_form(asse
 
 @pytest.mark.parametrize("listen", [False, True])
 def test_the_solvers_jacobian_and_the_differenced_start_equal_the_jacobian_program(monkeypatch, listen):
-    """The step scales come from central differences of the residuals at the start and the covariance from
+    """The step scales come from differences of the residuals at the start and the covariance from
     the solver's last linearisation, so a fit compiles no Jacobian program: the differences equal the
     program's columns, and the fit's parameters and sigmas equal those of the same fit whose covariance takes
     the program's Jacobian; the solve stepped from Python (a listener) does the same."""
@@ -152,9 +152,10 @@ def test_the_solvers_jacobian_and_the_differenced_start_equal_the_jacobian_progr
     prep = prepare_problem(MODEL, frames, SPEC, solver=LevenbergMarquardt())
     n = prep.problem.u0.shape[0]
     p = with_scale(prep.problem, np.asarray(prep.problem.u0) + 0.01 * np.resize(V, n), np.ones(n))
-    fd = fit_mod._difference_columns(p, np.zeros(n), range(n))
     J0 = np.asarray(jacobian(np.zeros(n), p), np.float64)
-    assert np.max(np.linalg.norm(fd - J0, axis=0) / np.linalg.norm(J0, axis=0)) < 1e-6
+    for central, tol in ((True, 1e-6), (False, 1e-4)):
+        fd = fit_mod._difference_columns(p, np.zeros(n), range(n), central=central)
+        assert np.max(np.linalg.norm(fd - J0, axis=0) / np.linalg.norm(J0, axis=0)) < tol, central
 
     spec = {"peak.m": 1.05e-4, "peak.rho_s": 0.65, "bars.c": 4.1e-5, "phi_ref": 0.0}
     kw = {"progress": (lambda k, chi2: None)} if listen else {}
