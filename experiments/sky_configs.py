@@ -140,6 +140,7 @@ disk = "point"          # the lab BRDFs are degrees wide: the solar disk changes
 [attitude]
 law = "nadir_sun_yaw"   # lumos-sat's brightness frame: the Sun's azimuth in the body y-z plane
 normals = "lumos"       # normals as the authors give them (lumos-sat frame: z up, (0, 0, -1) faces the Earth)
+min_height_km = 500.0   # below every operational V2 Mini shell (the lowest 525 km): a satellite raising or lowering its orbit flies in another attitude (flagged off_shell)
 
 [earthshine]
 albedo = 0.3            # a Lambertian Earth, as lumos-sat's default use

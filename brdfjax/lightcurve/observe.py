@@ -25,9 +25,14 @@ The library behind ``brdfjax observe CONFIG --out DIR`` (config:
    tables scanned in the plane of incidence) the observer more than
    ``out_of_plane_deg`` out of that plane.  A row is flagged when a facet
    carrying at least ``min_flux_fraction`` of its flux is;
-5. metrics of observed minus predicted magnitude (RMS, bias, Pearson R of
+5. per row, whether the satellite flies below ``min_height_km``, the lowest
+   height at which the attitude law holds (``off_shell``): a satellite
+   raising or lowering its orbit flies in another attitude (Starlink's
+   orbit-raising configuration), which no facet model of the operational
+   attitude describes;
+6. metrics of observed minus predicted magnitude (RMS, bias, Pearson R of
    observed and predicted, residual scatter, band coverage at 68 and 95 %),
-   overall and split by the flag.
+   overall and split by the flags.
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ from .earthshine import earthshine_flux
 from .engine import Attitude, Facets, Satellite, SunDisk, facet_flux
 from .photometry import BANDS, BandError, band
 from .skyeffects import effects_flux
-from .skygeometry import SkyGeometry, sky_geometry
+from .skygeometry import SkyGeometry, ecef_to_geodetic, sky_geometry
 
 __all__ = ["FacetSpec", "SetPrediction", "metrics", "covariance_draws", "predict_set", "lab_coverage"]
 
@@ -100,19 +105,29 @@ class SetPrediction:
     band: np.ndarray | None = None  # (N, 5): 2.5, 16, 50, 84, 97.5 percentiles
     effect_flux: np.ndarray | None = None  # (N,) the [effects] terms' flux (skyeffects), None without any
     families_drawn: dict[str, dict[str, int]] = field(default_factory=dict)
+    height_km: np.ndarray | None = None  # (N,) the satellite's height above the ellipsoid (the Earth's sphere for relative rows)
+    off_shell: np.ndarray | None = None  # (N,) bool: below ``min_height_km`` (None: no such height given)
 
     @property
     def observed(self) -> np.ndarray:
         return self.obs.mag
 
+    def _split(self, rows: np.ndarray) -> dict:
+        return metrics(self.observed[rows], self.mag[rows], None if self.band is None else self.band[rows])
+
     def metrics(self) -> dict:
+        """``all``; ``outside_lab`` / ``inside_lab`` (the lab-coverage flag); with ``min_height_km`` also
+        ``operational`` / ``off_shell`` and, among the operational rows, ``operational_outside_lab`` /
+        ``operational_inside_lab`` (each split only where it has rows)."""
         out = {"all": metrics(self.observed, self.mag, self.band)}
-        if self.flagged.any():
-            out["outside_lab"] = metrics(self.observed[self.flagged], self.mag[self.flagged],
-                                         None if self.band is None else self.band[self.flagged])
-        if (~self.flagged).any():
-            out["inside_lab"] = metrics(self.observed[~self.flagged], self.mag[~self.flagged],
-                                        None if self.band is None else self.band[~self.flagged])
+        splits = {"outside_lab": self.flagged, "inside_lab": ~self.flagged}
+        if self.off_shell is not None:
+            on = ~self.off_shell
+            splits.update(operational=on, off_shell=self.off_shell, operational_outside_lab=on & self.flagged,
+                          operational_inside_lab=on & ~self.flagged)
+        for name, rows in splits.items():
+            if rows.any():
+                out[name] = self._split(rows)
         return out
 
 
@@ -277,7 +292,8 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
                 draws: int = 0, seed: int = 0, parameter_uncertainty: bool = True, model_form: bool = True,
                 result_paths: dict[str, Path] | None = None, out_of_plane_deg: float = 5.0,
                 incidence_margin_deg: float = 1.0, min_flux_fraction: float = 0.1,
-                min_altitude_deg: float = 0.0, earthshine_albedo: float | None = None,
+                min_altitude_deg: float = 0.0, min_height_km: float | None = None,
+                earthshine_albedo: float | None = None,
                 earthshine_grid: tuple[int, int] = (32, 64),
                 model_error: dict[str, tuple[float, float]] | None = None,
                 effects: dict[str, float] | None = None, effects_theta_max_deg: dict[str, float] | None = None
@@ -299,6 +315,9 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     is added to the total (and to each draw of the band);
     ``effects_theta_max_deg``: facet -> the incidence beyond which its wide
     lobe switches on (default: the facet's ``max_theta_i_deg``, else 75).
+    ``min_height_km``: rows whose satellite flies lower are flagged
+    ``off_shell`` (the attitude law does not hold there); they are still
+    predicted, and the metrics are split by the flag.
     """
     geo = sky_geometry(obs, yaw_law=yaw_law, earth_radius=earth_radius, min_altitude_deg=min_altitude_deg)
     kept = obs.take(geo.keep)
@@ -366,8 +385,11 @@ def predict_set(name: str, obs: Observations, facets: list[FacetSpec], models: d
     flag_p = lit & np.array([f.in_plane for f in facets])[None, :] & (oop > out_of_plane_deg)
     frac = flux / np.where(total > 0, total, 1.0)[:, None]
     flagged = np.any((flag_i | flag_p) & (frac >= min_flux_fraction), -1)
+    height_km = (ecef_to_geodetic(geo.r_sat)[2] if kept.kind == "absolute" else np.asarray(kept.sat_height_m, float)) / 1e3
+    off_shell = None if min_height_km is None else height_km < min_height_km
     pred = SetPrediction(name, kept, geo, [f.name for f in facets], mag, facet_mag, flux, ti, ts, oop, flag_i, flag_p,
-                         flagged, geo.phase_angle_deg(), sun_mag, effect_flux=extra)
+                         flagged, geo.phase_angle_deg(), sun_mag, effect_flux=extra, height_km=height_km,
+                         off_shell=off_shell)
     if draws > 0:
         pred.band, pred.families_drawn = _bands(sat, facets, fam_names, models, result_paths or {}, np.asarray(w_c),
                                                 np.asarray(w_s), np.asarray(scale), ratio, sun_mag, kept.mag_err, draws,

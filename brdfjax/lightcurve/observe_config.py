@@ -118,6 +118,9 @@ class AttitudeConfig(StrictModel):
     roll_deg: float = 0.0
     pitch_deg: float = 0.0
     yaw_deg: float = 0.0
+    min_height_km: float | None = Field(
+        None, gt=0, description="the lowest satellite height at which the law holds; rows below are flagged off_shell "
+        "(a satellite raising or lowering its orbit flies in another attitude) and the metrics split by the flag")
 
 
 class ObservationSetConfig(StrictModel):
@@ -373,7 +376,8 @@ def predict_all(cfg: ObserveConfig, log=lambda s: None) -> list[SetPrediction]:
             parameter_uncertainty=cfg.bands.parameter_uncertainty, model_form=cfg.bands.model_form,
             result_paths=results, out_of_plane_deg=cfg.flags.out_of_plane_deg,
             incidence_margin_deg=cfg.flags.incidence_margin_deg, min_flux_fraction=cfg.flags.min_flux_fraction,
-            min_altitude_deg=oc.min_altitude_deg, earthshine_albedo=cfg.earthshine.albedo,
+            min_altitude_deg=oc.min_altitude_deg, min_height_km=cfg.attitude.min_height_km,
+            earthshine_albedo=cfg.earthshine.albedo,
             earthshine_grid=(cfg.earthshine.n_psi, cfg.earthshine.n_chi),
             model_error={k: (v.inside_log_rms, v.outside_log_rms) for k, v in cfg.model_error.items()},
             effects=eff, effects_theta_max_deg=eff_tmax)
@@ -383,7 +387,8 @@ def predict_all(cfg: ObserveConfig, log=lambda s: None) -> list[SetPrediction]:
 
 
 def _csv(pred: SetPrediction) -> str:
-    cols = ["line", "observed_mag", "mag_err", "band", "predicted_mag", "residual_mag", "phase_deg", "outside_lab"]
+    cols = ["line", "observed_mag", "mag_err", "band", "predicted_mag", "residual_mag", "phase_deg", "outside_lab",
+            "height_km", "off_shell"]
     if pred.band is not None:
         cols += ["band_2p5", "band_16", "band_50", "band_84", "band_97p5"]
     for f in pred.facet_names:
@@ -393,7 +398,8 @@ def _csv(pred: SetPrediction) -> str:
     o = pred.obs
     for i in range(len(pred.mag)):
         row = [str(int(o.line[i])), f"{o.mag[i]:.6g}", f"{o.mag_err[i]:.4g}", str(o.band[i]), f"{pred.mag[i]:.9g}",
-               f"{o.mag[i] - pred.mag[i]:.6g}", f"{pred.phase_deg[i]:.4f}", str(int(pred.flagged[i]))]
+               f"{o.mag[i] - pred.mag[i]:.6g}", f"{pred.phase_deg[i]:.4f}", str(int(pred.flagged[i])),
+               f"{pred.height_km[i]:.3f}", str(int(pred.off_shell is not None and pred.off_shell[i]))]
         if pred.band is not None:
             row += [f"{x:.6g}" for x in pred.band[i]]
         for j in range(len(pred.facet_names)):
@@ -409,8 +415,12 @@ def _figures(pred: SetPrediction, out: Path) -> list[str]:
     res = pred.observed - pred.mag
     fig = Figure(figsize=(7, 4))
     ax = fig.add_subplot()
-    ax.scatter(pred.phase_deg[~pred.flagged], res[~pred.flagged], s=4, label="inside the lab's geometry")
-    ax.scatter(pred.phase_deg[pred.flagged], res[pred.flagged], s=4, c="C3", label="outside (flagged)")
+    off = pred.off_shell if pred.off_shell is not None else np.zeros(len(res), bool)
+    inside, outside = ~pred.flagged & ~off, pred.flagged & ~off
+    ax.scatter(pred.phase_deg[inside], res[inside], s=4, label="inside the lab's geometry")
+    ax.scatter(pred.phase_deg[outside], res[outside], s=4, c="C3", label="outside (flagged)")
+    if off.any():
+        ax.scatter(pred.phase_deg[off], res[off], s=6, marker="x", c="0.4", lw=0.6, label="below the operational height")
     if pred.band is not None:
         order = np.argsort(pred.phase_deg)
         ax.fill_between(pred.phase_deg[order], (pred.band[:, 1] - pred.mag)[order], (pred.band[:, 3] - pred.mag)[order],
@@ -456,6 +466,8 @@ def run_observe(cfg: ObserveConfig, out_dir: str | Path, log=lambda s: sys.stder
             "n_rows_predicted": int(len(pred.mag)), "dropped": pred.obs.dropped,
             "metrics": pred.metrics(),
             "fraction_outside_lab": float(np.mean(pred.flagged)),
+            "min_height_km": cfg.attitude.min_height_km,
+            "n_off_shell": None if pred.off_shell is None else int(pred.off_shell.sum()),
             "facets": {f: {"model": cfg.facets[f].model, "alternatives": cfg.facets[f].alternatives,
                            "fraction_beyond_incidence": float(np.mean(pred.flag_incidence[:, j])),
                            "fraction_out_of_plane": float(np.mean(pred.flag_plane[:, j])),
@@ -467,8 +479,14 @@ def run_observe(cfg: ObserveConfig, out_dir: str | Path, log=lambda s: sys.stder
         if figures if figures is not None else cfg.output.figures:
             entry["figures"] = _figures(pred, Path(out))
         summary["sets"][pred.name] = entry
-        m = entry["metrics"]["all"]
-        log(f"{pred.name}: RMS {m['rms']:.3f} mag, bias {m['bias']:+.3f}, R {m['pearson_r']:.3f}"
-            + (f", coverage 68 % {m['coverage_68']:.2f}, 95 % {m['coverage_95']:.2f}" if "coverage_68" in m else ""))
+        for key in ("all", "operational", "off_shell"):
+            m = entry["metrics"].get(key)
+            if m is None or "rms" not in m:
+                continue
+            what = {"all": "", "operational": f" (satellites at or above {cfg.attitude.min_height_km:g} km)",
+                    "off_shell": f" (below {cfg.attitude.min_height_km:g} km: the attitude law does not hold)"}[key]
+            log(f"{pred.name}{what}: {m['n']} rows, RMS {m['rms']:.3f} mag, bias {m['bias']:+.3f}, R "
+                + (f"{m['pearson_r']:.3f}" if m.get("pearson_r") is not None else "-")
+                + (f", coverage 68 % {m['coverage_68']:.2f}, 95 % {m['coverage_95']:.2f}" if "coverage_68" in m else ""))
     write_json_atomic(Path(out) / "observe.json", summary)
     return summary

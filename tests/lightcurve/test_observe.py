@@ -394,3 +394,38 @@ def test_posterior_draws_give_the_band():
                     draws=3000, seed=2)
     np.testing.assert_allclose(p.band[:, 3] - p.band[:, 1], 2 * 0.2 * 2.5 / np.log(10), rtol=0.08)
     np.testing.assert_allclose(p.band[:, 2], p.mag, atol=0.03)
+
+
+def test_rows_below_the_operational_height_are_flagged_and_split():
+    """``min_height_km``: each row's satellite height (WGS84, from the observed altitude, azimuth and range) against
+    a hand computation on a sphere from range and altitude; rows below are flagged off_shell, still predicted, and
+    the metrics are split (operational + off_shell = all; the operational rows split again by the lab flag)."""
+    obs = read_observations(SCORE, "score")
+    rows = obs.take(np.arange(0, len(obs), 40))
+    pred = predict_set("score", rows, _authors_facets(), _authors_models(), normals="lumos", band_map={"CLEAR": "V"},
+                       min_height_km=450.0)
+    kept = pred.obs
+    r_km, alt = np.asarray(kept.range_m) / 1e3, np.radians(kept.alt_deg)
+    R = 6371.0
+    sphere = np.sqrt(R**2 + r_km**2 + 2 * R * r_km * np.sin(alt)) - R
+    assert np.max(np.abs(pred.height_km - sphere)) < 25.0
+    assert np.array_equal(pred.off_shell, pred.height_km < 450.0)
+    assert 0 < pred.off_shell.sum() < len(pred.mag)  # the export holds satellites raising their orbits
+    m = pred.metrics()
+    assert m["operational"]["n"] + m["off_shell"]["n"] == m["all"]["n"] == len(pred.mag)
+    assert m["operational"]["n"] == (m.get("operational_outside_lab", {"n": 0})["n"]
+                                     + m.get("operational_inside_lab", {"n": 0})["n"])
+    res = pred.observed - pred.mag
+    assert m["off_shell"]["bias"] == pytest.approx(float(np.mean(res[pred.off_shell])))
+    none = predict_set("score", rows, _authors_facets(), _authors_models(), normals="lumos", band_map={"CLEAR": "V"})
+    assert none.off_shell is None and "operational" not in none.metrics()
+    np.testing.assert_allclose(none.mag, pred.mag, rtol=0, atol=0)
+
+
+def test_min_height_must_be_positive(tmp_path):
+    from brdfjax.lightcurve.observe_config import load_observe_config
+
+    cfg = _decimated_config(tmp_path)
+    cfg.write_text(cfg.read_text().replace("min_height_km = 500.0", "min_height_km = -5"))
+    with pytest.raises(InputError, match="min_height_km"):
+        load_observe_config(cfg)
