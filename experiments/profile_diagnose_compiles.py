@@ -3,7 +3,8 @@
 Runs the diagnose command in this process with ``BRDFJAX_CACHE_DIR`` set to a fresh temporary folder (cold) and
 records, through ``jax.monitoring``, every backend compilation (new or read back from the persistent cache),
 trace and lowering, with their summed durations, the exported programs by name (``brdfjax.runtime.export_cache``:
-one per program and model shape), the process's CPU seconds and its peak resident memory.  The counts and the
+one per program and model shape) with the summed wall time of each one's first call (trace, export and
+compilation), the process's CPU seconds and its peak resident memory.  The counts and the
 CPU seconds do not depend on the machine's load, unlike the wall time (``experiments/benchmark_diagnose.py``
 measures that, in a child process).
 
@@ -34,6 +35,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     tmp = tempfile.mkdtemp(prefix="diagnose_compiles")
     os.environ["BRDFJAX_CACHE_DIR"] = str(Path(tmp) / "cache")
+    import jax
     import jax.monitoring as mon
 
     dur: dict[str, float] = collections.defaultdict(float)
@@ -56,6 +58,20 @@ def main(argv=None) -> int:
         return k, dyn
 
     ec._key = named_key
+    # each exported program's first call (its trace, export and compilation) timed, by name
+    first_call: dict[str, list[float]] = collections.defaultdict(lambda: [0, 0.0])
+    call = ec.exported_call
+
+    def timed_call(name, raw, plain, args, switches=()):
+        n0 = len(programs)
+        t = time.perf_counter()
+        out = jax.block_until_ready(call(name, raw, plain, args, switches))
+        if len(programs) > n0:  # a key not seen before: this call built the program
+            first_call[name][0] += 1
+            first_call[name][1] += time.perf_counter() - t
+        return out
+
+    ec.exported_call = timed_call
     out = Path(tmp) / "diag"
     load0 = os.getloadavg()
     t0, c0 = time.perf_counter(), time.process_time()
@@ -69,6 +85,7 @@ def main(argv=None) -> int:
         "counts": {k.rsplit("/", 1)[-1]: v for k, v in cnt.items()},
         "events": {k.rsplit("/", 1)[-1]: v for k, v in events.items()},
         "exported_programs": dict(collections.Counter(programs.values())),
+        "first_calls_s": {k: {"programs": v[0], "seconds": round(v[1], 2)} for k, v in first_call.items()},
         "export_stats": ec.stats(),
     }
     if rc == 0:
@@ -81,7 +98,7 @@ def main(argv=None) -> int:
     print(f"CPU {cpu:.1f} s, wall {wall:.1f} s at load {load0[0]:.1f}, peak RSS {rec['peak_rss_mb']:.0f} MB; "
           f"{rec['counts'].get('backend_compile_duration', 0)} backend compilations ({rec['events'].get('cache_misses', 0)} "
           f"new, {rec['events'].get('cache_hits', 0)} read back), {comp:.1f} s compiling; exported programs "
-          f"{rec['exported_programs']}")
+          f"{rec['exported_programs']}; first calls {rec['first_calls_s']}")
     return rc
 
 

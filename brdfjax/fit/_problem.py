@@ -532,8 +532,9 @@ STRUCTURED_JACOBIAN = True
 
 @eqx.filter_jit
 def _residuals_and_jacobian_program(v: Array, problem: Problem) -> tuple[Array, Array]:
-    """One traced program of the residuals and Jacobian, shared by the step scales, the covariance and the
-    solver's linearisations (each caller goes through :func:`_shared`, so they hit one trace)."""
+    """One traced program of the residuals and Jacobian, shared by the solver's linearisations and the
+    covariance where the solver did not return its Jacobian (each caller goes through :func:`_shared`, so they
+    hit one trace); the step scales come from differences of the residuals (``_fit._difference_columns``)."""
     return _residuals_and_jacobian(v, problem)
 
 
