@@ -222,17 +222,22 @@ class FrameProblem:
     def polish(self, trial: Trial) -> Trial:
         """The committed set refitted jointly from fresh starts as well (the lower chi^2 kept), then its data-side
         parameters (the footprint's width) rescanned on that fit and refitted (:func:`refine_data_side`)."""
-        out = self._polish_fresh(trial)
-        if not any(hasattr(self._lib[e], "refine") for e in out.effects):
-            return out
-        st = self._ctx(out.state.state)
+        return self.refine(self._polish_fresh(trial))
+
+    def refine(self, trial: Trial) -> Trial:
+        """``trial`` with its data-side parameters (the footprint's width) rescanned on its own fit and refitted
+        (:func:`refine_data_side`); the trial itself where none of its effects has one, or nothing moved."""
+        if not trial.ok or trial.state is None or not any(hasattr(self._lib[e], "refine") for e in trial.effects):
+            return trial
+        st = self._ctx(trial.state.state)
         new, note = refine_data_side(st, self._base.blocks, self._lib)
+        release_compiled(above_mb=RELEASE_ABOVE_MB)
         if not note:
-            return out
-        t = self._trial(new, out.state.cand, None, out.effects)
-        t.flags = out.flags | {e: effect_flags(new, e, None) for e in out.effects}
-        t.state.polish_note = "; ".join(x for x in (out.state.polish_note, note) if x)
-        t.state.polish_failed = out.state.polish_failed
+            return trial
+        t = self._trial(new, trial.state.cand, None, trial.effects)
+        t.flags = trial.flags | {e: effect_flags(new, e, None) for e in trial.effects}
+        t.state.polish_note = "; ".join(x for x in (trial.state.polish_note, note) if x)
+        t.state.polish_failed = trial.state.polish_failed
         return t
 
     def _polish_fresh(self, trial: Trial) -> Trial:

@@ -271,8 +271,10 @@ PATH_RULES = (
     "Every effect must pass the same test to stay: after every step each effect is taken out in turn (the model "
     "refitted from the larger fit and, where two effects or more are left, also forward from their fitted subset of "
     "lowest BIC, from each of its fits, the best kept); one whose removal costs less BIC than the threshold is taken out.  Where none can "
-    "go alone and three effects or more are in, two are taken out together when that costs less than the threshold "
-    "(two effects that stood in for one another hold each other in).",
+    "go alone, the two cheapest removals are refined as the committed set was (the footprint's width rescanned on "
+    "their own fit) and judged again; where none can go alone and three effects or more are in, two are taken out "
+    "together when that costs less than the threshold (two effects that stood in for one another hold each other "
+    "in).",
     "Generic effects stand in for one another: after the removals each generic effect of the set is replaced in turn "
     "by each other generic candidate (refitted); the replacement of lowest BIC is made when it is admissible and its "
     "BIC is below the set's (shown as a removal and an addition).",

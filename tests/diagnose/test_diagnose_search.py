@@ -297,3 +297,39 @@ def test_a_removal_is_fitted_forward_from_each_fit_of_the_smaller_set():
     assert set(r.final.effects) == {"off", "fp"} and r.final.bic == 2995.0, [(m.action, m.effects) for m in r.moves]
     # {off, fp} was fitted from both fits of {off}: the cached refit (stuck at 3300) and the forward one
     assert sum(1 for c in p.calls if set(c) == {"off", "fp"}) >= 2
+
+
+class RefinedRemoval(Table):
+    """The committed sets are polished; {off, fp} refitted sits at 3500 until its data-side parameters are refined
+    (2995), as on seed 9616's footprint + offset peak trial ({offset peak, footprint} 1.649 refitted, 1.071
+    refined, against the polished four-effect set's 1.104)."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.refined: list[frozenset] = []
+
+    def refine(self, trial):
+        self.refined.append(frozenset(trial.effects))
+        if set(trial.effects) == {"off", "fp"}:
+            return Trial(trial.effects, True, None, 2995.0, 29.95, trial.n_params, None, trial.flags)
+        return trial
+
+
+def test_removals_are_judged_refined_as_the_committed_set_was():
+    sets = {frozenset({"off", "stray"}): 5000.0, frozenset({"off", "stray", "fp"}): 3249.0,
+            frozenset({"off", "stray", "mis"}): 4500.0, frozenset({"off", "fp", "mis"}): 3167.0,
+            frozenset({"off", "stray", "fp", "mis"}): 3000.0, frozenset({"off", "fp"}): 3500.0,
+            frozenset({"stray", "fp", "mis"}): 8000.0}
+    gains = {"off": 3000.0, "stray": 2000.0, "fp": 1000.0, "mis": 900.0}
+    p = RefinedRemoval(gains, base_bic=10000.0, sets=sets)
+    r = search(p, bic_threshold=T, max_steps=3, pair_top=2)
+    assert set(r.final.effects) == {"off", "fp"} and r.final.bic == 2995.0, [(m.action, m.effects) for m in r.moves]
+    notes = [n for m in r.moves for n in m.notes]
+    assert any("without stray and mis, its data-side parameters rescanned" in n and "(was +500)" in n for n in notes)
+    # the two cheapest single removals and the two cheapest pairs, no more, at the step that held four effects
+    at_four = [k for k in p.refined if len(k) == 3] + [k for k in p.refined if len(k) == 2 and "off" in k]
+    assert frozenset({"off", "fp", "mis"}) in p.refined and frozenset({"off", "stray", "fp"}) in p.refined
+    assert len(at_four) <= 2 * 2 + 2
+    # without the refinement the four effects stay (the pair's removal costs 500)
+    q = Table(gains, base_bic=10000.0, sets=sets)
+    assert len(search(q, bic_threshold=T, max_steps=3, pair_top=2).final.effects) == 4
