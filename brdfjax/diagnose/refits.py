@@ -203,6 +203,19 @@ def _refit_failure(new: _State | None, base_gap: dict, err: str | None) -> str |
     return None
 
 
+#: how far above the model it extends (in chi^2) a refit that converged from no start may end and still count as
+#: back at that model: the data take nothing from the effect (its gain is at most this, far below any threshold)
+AT_BASE_CHI2 = 1.0
+
+
+def _back_at_base(states: Sequence[_State], base_gap: dict) -> _State | None:
+    """The lowest of ``states`` whose chi^2 is finite and at most ``AT_BASE_CHI2`` above the model it extends
+    (measured: a floor added to {diffraction, offset peak} ran out of steps from every start 0.6 above it)."""
+    ok = [s for s in states if math.isfinite(float(s.result.chi2))
+          and float(s.result.chi2) - base_gap["chi2"] <= AT_BASE_CHI2]
+    return min(ok, key=lambda s: float(s.result.chi2)) if ok else None
+
+
 def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mapping[str, list[np.ndarray]], base_gap: dict) -> Candidate:
     """The refit with the effect added (warm start); fills the candidate's gap, BIC and per-zone measures.
 
@@ -210,7 +223,9 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     extends is retried with ``RETRY_STEPS`` times the solver's steps, first from
     the same start without the robust first stage, then from a second start
     (:func:`_second_start`: the effect's own parameters moved);
-    one that fails again is ``failed`` with both reasons and never ranked
+    one that fails again is ``failed`` with both reasons and never ranked, unless
+    every start came back to the model it extends (``AT_BASE_CHI2``): then the
+    data take nothing from the effect and it is ranked with that gain
     (measured before the retry: ``pixel_nonlinearity`` 1.33e5 -> 8.4e5,
     ``distribution_shape`` 1.033 -> 248.7 and a Jacobian not finite at the
     start, ``second_lobe`` out of steps).
@@ -274,9 +289,16 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
             new2, err2 = attempt(_second_start(ext.params, list(new_params)), retry_kw)
             why2 = _refit_failure(new2, base_gap, err2)
         c.retried = True
+        back = _back_at_base([x for x in (new, new2) if x is not None], base_gap)
         if why2 is None:
             ext_note = f"retried (without the first stage, then from a second start; the first {why[:200]}); {ext.note}"
             new, why = new2, None
+        elif back is not None:
+            # every start came back to the model it extends (within AT_BASE_CHI2) without converging: the effect
+            # is seen, and the data take nothing from it; ranked with its (non-positive) gain, never a failure
+            ext_note = (f"not converged from any start, but back at the model it extends (chi2 {base_gap['chi2']:.6g} "
+                        f"-> {float(back.result.chi2):.6g}): the data take nothing from it; {ext.note}")
+            new, why = back, None
         else:
             c.status = "failed"
             c.note = f"{why}; retried without the first stage and from a second start: {why2}; {ext.note}"

@@ -283,7 +283,9 @@ PATH_RULES = (
     "each effect that added terms is taken out of the final fit refitted on those weights; one whose removal costs "
     "less than the threshold there is removed (its row is the set refitted with the readings' weights).",
     "A refit that fails (raises, ends non-finite, or above the model it extends) is retried once from a second start; "
-    "a refit that fails twice is reported and counted (diagnosis.json settings.failed_refits), never ranked.",
+    "a refit that fails twice is reported and counted (diagnosis.json settings.failed_refits), never ranked, unless "
+    "every start came back to the model it extends (within 1 in chi^2): the data then take nothing from the effect, "
+    "and it is ranked with that gain.",
 )
 
 

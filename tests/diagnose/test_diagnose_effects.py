@@ -407,3 +407,21 @@ def test_footprint_width_moved_along_the_refitted_chi2(monkeypatch):
             assert calls == [best * 1.4, best / 1.4, best * np.sqrt(1.4), best / np.sqrt(1.4)] and not notes
         else:
             assert "width moved on the refitted chi2" in notes[0]
+
+
+def test_a_refit_back_at_the_model_it_extends_is_not_a_failure():
+    """Refits that converged from no start: the lowest one within AT_BASE_CHI2 of the model they extend counts as
+    back there (the effect seen, its gain nothing); one further above, or non-finite, does not."""
+    from types import SimpleNamespace
+
+    from brdfjax.diagnose import refits
+
+    def st(chi2):
+        return SimpleNamespace(result=SimpleNamespace(chi2=chi2))
+
+    base = {"chi2": 25813.8}
+    near, nearer, far = st(25814.4), st(25814.0), st(36125.5)
+    assert refits._back_at_base([near, far, nearer], base) is nearer
+    assert refits._back_at_base([far, st(float("nan"))], base) is None
+    assert refits._back_at_base([st(base["chi2"] + refits.AT_BASE_CHI2 + 1e-9)], base) is None
+    assert refits._back_at_base([], base) is None
