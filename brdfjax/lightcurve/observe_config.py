@@ -479,12 +479,14 @@ def run_observe(cfg: ObserveConfig, out_dir: str | Path, log=lambda s: sys.stder
         if figures if figures is not None else cfg.output.figures:
             entry["figures"] = _figures(pred, Path(out))
         summary["sets"][pred.name] = entry
-        for key in ("all", "operational", "off_shell"):
+        h = cfg.attitude.min_height_km
+        labels = {"all": ""} if h is None else {
+            "all": "", "operational": f" (satellites at or above {h:g} km)",
+            "off_shell": f" (below {h:g} km: the attitude law does not hold)"}
+        for key, what in labels.items():
             m = entry["metrics"].get(key)
             if m is None or "rms" not in m:
                 continue
-            what = {"all": "", "operational": f" (satellites at or above {cfg.attitude.min_height_km:g} km)",
-                    "off_shell": f" (below {cfg.attitude.min_height_km:g} km: the attitude law does not hold)"}[key]
             log(f"{pred.name}{what}: {m['n']} rows, RMS {m['rms']:.3f} mag, bias {m['bias']:+.3f}, R "
                 + (f"{m['pearson_r']:.3f}" if m.get("pearson_r") is not None else "-")
                 + (f", coverage 68 % {m['coverage_68']:.2f}, 95 % {m['coverage_95']:.2f}" if "coverage_68" in m else ""))

@@ -429,3 +429,22 @@ def test_min_height_must_be_positive(tmp_path):
     cfg.write_text(cfg.read_text().replace("min_height_km = 500.0", "min_height_km = -5"))
     with pytest.raises(InputError, match="min_height_km"):
         load_observe_config(cfg)
+
+
+def test_cli_without_min_height_writes_no_height_split(tmp_path):
+    """``[attitude] min_height_km`` is optional: without it every row counts as operational (``off_shell`` 0 in the
+    CSV), the heights are still written, and the metrics carry no height split."""
+    cfg = _decimated_config(tmp_path, every=100, draws=0)
+    cfg.write_text(cfg.read_text().replace("min_height_km = 500.0", ""))
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "brdfjax", "observe", str(cfg), "--out", str(out), "--no-figures"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    s = json.loads((out / "observe.json").read_text())["sets"]["slingshot"]
+    assert s["min_height_km"] is None and s["n_off_shell"] is None
+    assert "operational" not in s["metrics"] and "off_shell" not in s["metrics"]
+    lines = (out / "predictions_slingshot.csv").read_text().splitlines()
+    head = lines[0].split(",")
+    rows = [dict(zip(head, line.split(","))) for line in lines[1:]]
+    assert rows and all(row["off_shell"] == "0" for row in rows)
+    assert all(525.0 <= float(row["height_km"]) <= 536.0 for row in rows)  # the Slingshot heights: 525-535 km
