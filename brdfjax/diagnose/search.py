@@ -414,20 +414,20 @@ def _refine_removals(costs: list, cur: Trial, refine: Callable[[Trial], Trial], 
     while {offset peak, footprint} fitted forward sat at 1.649 with the footprint's width where its refit left
     it, and at 1.071 once refined.  A set without a refinable effect is returned as it is (no refit)."""
     out = list(costs)
-    order = sorted(range(len(out)), key=lambda i: out[i][0])[:REFINE_REMOVALS]
-    for i in order:
+    for i in sorted(range(len(out)), key=lambda i: out[i][0])[:REFINE_REMOVALS]:
         c, es, w = out[i]
         r = refine(w)
         if r is w or not r.ok or not r.bic < w.bic:
             continue
-        say(f"step {step}: {label(es if isinstance(es, tuple) else (es,))}: refined as the committed set was")
+        what = label(es if isinstance(es, tuple) else (es,))  # a single removal names one effect, a pair two
+        say(f"step {step}: {what}: refined as the committed set was")
         k = _key(r.effects)
         if k in cache and cache[k].ok and cache[k].bic <= r.bic:
             continue
         cache[k] = r
         c2 = r.bic - cur.bic
-        notes.append(f"{label(es if isinstance(es, tuple) else (es,))}, its data-side parameters rescanned as the "
-                     f"committed set's were: BIC {'+' if c2 >= 0 else ''}{c2:.4g} (was {'+' if c >= 0 else ''}{c:.4g})")
+        notes.append(f"{what}, its data-side parameters rescanned as the committed set's were: "
+                     f"BIC {'+' if c2 >= 0 else ''}{c2:.4g} (was {'+' if c >= 0 else ''}{c:.4g})")
         out[i] = (c2, es, r)
     return out
 

@@ -72,7 +72,7 @@ def _difference_columns(problem: Problem, v: np.ndarray, columns: Sequence[int],
     v = np.asarray(v, np.float64)
     u = np.asarray(problem.u0, np.float64) + np.asarray(problem.scale, np.float64) * v
 
-    def r(at: np.ndarray) -> tuple[np.ndarray, float]:
+    def r(at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = jnp.asarray(at)  # as the fit's end evaluates it: one program for both
         raw, robust = evaluate(x, problem)
         out = np.array(robust, np.float64)

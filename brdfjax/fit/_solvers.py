@@ -228,7 +228,7 @@ class LevenbergMarquardt(AbstractSolver):
         n = int(steps)
         # (the solver's linearisation replaces a non-finite derivative by 0, so that a far trial step is rejected,
         # not fatal: the caller differences a zero column itself)
-        if J is not None and (n == 0 or not np.all(np.isfinite(v))):
+        if n == 0 or not np.all(np.isfinite(v)):
             J = None
         if result == optx.RESULTS.successful:
             if not np.all(np.isfinite(v)):

@@ -243,14 +243,20 @@ def test_a_removal_is_also_fitted_forward_from_the_smaller_sets():
     assert ("off", "fp") in p.calls and sum(1 for c in p.calls if set(c) == {"off", "fp"}) == 2
 
 
+#: seed 9616's footprint + offset peak trial as a BIC table: the path commits {off, stray} then {fp, mis};
+#: each of stray and mis costs more than T to take out alone, while {off, fp} (the withheld pair) fits best
+SETS_9616 = {frozenset({"off", "stray"}): 5000.0, frozenset({"off", "stray", "fp"}): 3249.0,
+             frozenset({"off", "stray", "mis"}): 4500.0, frozenset({"off", "fp", "mis"}): 3167.0,
+             frozenset({"off", "stray", "fp", "mis"}): 3000.0, frozenset({"off", "fp"}): 2995.0,
+             frozenset({"stray", "fp", "mis"}): 8000.0}
+GAINS_9616 = {"off": 3000.0, "stray": 2000.0, "fp": 1000.0, "mis": 900.0}
+
+
 def test_two_effects_that_hold_each_other_in_are_taken_out_together():
     # seed 9616's offset peak + footprint trial: stray light and a misalignment entered beside them and each cost
     # more than the threshold to take out alone (167, 249), while the two withheld effects alone fit better
-    sets = {frozenset({"off", "stray"}): 5000.0, frozenset({"off", "stray", "fp"}): 3249.0,
-            frozenset({"off", "stray", "mis"}): 4500.0, frozenset({"off", "fp", "mis"}): 3167.0,
-            frozenset({"off", "stray", "fp", "mis"}): 3000.0, frozenset({"off", "fp"}): 2995.0,
-            frozenset({"stray", "fp", "mis"}): 8000.0}
-    p = Table({"off": 3000.0, "stray": 2000.0, "fp": 1000.0, "mis": 900.0}, base_bic=10000.0, sets=sets)
+    sets = SETS_9616
+    p = Table(GAINS_9616, base_bic=10000.0, sets=sets)
     r = search(p, bic_threshold=T, max_steps=3, pair_top=2)
     actions = [(m.action, m.effects) for m in r.moves]
     assert actions[:4] == [("add", ("off", "stray")), ("add", ("fp", "mis")), ("remove", ("stray",)),
@@ -259,7 +265,7 @@ def test_two_effects_that_hold_each_other_in_are_taken_out_together():
     assert any("without stray: BIC +167 (stays)" in n for n in r.moves[1].notes)
     assert "taken out with mis: without both the BIC changes by -5" in r.moves[2].notes[0]
     # one effect that can go alone goes alone: no pair is tried
-    p = Table({"off": 3000.0, "stray": 2000.0, "fp": 1000.0, "mis": 900.0}, base_bic=10000.0,
+    p = Table(GAINS_9616, base_bic=10000.0,
               sets={**sets, frozenset({"off", "fp", "mis"}): 2995.0})
     r = search(p, bic_threshold=T, max_steps=3, pair_top=2)
     assert [(m.action, m.effects) for m in r.moves][2] == ("remove", ("stray",))
@@ -287,12 +293,8 @@ class StuckFromRefreshed(Table):
 
 
 def test_a_removal_is_fitted_forward_from_each_fit_of_the_smaller_set():
-    sets = {frozenset({"off", "stray"}): 5000.0, frozenset({"off", "stray", "fp"}): 3249.0,
-            frozenset({"off", "stray", "mis"}): 4500.0, frozenset({"off", "fp", "mis"}): 3167.0,
-            frozenset({"off", "stray", "fp", "mis"}): 3000.0, frozenset({"off", "fp"}): 2995.0,
-            frozenset({"stray", "fp", "mis"}): 8000.0}
-    p = StuckFromRefreshed({"off": 3000.0, "stray": 2000.0, "fp": 1000.0, "mis": 900.0}, base_bic=10000.0,
-                           sets=sets)
+    sets = SETS_9616
+    p = StuckFromRefreshed(GAINS_9616, base_bic=10000.0, sets=sets)
     r = search(p, bic_threshold=T, max_steps=3, pair_top=2)
     assert set(r.final.effects) == {"off", "fp"} and r.final.bic == 2995.0, [(m.action, m.effects) for m in r.moves]
     # {off, fp} was fitted from both fits of {off}: the cached refit (stuck at 3300) and the forward one
@@ -316,20 +318,16 @@ class RefinedRemoval(Table):
 
 
 def test_removals_are_judged_refined_as_the_committed_set_was():
-    sets = {frozenset({"off", "stray"}): 5000.0, frozenset({"off", "stray", "fp"}): 3249.0,
-            frozenset({"off", "stray", "mis"}): 4500.0, frozenset({"off", "fp", "mis"}): 3167.0,
-            frozenset({"off", "stray", "fp", "mis"}): 3000.0, frozenset({"off", "fp"}): 3500.0,
-            frozenset({"stray", "fp", "mis"}): 8000.0}
-    gains = {"off": 3000.0, "stray": 2000.0, "fp": 1000.0, "mis": 900.0}
-    p = RefinedRemoval(gains, base_bic=10000.0, sets=sets)
+    sets = {**SETS_9616, frozenset({"off", "fp"}): 3500.0}  # {off, fp} 2995 only refined
+    p = RefinedRemoval(GAINS_9616, base_bic=10000.0, sets=sets)
     r = search(p, bic_threshold=T, max_steps=3, pair_top=2)
     assert set(r.final.effects) == {"off", "fp"} and r.final.bic == 2995.0, [(m.action, m.effects) for m in r.moves]
     notes = [n for m in r.moves for n in m.notes]
     assert any("without stray and mis, its data-side parameters rescanned" in n and "(was +500)" in n for n in notes)
-    # the two cheapest single removals and the two cheapest pairs, no more, at the step that held four effects
-    at_four = [k for k in p.refined if len(k) == 3] + [k for k in p.refined if len(k) == 2 and "off" in k]
-    assert frozenset({"off", "fp", "mis"}) in p.refined and frozenset({"off", "stray", "fp"}) in p.refined
-    assert len(at_four) <= 2 * 2 + 2
+    # at the step that held four effects: the two cheapest single removals (167, 249), then the two cheapest pairs
+    # (without stray and mis: 500; without fp and mis: 2000), no more
+    f = frozenset
+    assert p.refined[2:6] == [f({"off", "fp", "mis"}), f({"off", "stray", "fp"}), f({"off", "fp"}), f({"off", "stray"})]
     # without the refinement the four effects stay (the pair's removal costs 500)
-    q = Table(gains, base_bic=10000.0, sets=sets)
+    q = Table(GAINS_9616, base_bic=10000.0, sets=sets)
     assert len(search(q, bic_threshold=T, max_steps=3, pair_top=2).final.effects) == 4
