@@ -70,16 +70,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed", type=int, required=True, help="the benchmark seed (withheld_effects.py --seed)")
     ap.add_argument("--trial", required=True, help="the trial id, e.g. two:stray_light+diffraction:1")
-    ap.add_argument("--effects", required=True, help="the withheld effects, in the order to add them")
+    ap.add_argument("--effects", required=True, help="the withheld effects, in the order to add them (the trial "
+                    "injects them in the order of its id)")
     ap.add_argument("--step", type=int, default=16)
     ap.add_argument("--frames", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args(argv)
     effects = a.effects.split(",")
+    injected = a.trial.split(":")[1].split("+")  # as withheld_effects.run_trial: the id's order
+    if sorted(injected) != sorted(effects):
+        raise SystemExit(f"--effects {a.effects!r} are not the effects of the trial {a.trial!r} ({injected})")
     seed = zlib.crc32(f"{a.seed}:{a.trial}".encode())
     rng = np.random.default_rng(seed)
     sc = fx.base_scenario(rng, n_frames=a.frames + 1, step=a.step)
-    for e in effects:
+    for e in injected:
         sc = fx.inject(e, rng, sc)
     fitted = fx.synthesize(sc, seed, None, path="render")[:-1]
     params = W._perturbed_starts(sc, rng)
