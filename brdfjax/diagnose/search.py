@@ -485,14 +485,7 @@ def _exchange(problem: SearchProblem, cur: Trial, cands: list[str], visited: set
               step: int, applicable: Callable[..., Any] | None, cache: dict[frozenset, Trial],
               fit: Callable[..., Trial], say: Callable[[str], Any]) -> Trial:
     """Rule 6: the best replacement of one generic effect of ``cur`` by another generic candidate, if any lowers
-    the BIC (admissible, to a set not visited); recorded as the removal and the addition.  Returns the new set.
-
-    Where the newcomer is flagged in the exchanged set and effects of the set are flagged beside it (their own
-    parameters on a bound or undetermined there), the exchange is also fitted without them: the newcomer's
-    flag can be theirs.  (Measured on the reference generator, diffraction and a floor withheld: with the
-    second lobe exchanged for the floor, stray light's ghost ran to its bound 1 and turned off the frames, a
-    copy of the floor, so the floor's weight was undetermined beside it; {diffraction, floor} reaches the same
-    chi^2 with four parameters fewer.)"""
+    the BIC (admissible, to a set not visited); recorded as the removal and the addition.  Returns the new set."""
     best: tuple[Trial, str, str, tuple[str, ...]] | None = None
     for g in [e for e in cur.effects if problem.generic(e)]:
         rest = tuple(x for x in cur.effects if x != g)
@@ -505,35 +498,19 @@ def _exchange(problem: SearchProblem, cur: Trial, cands: list[str], visited: set
                 continue
             say(f"step {step}: exchanging {g} for {c}")
             t = fit(rest + (c,), cur)
-            options = [(t, rest)]
-            if t.ok and t.own_flags([c]):
-                others = tuple(e for e in rest if t.own_flags([e]))
-                rest2 = tuple(x for x in rest if x not in others)
-                if others and _key(rest2 + (c,)) not in visited:
-                    say(f"step {step}: exchanging {g} for {c} without {', '.join(others)} (flagged beside it)")
-                    options.append((fit(rest2 + (c,), t), rest2))
-            for tt, rr in options:
-                if tt.ok and not tt.own_flags([c]) and tt.bic < cur.bic and (best is None or tt.bic < best[0].bic):
-                    best = (tt, g, c, rr)
+            if t.ok and not t.own_flags([c]) and t.bic < cur.bic and (best is None or t.bic < best[0].bic):
+                best = (t, g, c, rest)
     if best is None:
         return cur
     t, g, c, rest = best
-    gone = [g] + [x for x in cur.effects if x != g and x not in rest]
-    seq, prev, left = [], cur, list(cur.effects)
-    for e in gone:
-        left.remove(e)
-        w = cache.get(_key(tuple(left))) or fit(tuple(left), prev, refresh=True)
-        if not w.ok:
-            return cur  # the set without the effects taken out has no fit to record the exchange through
-        seq.append((e, w, prev))
-        prev = w
-    with_ = f" and {', '.join(gone[1:])} taken out (flagged beside {c} in the exchanged set)" if gone[1:] else ""
-    note = (f"exchanged for {c} (generic effects stand in for one another): the set with {c} in place of {g}{with_} "
-            f"has BIC {t.bic - cur.bic:+.4g} against the set with {g}")
-    say(f"step {step}: exchanged {g} for {c}{with_} (BIC {t.bic - cur.bic:+.1f})")
-    for e, w, p in seq:
-        moves.append(SearchMove("remove", (e,), w, p.bic - w.bic, step, [note]))
-        visited.add(_key(w.effects))
-    moves.append(SearchMove("add", (c,), t, prev.bic - t.bic, step, [note]))
+    w = cache.get(_key(rest)) or fit(rest, cur, refresh=True)
+    if not w.ok:
+        return cur  # the set without g has no fit to record the exchange through
+    note = (f"exchanged for {c} (generic effects stand in for one another): the set with {c} in place of {g} has "
+            f"BIC {t.bic - cur.bic:+.4g} against the set with {g}")
+    say(f"step {step}: exchanged {g} for {c} (BIC {t.bic - cur.bic:+.1f})")
+    moves.append(SearchMove("remove", (g,), w, cur.bic - w.bic, step, [note]))
+    moves.append(SearchMove("add", (c,), t, w.bic - t.bic, step, [note]))
+    visited.add(_key(rest))
     visited.add(_key(t.effects))
     return t
