@@ -203,7 +203,11 @@ def _oracle(t: dict[str, Any], base: Any, fitted: list, params: Any, held: list,
             "oracle_stop": j["stop_reason"], "oracle_wall_s": time.perf_counter() - t0}
 
 
-def run_trial(t: dict[str, Any], args: argparse.Namespace, oracle: bool = False) -> dict[str, Any]:
+def trial_case(t: dict[str, Any], args: argparse.Namespace) -> tuple[Any, int, list, list, dict[str, Any], Any]:
+    """The library trial ``t`` (``id``, ``effects`` in injection order) of the benchmark seed ``args.seed``:
+    ``(scenario, trial seed, fitted blocks, held-out blocks, perturbed starts, rows)``; ``rows`` is the mask of
+    the fitted table rows, None for frames.  Every consumer of a trial builds it here, so that the scenario,
+    its noise and its starts are the ones the benchmark fitted."""
     seed = zlib.crc32(f"{args.seed}:{t['id']}".encode())
     rng = np.random.default_rng(seed)
     wide = [e for e in t["effects"] if e in WIDE_TABLE]
@@ -217,13 +221,20 @@ def run_trial(t: dict[str, Any], args: argparse.Namespace, oracle: bool = False)
     for e in t["effects"]:
         sc = fx.inject(e, rng, sc)
     blocks = fx.synthesize(sc, seed, None, path="render" if tables else args.path)
+    rows = None
     if tables:
         ti = np.asarray(blocks[0].theta_i)
         last = ti >= ti.max() - 1e-9
-        fitted, held = [blocks[0].select(~last, name="scans")], [blocks[0].select(last, name="heldout")]
+        rows = ~last
+        fitted, held = [blocks[0].select(rows, name="scans")], [blocks[0].select(last, name="heldout")]
     else:
         fitted, held = blocks[:-1], blocks[-1:]
-    params = _perturbed_starts(sc, rng)
+    return sc, seed, fitted, held, _perturbed_starts(sc, rng), rows
+
+
+def run_trial(t: dict[str, Any], args: argparse.Namespace, oracle: bool = False) -> dict[str, Any]:
+    sc, seed, fitted, held, params, rows = trial_case(t, args)
+    tables = rows is not None
     t0 = time.perf_counter()
     say = (lambda m: print(f"    {time.perf_counter() - t0:7.1f} s  {m}", flush=True)) if args.verbose else None
     # a path long enough to hold every withheld effect and one spurious step (two-effect trials: 3)
@@ -234,12 +245,12 @@ def run_trial(t: dict[str, Any], args: argparse.Namespace, oracle: bool = False)
                  progress=say, **_fresh(args))
     wall = time.perf_counter() - t0
     try:
-        true = _true_gap(sc, seed, fitted, ~last if tables else None) if tables or args.path == "render" else {"chi2_reduced": math.nan, "rms_log10": math.nan}
+        true = _true_gap(sc, seed, fitted, rows) if tables or args.path == "render" else {"chi2_reduced": math.nan, "rms_log10": math.nan}
     except Exception as e:  # noqa: BLE001 - reported
         true = {"chi2_reduced": math.nan, "rms_log10": math.nan, "error": f"{type(e).__name__}: {e}"}
     info = {"truth": {k: (v if isinstance(v, int | float | str) or v is None else str(v)) for k, v in sc.truth.items()},
             "notes": list(sc.notes),
-            "frames": [] if tables else [[float(np.degrees(b.theta_i)), float(np.degrees(b.phi_ref))] for b in blocks]}
+            "frames": [] if tables else [[float(np.degrees(b.theta_i)), float(np.degrees(b.phi_ref))] for b in [*fitted, *held]]}
     if math.isfinite(true.get("chi2_reduced", math.nan)):
         d.set_truth_gap(true, source="the generator's noiseless frames on the fitted pixels")
     return _clean(_trial_record(t, seed, d, true, wall, info))

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-import zlib
 from pathlib import Path
 
 import jax
@@ -80,13 +79,11 @@ def main(argv: list[str] | None = None) -> int:
     injected = a.trial.split(":")[1].split("+")  # as withheld_effects.run_trial: the id's order
     if sorted(injected) != sorted(effects):
         raise SystemExit(f"--effects {a.effects!r} are not the effects of the trial {a.trial!r} ({injected})")
-    seed = zlib.crc32(f"{a.seed}:{a.trial}".encode())
-    rng = np.random.default_rng(seed)
-    sc = fx.base_scenario(rng, n_frames=a.frames + 1, step=a.step)
-    for e in injected:
-        sc = fx.inject(e, rng, sc)
-    fitted = fx.synthesize(sc, seed, None, path="render")[:-1]
-    params = W._perturbed_starts(sc, rng)
+    sc, seed, fitted, _, params, rows = W.trial_case({"id": a.trial, "effects": injected},
+                                                     argparse.Namespace(seed=a.seed, frames=a.frames, step=a.step,
+                                                                        path="render"))
+    if rows is not None:
+        raise SystemExit(f"{a.trial!r} is a goniometer-table trial; this check takes frame trials")
     true = W._true_gap(sc, seed, fitted)
     lib = fx.EFFECT_LIBRARY
     st = _with_context(_fit_state(sc.base_model, fitted, dict(params), {}, ()))

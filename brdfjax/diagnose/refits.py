@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -256,9 +256,10 @@ def _revived_starts(new: _State, state: _State, killed: list[tuple[str, str]], f
     return spec
 
 
-def _revive(new: _State, state: _State, attempt: Any, base_gap: dict) -> tuple[_State, str]:
+def _revive(new: _State, state: _State, attempt: Callable[[Mapping[str, Any]], tuple[_State | None, str | None]],
+            base_gap: dict) -> tuple[_State, str]:
     """``new`` refitted with the terms of ``state`` it killed revived (:func:`_killed_terms`), the lowest chi^2
-    kept: ``(state, note)``.
+    kept: ``(state, note)``; ``attempt(params)`` is the candidate's refit from other starts.
 
     Measured (library generator, seed 9619, a footprint and an offset peak withheld, the offset lobe 22x the
     centre's and 1.3 lobe widths from it): the offset peak's refit drove the centre lobe's weight from 0.061 to
@@ -270,7 +271,7 @@ def _revive(new: _State, state: _State, attempt: Any, base_gap: dict) -> tuple[_
         return new, ""
     best, how = new, ""
     for frac in REVIVE_WEIGHTS:
-        alt, err = attempt(_revived_starts(new, state, killed, frac), None)
+        alt, err = attempt(_revived_starts(new, state, killed, frac))
         if alt is None or _refit_failure(alt, base_gap, err) is not None:
             continue
         if float(alt.result.chi2) < float(best.result.chi2) - 1e-6 * max(abs(float(best.result.chi2)), 1.0):
@@ -372,7 +373,7 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
             return c
     else:
         ext_note = rejected + ext.note
-    revived, vnote = _revive(new, state, lambda p, _k: attempt(p, kw), base_gap)
+    revived, vnote = _revive(new, state, lambda p: attempt(p, kw), base_gap)
     if revived is not new:  # the effect's own starts stay those of its extension (the fresh refits start there)
         revived.starts = {**state.starts, name: {k: ext.params[k] for k in new_params}}
         new = revived

@@ -259,7 +259,8 @@ def noise_line(gap: dict[str, Any]) -> str:
 #: The rules by which the path admits and keeps an effect, stated in every report (and in docs/guides/diagnosis.md).
 PATH_RULES = (
     "At every step every applicable candidate is refitted added to the current set; the residual signature only "
-    "orders the refits and is reported, it excludes nothing.",
+    "orders the refits and is reported, it excludes nothing.  A refit that drives a term of the model it extends "
+    "below 1 % of its weight there is repeated with that term revived, and the lower chi^2 is kept.",
     "An effect is admissible when its own terms are sound: its own new parameters have a finite sigma and none ends "
     "on a bound, no weight or width of a term it added ends dead (below 1e-3 of its start), a lobe it added is not "
     "narrower than half the angular sampling, and it does not drive a term of the model to zero.  An inadmissible "

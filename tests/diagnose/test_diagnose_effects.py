@@ -46,6 +46,19 @@ def _base(sc, seed):
     return blocks, res, build_context(sc.base_model, sc.params, res, blocks)
 
 
+def _evaluation_frames(trial: str, effects: tuple[str, ...]):
+    """An evaluation trial of ``experiments/withheld_effects.py`` (library generator, every 16th pixel, three
+    frames, the last held out): ``(scenario, fitted frames)`` for ``trial`` = ``"<seed>:<trial id>"``."""
+    import zlib
+
+    seed = zlib.crc32(trial.encode())
+    rng = np.random.default_rng(seed)
+    sc = E.base_scenario(rng, n_frames=3, step=16)
+    for e in effects:
+        sc = E.inject(e, rng, sc)
+    return sc, E.synthesize(sc, seed, None, path="render")[:-1]
+
+
 @pytest.fixture(scope="module")
 def null_ctx():
     rng = np.random.default_rng(5)
@@ -311,12 +324,7 @@ def test_offset_peak_index_fitted_across_incidences():
     54.7 deg): with n held at 1.5 the refit stopped at reduced chi^2 2.13 against the truth's 0.976, and a
     spurious ``pixel_nonlinearity`` entered after it.
     """
-    import zlib
-
-    seed = zlib.crc32(b"9605:single:offset_normal_peak:0")
-    rng = np.random.default_rng(seed)
-    sc = E.inject("offset_normal_peak", rng, E.base_scenario(rng, n_frames=3, step=16))
-    blocks = E.synthesize(sc, seed, None, path="render")[:-1]
+    sc, blocks = _evaluation_frames("9605:single:offset_normal_peak:0", ("offset_normal_peak",))
     res = fit(sc.base_model, blocks, sc.params)
     ctx = build_context(sc.base_model, sc.params, res, blocks)
     eff = E.EFFECT_LIBRARY["offset_normal_peak"]
@@ -337,16 +345,9 @@ def test_footprint_width_rescanned_on_the_fit_that_holds_it():
     in and refitted there; the bars' spacing is chosen through the footprint.  The evaluation trial
     ``two:instrument_function+diffraction:1`` of seed 9601 (truth 20.35 seed pixels = 1.27 grid pixels at
     step 16), which ended at six effects and reduced chi^2 10.8 against the truth's 1.15."""
-    import zlib
-
     from brdfjax.diagnose.refits import _fit_state, _with_context, refine_data_side
 
-    seed = zlib.crc32(b"9601:two:instrument_function+diffraction:1")
-    rng = np.random.default_rng(seed)
-    sc = E.base_scenario(rng, n_frames=3, step=16)
-    for e in ("instrument_function", "diffraction"):
-        sc = E.inject(e, rng, sc)
-    blocks = E.synthesize(sc, seed, None, path="render")[:-1]
+    sc, blocks = _evaluation_frames("9601:two:instrument_function+diffraction:1", ("instrument_function", "diffraction"))
     base = _with_context(_fit_state(sc.base_model, blocks, sc.params, {}, ()))
     e1 = E.EFFECT_LIBRARY["instrument_function"].extend(base.ctx)
     s1 = _with_context(_fit_state(e1.model, list(e1.blocks), e1.params, dict(e1.fit_kwargs), ("instrument_function",)))
@@ -438,19 +439,13 @@ def test_a_term_the_refit_kills_is_revived():
     fit (0.53 grid pixels against the truth's 1.34) and the path ended with a stray light the truth has not.
     The refit is repeated with the centre revived and the lower chi^2 kept: the centre lives; with the footprint
     at the truth's width that fit reaches the truth's reduced chi^2."""
-    import zlib
-
     from brdfjax.diagnose import refits
     from brdfjax.diagnose.context import gap_measures
     from brdfjax.diagnose.refits import _fit_state, _with_context
     from brdfjax.diagnose.results import Candidate
 
-    seed = zlib.crc32(b"9619:two:instrument_function+offset_normal_peak:1")
-    rng = np.random.default_rng(seed)
-    sc = E.base_scenario(rng, n_frames=3, step=16)
-    for e in ("instrument_function", "offset_normal_peak"):
-        sc = E.inject(e, rng, sc)
-    blocks = E.synthesize(sc, seed, None, path="render")[:-1]
+    sc, blocks = _evaluation_frames("9619:two:instrument_function+offset_normal_peak:1",
+                                    ("instrument_function", "offset_normal_peak"))
     base = _with_context(_fit_state(sc.base_model, blocks, sc.params, {}, ()))
     eff = E.EFFECT_LIBRARY["offset_normal_peak"]
     c = Candidate("offset_normal_peak", eff.title, "ranked")
