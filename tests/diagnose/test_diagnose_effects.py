@@ -209,6 +209,32 @@ def test_synthetic_instrument_source_and_nominal_detector():
         SyntheticInstrument(true, nominal_detector=bj.Detector.seed(shape=(8, 8)))
 
 
+def test_stray_light_copies_light_from_outside_the_roi():
+    """The render path's ghost is the whole array's image shifted: at the ROI's edge it holds the copy of light
+    that falls outside the ROI (rendered here directly at the shifted pixel indices, not through the generator)."""
+    from brdfjax.core.detector import PixelGrid
+    from brdfjax.core.render import Conditions, render
+    from brdfjax.instrument.synthetic import StrayLight
+
+    rng = np.random.default_rng(7)
+    sc = E.base_scenario(rng, n_frames=1, step=8, noise_rel=0.0, floor=0.0)
+    dh, dv, lr = 56, -40, -2.0
+    ghost = sc.replace(instrument=sc.instrument.model_copy(update={"stray_light": StrayLight(enabled=True,
+                                                                                           peaks=((dh, dv, lr),))}))
+    (plain,), (withg,) = E.synthesize(sc, seed=0), E.synthesize(ghost, seed=0)
+    g = plain.grid
+    ti, phi, wl = sc.frames[0]
+    shifted = PixelGrid(np.asarray(g.n_h) - dh, np.asarray(g.n_v) - dv)  # pixel (h, v) receives (h - dh, v - dv)
+    src = np.asarray(render(sc.truth_model, Conditions(np.float64(ti), np.float64(phi), np.float64(wl)), sc.detector,
+                            grid=shifted, precision="float64"))
+    expect = plain.brdf + 10.0**lr * src
+    np.testing.assert_allclose(withg.brdf, expect, rtol=2e-6, atol=1e-30)
+    # the sources of the last columns lie outside the ROI: their copy is there, where the ROI alone had none
+    edge = np.asarray(g.n_h) - dh < sc.roi[0]
+    gain = (withg.brdf - plain.brdf)[:, edge] / plain.brdf[:, edge]
+    assert edge.any() and gain.max() > 0.05, gain.max()
+
+
 @pytest.mark.slow  # the full synthetic CCD and reduction, ~20 s
 def test_synthesize_through_the_instrument(tmp_path):
     import brdfjax as bj

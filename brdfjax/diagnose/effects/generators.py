@@ -14,7 +14,9 @@ specification for the base, and the truth.
   instrument's switches applied to the BRDF on that grid: ``footprint``
   (convolution with the pixel-integrated Gaussian of 1/e^2 radius
   ``w_px / step`` grid pixels), ``stray_light`` (each peak a copy shifted by
-  ``(dh, dv) / step`` grid pixels at ``10^log_ratio``), the flux error
+  ``(dh, dv) / step`` grid pixels at ``10^log_ratio``, on the ROI widened by
+  those offsets so that light falling on the array outside the ROI casts its
+  copy inside it, as on the instrument path), the flux error
   (``truth["flux_scale"]``, the ``nd_error`` switch's effect) and the
   response (``truth["gamma"]``: ``f_ref (f / f_ref)^gamma`` with ``f_ref`` =
   1 sr^-1); finally log-normal noise ``exp(N(0, noise_rel))`` (the noise
@@ -422,6 +424,30 @@ def _apply_instrument(img: np.ndarray, sc: Scenario) -> np.ndarray:
     return img
 
 
+def _ghost_margin(sc: Scenario) -> tuple[tuple[int, int, int, int] | None, tuple[slice, slice] | None]:
+    """The ROI widened by the stray-light copies' largest offsets (whole grid steps, clipped to the array) and the
+    (rows, columns) slices of the ROI within it; ``(None, None)`` without stray light or ROI.
+
+    The copies are shifts of the image on the whole array, so a copy of light falling outside the ROI lands inside
+    it (the instrument path simulates the whole array and reads the ROI back); rendering the ROI alone would drop
+    that light where the ROI's edge is within the copy's offset of it."""
+    ins = sc.instrument
+    if sc.roi is None or not ins.stray_light.enabled or not ins.stray_light.peaks:
+        return None, None
+    k = sc.step
+    ph = max(abs(int(round(dh / k))) for dh, _, _ in ins.stray_light.peaks) * k
+    pv = max(abs(int(round(dv / k))) for _, dv, _ in ins.stray_light.peaks) * k
+    h0, h1, v0, v1 = (int(x) for x in sc.roi)
+    a0, a1, b0, b1 = sc.nominal_detector.index_range
+    n_h, n_v = len(range(h0, h1 + 1, k)), len(range(v0, v1 + 1, k))
+    hl, vl = h0 + (n_h - 1) * k, v0 + (n_v - 1) * k  # the ROI's last grid pixels
+    # whole steps only (the widened grid holds the ROI's pixels), within the array
+    H0, H1 = h0 - min(ph, (h0 - a0) // k * k), hl + min(ph, (a1 - hl) // k * k)
+    V0, V1 = v0 - min(pv, (v0 - b0) // k * k), vl + min(pv, (b1 - vl) // k * k)
+    r0, c0 = (v0 - V0) // k, (h0 - H0) // k
+    return (H0, H1, V0, V1), (slice(r0, r0 + n_v), slice(c0, c0 + n_h))
+
+
 def _synth_tables(sc: Scenario, rng: np.random.Generator) -> list[TableData]:
     half, dstep = sc.truth.get("half_range_deg", 4.0), sc.truth.get("step_deg", 0.25)
     ti_all, ts_all, ps_all = [], [], []
@@ -464,11 +490,17 @@ def synthesize(scenario: Scenario, seed: int = 0, out_dir: str | Path | None = N
     if path != "render":
         raise ValueError(f"synthesize: unknown path {path!r}; known: render, instrument")
     grid = sc.nominal_detector.grid(sc.step, sc.roi)
+    # the ghost of light that falls on the array outside the ROI lands inside it: render the ROI widened by the
+    # ghost's offsets (within the array), apply the instrument there, keep the ROI (as the instrument path does)
+    wide_roi, crop = _ghost_margin(sc)
+    wide = grid if crop is None else sc.nominal_detector.grid(sc.step, wide_roi)
     out = []
     for i, (ti, phi, wl) in enumerate(sc.frames):
         frame = Conditions(np.float64(ti), np.float64(phi), np.float64(wl))
-        img = np.asarray(render(sc.truth_model, frame, sc.detector, grid=grid, precision="float64"), np.float64)
+        img = np.asarray(render(sc.truth_model, frame, sc.detector, grid=wide, precision="float64"), np.float64)
         img = _apply_instrument(img, sc)
+        if crop is not None:
+            img = img[crop]
         noisy = img * np.exp(sc.noise_rel * rng.standard_normal(img.shape))
         out.append(FrameData(
             brdf=noisy, sigma_rel=np.full(img.shape, sc.noise_rel), mask=img > sc.floor, theta_i=float(ti), phi_ref=float(phi),
