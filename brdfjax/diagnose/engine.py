@@ -28,7 +28,8 @@
    when it gains more than ``bic_threshold`` (a pair only when it beats its better member by that much); after
    every step each effect of the set is taken out in turn (the model refitted) and one whose removal costs
    less than ``bic_threshold`` is taken out.  The search stops when nothing passes the threshold, the reduced
-   chi^2 is within the noise (``1 + 3 sqrt(2/dof)``, data with sigma), or after ``max_steps``
+   chi^2 is within one standard deviation of the noise's (``1 + sqrt(2/dof)``, data with sigma), or after
+   ``max_steps``
    (``Diagnosis.stop_reason`` says which).  A step after which the held-out gap grows is flagged.  Every
    step records the global gap (``chi2_reduced``, ``rms_log10``), the per-zone reduced chi^2 on the base's
    zones, and, when ``heldout_blocks`` are given, the prediction gap on them (the fitted model evaluated,
@@ -65,6 +66,7 @@ from .model_config import (  # noqa: F401 - the model-to-TOML writer, importable
 from .refits import (  # noqa: F401 - truth_gap and the refit budget, importable from here as before
     FAR_FACTOR,
     RETRY_STEPS,
+    STOP_SIGMAS,
     _by_gain,
     _check_effect,
     _fit_state,
@@ -213,8 +215,9 @@ class FrameProblem:
         c = self.check(current, effect)
         return None if c.status == "ranked" else f"{c.status}: {c.note}"
 
-    def within_noise(self, trial: Trial) -> bool:
-        return self._noise is not None and trial.ok and trial.chi2_reduced <= self._noise
+    def within_noise(self, trial: Trial) -> bool | None:
+        """Whether ``trial``'s reduced chi^2 is within the search's stop level; None: the data carry no sigma."""
+        return None if self._noise is None else bool(trial.ok and trial.chi2_reduced <= self._noise)
 
     def order(self, current: Trial, effects: list[str]) -> list[str]:
         return sorted(effects, key=lambda e: -_score(self.check(current.effects, e)))
@@ -498,7 +501,8 @@ def diagnose(
     better refit kept); ``threshold``/``smooth``: the region detection (smoothed ``|z|`` and box size);
     ``presence``: also keep off a candidate whose signature score is below its effect's presence threshold
     (default False: the signature orders the refits and is reported, it never excludes); ``noise_stop``: stop
-    once the reduced chi^2 is within the noise (``1 + 3 sqrt(2/dof)``; data with sigma only); ``library``: the
+    once the reduced chi^2 is within one standard deviation of the noise's (``1 + sqrt(2/dof)``,
+    :data:`~brdfjax.diagnose.refits.STOP_SIGMAS`; data with sigma only); ``library``: the
     effect library; ``progress``: a callable taking a message string.  ``path_pool`` and ``refit_top`` belonged
     to the earlier greedy path and are refused (every candidate is refitted at every step now).
     """
@@ -548,7 +552,8 @@ def diagnose(
     if has_tables:
         notes.append("goniometer tables: zones are angle intervals relative to the specular direction; effects that need a 2-D frame are skipped")
 
-    noise = _noise_level(base_gap, blocks) if noise_stop else None
+    noise = _noise_level(base_gap, blocks, STOP_SIGMAS) if noise_stop else None
+    consistent = _noise_level(base_gap, blocks)  # what pure noise stays below (3 sigma): the final fit's verdict
     problem = FrameProblem(base, names, library, params, zones, has_tables, fresh=fresh_top > 0, presence=presence,
                            noise=noise, bic_threshold=bic_threshold, say=say)
     base_trial = problem.base()
@@ -642,7 +647,7 @@ def diagnose(
     if max_steps == 0:
         stop_reason = "max_steps = 0: the candidates are ranked, none added"
     elif "within the noise" in stop_reason:
-        stop_reason += f" (<= {noise:.4g}, 1 + 3 sqrt(2/dof))"
+        stop_reason += f" (<= {noise:.4g}, 1 + {STOP_SIGMAS:g} sqrt(2/dof))"
     t_end = time.perf_counter()
     return Diagnosis(
         gap=gap,
@@ -681,7 +686,7 @@ def diagnose(
                 "retried": n_retried,
                 "fresh_start_on_path": fresh_failed,
             },
-            "within_noise": bool(noise is not None and gap_measures(final.result)["chi2_reduced"] <= noise),
+            "within_noise": bool(consistent is not None and gap_measures(final.result)["chi2_reduced"] <= consistent),
         },
         context=ctx,
         final_context=final.ctx,

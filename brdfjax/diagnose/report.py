@@ -283,10 +283,12 @@ PATH_RULES = (
     "reading rises, so the readings' own weights favour the upward fluctuations of faint pixels, as a floor would): "
     "each effect that added terms is taken out of the final fit refitted on those weights; one whose removal costs "
     "less than the threshold there is removed (its row is the set refitted with the readings' weights).",
-    "A refit that fails (raises, ends non-finite, or above the model it extends) is retried once from a second start; "
-    "a refit that fails twice is reported and counted (diagnosis.json settings.failed_refits), never ranked, unless "
-    "every start came back to the model it extends (within 1 in chi^2): the data then take nothing from the effect, "
-    "and it is ranked with that gain.",
+    "A refit that fails (raises, ends non-finite, or above the model it extends) is retried from a second start and "
+    "then with the effect's strength near its null; a refit that fails from every start is reported and counted "
+    "(diagnosis.json settings.failed_refits), never ranked, unless a start came back to the model it extends (within "
+    "1 in chi^2): the data then take nothing from the effect, and it is ranked with that gain.",
+    "The search stops when no admissible move gains more than the threshold, when the reduced chi^2 is within one "
+    "standard deviation of pure noise's (1 + sqrt(2/dof), data with uncertainties), or at max_steps.",
 )
 
 

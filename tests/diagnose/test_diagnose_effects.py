@@ -487,3 +487,25 @@ def test_a_term_the_refit_kills_is_revived():
     blk = E.EFFECT_LIBRARY["instrument_function"].with_width(blocks, sc.truth["footprint_w_px"] / 16)
     r = fit(s2.model, blk, s2.params, **{**s2.fit_kwargs, "use_footprint": True})
     assert r.chi2_reduced < 1.2
+
+
+def test_a_failed_refit_gets_a_third_start_near_the_effects_null():
+    """The third start of a refit that failed from two: the added terms' weights (and a ghost's level) at 1e-3 of
+    their starts, every other start unchanged; none where the effect has no strength of its own."""
+    from brdfjax.core.distributions import Beckmann
+    from brdfjax.core.terms import SEED_FORM, Model, Specular
+    from brdfjax.diagnose.refits import NEAR_NULL_FRACTION, _near_null_start
+
+    lobe = Specular(Beckmann(2e-4), rho_s=0.02, n=3.6, **SEED_FORM)
+    model = Model(terms={"center": lobe, "lobe2": lobe})
+    params = {"center.m": Param(value=2e-4), "lobe2.rho_s": Param(value=0.004, lower=0.0),
+              "lobe2.m": Param(value=1e-3), "instrument.ghost": Param(value=1e-3, lower=0.0),
+              "instrument.ghost_x": Param(value=0.01)}
+    out = _near_null_start(params, ["lobe2.rho_s", "lobe2.m", "instrument.ghost", "instrument.ghost_x"], model,
+                           ("lobe2",))
+    assert out["lobe2.rho_s"].value == pytest.approx(0.004 * NEAR_NULL_FRACTION)
+    assert out["instrument.ghost"].value == pytest.approx(1e-3 * NEAR_NULL_FRACTION)
+    assert out["lobe2.m"].value == 1e-3 and out["instrument.ghost_x"].value == 0.01 and out["center.m"].value == 2e-4
+    assert out["lobe2.rho_s"].lower == 0.0 and params["lobe2.rho_s"].value == 0.004  # the input is not modified
+    # a swap of the centre's distribution has no strength of its own: no third start
+    assert _near_null_start({"center.gamma": Param(value=2.0)}, ["center.gamma"], model, ()) is None

@@ -59,7 +59,7 @@ class Table:
         return Trial(tuple(effects), True, None, b, b / 100, 2 + len(effects), None, flags)
 
     def within_noise(self, trial):
-        return self.noise is not None and trial.chi2_reduced <= self.noise
+        return None if self.noise is None else trial.chi2_reduced <= self.noise
 
 
 def test_the_table_problem_is_a_search_problem():
@@ -148,6 +148,21 @@ def test_the_search_stops_within_the_noise_and_at_max_steps():
     assert r.moves == [] and "base" in r.stop_reason and "within the noise" in r.stop_reason
     r = search(Table({"a": 80.0, "b": 60.0, "c": 40.0}), bic_threshold=T, max_steps=1, pair_top=1)
     assert len(r.final.effects) == 1 and r.stop_reason == "max_steps = 1 reached"
+
+
+def test_the_best_single_is_paired_with_every_candidate_while_the_fit_is_not_within_the_noise():
+    # a dominates; c adds little on the base (5) but 65 beside a, and is not among the three best singles
+    gains, bonus = {"a": 1500.0, "b": 30.0, "d": 25.0, "c": 5.0}, {("a", "c"): 60.0}
+    r = search(Table(gains, bonus=bonus, base_bic=2000.0, noise=1.0), bic_threshold=T, max_steps=1, pair_top=3)
+    assert r.moves[0].effects == ("a", "c") and r.moves[0].gain == pytest.approx(1565.0)
+    assert {t.effects for t in r.pairs[0]} >= {("a", "c"), ("a", "b"), ("a", "d")}
+    # without a noise level (data without uncertainties) only the three best are paired: a + b enters
+    r = search(Table(gains, bonus=bonus, base_bic=2000.0), bic_threshold=T, max_steps=1, pair_top=3)
+    assert r.moves[0].effects == ("a", "b") and ("a", "c") not in {t.effects for t in r.pairs[0]}
+    # within the noise after the best pair: nothing more is refitted
+    p = Table(gains, bonus=bonus, base_bic=2000.0, noise=4.75)
+    r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
+    assert r.moves[0].effects == ("a", "b") and ("a", "c") not in p.calls
 
 
 class StuckFromBase(Table):
