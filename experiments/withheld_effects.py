@@ -432,6 +432,14 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
         "not_identifiable_trials": [r["id"] for r in two if r.get("identifiable") is False],
         "diffraction_first_rate": rate([r["top1"] == "diffraction" and r["significant"]
                                         for r in single + two if "diffraction" in r["effects"]]),
+        # the same split: diffraction the only withheld effect, and paired with another (where the other may be the
+        # larger signal: then whether the first-ranked effect is either withheld one)
+        "diffraction_first_alone_rate": rate([r["top1"] == "diffraction" and r["significant"]
+                                              for r in single + two if list(r["effects"]) == ["diffraction"]]),
+        "diffraction_first_paired_rate": rate([r["top1"] == "diffraction" and r["significant"] for r in single + two
+                                               if "diffraction" in r["effects"] and len(r["effects"]) > 1]),
+        "withheld_first_paired_rate": rate([r["top1"] in r["effects"] and r["significant"] for r in single + two
+                                            if "diffraction" in r["effects"] and len(r["effects"]) > 1]),
         "spurious_generic_trials": [r["id"] for r in ok if r.get("spurious_generic")],
     }
 
@@ -460,6 +468,10 @@ def print_summary(s: dict[str, Any], names: list[str]) -> None:
     if s.get("not_identifiable_trials"):
         print(f"not identifiable at the threshold: {s['not_identifiable_trials']}")
     show("diffraction_first_rate", ">= 90 %")
+    if "diffraction_first_alone_rate" in s:
+        show("diffraction_first_alone_rate", "-")
+        show("diffraction_first_paired_rate", "-")
+        show("withheld_first_paired_rate", "-")
     print(f"failed candidate refits {s['failed_refits_total']} (target 0); trials with a spurious generic term: "
           f"{s['spurious_generic_trials'] or 'none'} (target none)")
     print(f"trials {s['n_trials']}, errors {s['n_errors']}, median diagnosis wall time {s['median_wall_s']:.1f} s")
