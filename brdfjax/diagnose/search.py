@@ -14,14 +14,13 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    (its own terms dead, undetermined, or a parameter on a bound) is inadmissible: it never enters, whatever
    its gain.
 2. Pairs: the ``pair_top`` best admissible singles (and, when the best is generic, the best specific
-   singles) are refitted in pairs, jointly, warm-started at the better member's single fit.  Where the problem
-   has a noise level (``within_noise`` answers) and one of these pairs would enter (rule 4) or the best of these
-   fits is not within the noise, the best single is also refitted beside every other admissible single: one dominant
-   effect's gain swamps the others', whose single gains then measure how well each mimics it on the base, not
-   what each adds beside it (measured on the library generator, stray light and diffraction withheld, seed
-   9626: stray light was not among the three best singles, diffraction + offset peak entered at 1.304, and
-   diffraction + stray light, 11.6 lower in BIC, was never fitted; stray light and a floor withheld, seed
-   9630: stray light + offset peak entered at 0.955, within the noise, 39 in BIC above stray light + floor).
+   singles) are refitted in pairs, jointly, warm-started at the better member's single fit.  Where the best of
+   these fits is not within the noise (the problem's ``within_noise``), the best single is also refitted beside
+   every other admissible single: one dominant effect's gain swamps the others', whose single gains then
+   measure how well each mimics it on the base, not what each adds beside it (measured on the library
+   generator, seed 9626, stray light and diffraction withheld: stray light was not among the three best
+   singles, diffraction + offset peak entered at 1.304, and diffraction + stray light, 11.6 lower in BIC, was
+   never fitted).
 3. Generic versus specific: a generic effect G (a floor, a response curve) may not enter when a specific
    effect S explains its residual on their joint refit (taking G out of {current + G + S} costs less than T)
    and S alone is not worse than G alone by T or more.  The preference for the specific effect breaks ties
@@ -260,20 +259,14 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                     # 2b. where the step's best fit so far is not within the noise, the best single is also refitted
                     # beside every other admissible one: a dominant effect's single gain swamps the others', which
                     # then measure how well each mimics it on the base, not what it adds beside it
-                    # also where a pair would enter (it beats its better member by more than T): its second member
-                    # was then chosen among the best singles only
                     fits = [adm[0]] + [t for t in pairs if t.ok]
-                    best_fit = min(fits, key=lambda t: t.bic)
-                    pair_enters = any(t.ok and gain(t) - max(gain(p), gain(q)) > T for p, q, t in pair_info)
-                    verdict = within_noise(best_fit)
-                    if verdict is None or (verdict and not pair_enters):
-                        break  # the problem cannot tell (data without uncertainties), or within the noise
+                    if within_noise(min(fits, key=lambda t: t.bic)) is not False:
+                        break  # within the noise, or the problem cannot tell (None: data without uncertainties)
                     tried = {frozenset((id(p), id(q))) for p, q in pair_list}
                     batch = [(best1, t) for t in adm[1:] if frozenset((id(best1), id(t))) not in tried]
                     if batch:
-                        say(f"step {step}: " + ("a pair would enter" if pair_enters else "the best fit so far is not "
-                            "within the noise") + f": {new_of[id(best1)]} refitted beside every other admissible "
-                            "candidate")
+                        say(f"step {step}: the best fit so far is not within the noise: {new_of[id(best1)]} refitted "
+                            "beside every other admissible candidate")
                 for p, q in batch:
                     e_p, e_q = new_of[id(p)], new_of[id(q)]
                     why_not = applicable is not None and (applicable(cur.effects + (e_p,), e_q)
