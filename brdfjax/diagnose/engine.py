@@ -647,7 +647,7 @@ def diagnose(
     if max_steps == 0:
         stop_reason = "max_steps = 0: the candidates are ranked, none added"
     elif "within the noise" in stop_reason:
-        stop_reason += f" (<= {noise:.4g}, 1 + {STOP_SIGMAS:g} sqrt(2/dof))"
+        stop_reason += f" (<= {noise:.4g}, 1 + {'' if STOP_SIGMAS == 1 else f'{STOP_SIGMAS:g} '}sqrt(2/dof))"
     t_end = time.perf_counter()
     return Diagnosis(
         gap=gap,

@@ -188,10 +188,11 @@ def _second_start(params: Mapping[str, Any], new_names: Sequence[str]) -> dict[s
 #: the solver's step budget of a retried refit, a multiple of the budget the diagnosis' fits get
 RETRY_STEPS = 4
 #: the third start of a refit that failed from two: the effect's strengths (the weights of the terms it adds, a
-#: ghost's or a background's level) at this fraction of their starts, every other start as the first's
+#: ghost's level) at this fraction of their starts, every other start as the first's
 NEAR_NULL_FRACTION = 1e-3
-#: instrument-response parameters that measure an effect's strength (0 is the effect's absence)
-_STRENGTHS = ("instrument.ghost", "instrument.background")
+#: free instrument-response parameters that measure an effect's strength (0 is the effect's absence; the stray
+#: light's background is fixed at the frames' floor, never freed)
+_STRENGTHS = ("instrument.ghost",)
 
 
 def _near_null_start(params: Mapping[str, Any], new_names: Sequence[str], model: Model,
@@ -385,21 +386,22 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
         if kw.get("first_stage", "soft") is not None:
             new2, err2 = attempt(ext.params, {**retry_kw, "first_stage": None})
         why2 = _refit_failure(new2, base_gap, err2) if err2 != "skipped" else "skipped"
+        how = "without the first stage"
         if why2 is not None:
             new2, err2 = attempt(_second_start(ext.params, list(new_params)), retry_kw)
             why2 = _refit_failure(new2, base_gap, err2)
+            how = "from a second start"
         new3 = None
         if why2 is not None:
             near = _near_null_start(ext.params, list(new_params), ext.model, added)
             if near is not None:
                 new3, err3 = attempt(near, retry_kw)
                 if _refit_failure(new3, base_gap, err3) is None:
-                    new2, why2 = new3, None
+                    new2, why2, how = new3, None, "with its strength near its null"
         c.retried = True
         back = _back_at_base([x for x in (new, new2, new3) if x is not None], base_gap)
         if why2 is None:
-            ext_note = (f"retried (without the first stage, then from a second start, then with its strength near "
-                        f"its null; the first {why[:200]}); {ext.note}")
+            ext_note = f"retried, converged {how} (the first {why[:200]}); {ext.note}"
             new, why = new2, None
         elif back is not None:
             # every start came back to the model it extends (within AT_BASE_CHI2) without converging: the effect

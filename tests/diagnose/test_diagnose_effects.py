@@ -229,7 +229,7 @@ def test_stray_light_copies_light_from_outside_the_roi():
                             grid=shifted, precision="float64"))
     expect = plain.brdf + 10.0**lr * src
     np.testing.assert_allclose(withg.brdf, expect, rtol=2e-6, atol=1e-30)
-    # the sources of the last columns lie outside the ROI: their copy is there, where the ROI alone had none
+    # the columns whose sources lie left of the ROI: their copy is there, where the ROI alone had none
     edge = np.asarray(g.n_h) - dh < sc.roi[0]
     gain = (withg.brdf - plain.brdf)[:, edge] / plain.brdf[:, edge]
     assert edge.any() and gain.max() > 0.05, gain.max()
