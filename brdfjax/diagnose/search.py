@@ -20,7 +20,13 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    measure how well each mimics it on the base, not what each adds beside it (measured on the library
    generator, seed 9626, stray light and diffraction withheld: stray light was not among the three best
    singles, diffraction + offset peak entered at 1.304, and diffraction + stray light, 11.6 lower in BIC, was
-   never fitted).
+   never fitted).  Where the best fit is within the noise but the move rule 4 is about to commit (after
+   rule 3) is a pair, the same widening runs first and rules 3 and 4 are judged again with the new pairs: the
+   pair's second member was chosen among the best singles only (seed 9630, stray light and a floor withheld:
+   stray light + offset peak entered at 0.955, within the noise, 39 in BIC above stray light + floor, which
+   was never fitted).  A pair that rule 3 or 4 holds back does not widen (the shipped example's floor +
+   diffraction: diffraction enters alone, four more refits avoided).  Data without uncertainties (the
+   problem cannot tell) never widen.
 3. Generic versus specific: a generic effect G (a floor, a response curve) may not enter when a specific
    effect S explains its residual on their joint refit (taking G out of {current + G + S} costs less than T)
    and S alone is not worse than G alone by T or more.  The preference for the specific effect breaks ties
@@ -252,83 +258,33 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
             pairs: list[Trial] = []
             pair_info: list[tuple[Trial, Trial, Trial]] = []
             step_notes: list[str] = []
-
-            batch = pair_list
-            for widened in (False, True):
-                if widened:
-                    # 2b. where the step's best fit so far is not within the noise, the best single is also refitted
-                    # beside every other admissible one: a dominant effect's single gain swamps the others', which
-                    # then measure how well each mimics it on the base, not what it adds beside it
-                    fits = [adm[0]] + [t for t in pairs if t.ok]
-                    if within_noise(min(fits, key=lambda t: t.bic)) is not False:
-                        break  # within the noise, or the problem cannot tell (None: data without uncertainties)
-                    tried = {frozenset((id(p), id(q))) for p, q in pair_list}
-                    batch = [(best1, t) for t in adm[1:] if frozenset((id(best1), id(t))) not in tried]
-                    if batch:
-                        say(f"step {step}: the best fit so far is not within the noise: {new_of[id(best1)]} refitted "
-                            "beside every other admissible candidate")
-                for p, q in batch:
-                    e_p, e_q = new_of[id(p)], new_of[id(q)]
-                    why_not = applicable is not None and (applicable(cur.effects + (e_p,), e_q)
-                                                          or applicable(cur.effects + (e_q,), e_p))
-                    if why_not:
-                        step_notes.append(f"pair {e_p} + {e_q}: not tried (they cannot be combined: {why_not})")
-                        continue
-                    warm = p if gain(p) >= gain(q) else q
-                    other = e_q if warm is p else e_p
-                    say(f"step {step}: refitting {e_p} and {e_q} jointly")
-                    t = fit(warm.effects + (other,), warm)
-                    pairs.append(t)
-                    pair_info.append((p, q, t))
-            pairs_by_step.append(pairs)
+            _fit_pairs(pair_list, cur, step, new_of, gain, applicable, fit, say, pairs, pair_info, step_notes)
+            tried = {frozenset((id(p), id(q))) for p, q in pair_list}
+            wide = [(best1, t) for t in adm[1:] if frozenset((id(best1), id(t))) not in tried]
+            # 2b. where the step's best fit so far is not within the noise, the best single is also refitted beside
+            # every other admissible one: a dominant effect's single gain swamps the others', which then measure
+            # how well each mimics it on the base, not what it adds beside it
+            verdict = within_noise(min([adm[0]] + [t for t in pairs if t.ok], key=lambda t: t.bic))
+            if verdict is False and wide:
+                say(f"step {step}: the best fit so far is not within the noise: {new_of[id(best1)]} refitted "
+                    "beside every other admissible candidate")
+                _fit_pairs(wide, cur, step, new_of, gain, applicable, fit, say, pairs, pair_info, step_notes)
+                wide = []
             # 3. a generic effect does not enter where a specific one explains its residual on the joint refit
-            blocked: set[str] = set()
-            for p, q, t in pair_info:
-                if not t.ok:
-                    continue
-                for g, s in ((p, q), (q, p)):
-                    eg, es = new_of[id(g)], new_of[id(s)]
-                    if problem.generic(eg) and not problem.generic(es):
-                        s = fit(s.effects, t, refresh=True)  # the specific one alone, refitted from the pair as well
-                        g_alone = cache.get(_key(g.effects), g)
-                        cost = s.bic - t.bic  # taking the generic one out of the joint refit
-                        behind = s.bic - g_alone.bic  # the specific one alone against the generic one alone
-                        if cost < T and behind < T:
-                            blocked.add(eg)
-                            step_notes.append(f"{eg} (generic) does not enter: on the joint refit with {es} taking "
-                                              f"{eg} out costs {cost:.4g} < {T:g} ({es} explains its residual)")
-                        elif cost < T:
-                            step_notes.append(f"{eg} (generic) stays in the running beside {es}: {es} explains its "
-                                              f"residual on their joint refit (taking {eg} out costs {cost:.4g}), but "
-                                              f"alone {es} is {behind:.4g} behind {eg} in BIC (>= {T:g}): the data "
-                                              f"prefer {eg}")
-                        else:
-                            step_notes.append(f"{eg} (generic) beside {es} on their joint refit: taking {eg} out "
-                                              f"costs {cost:.4g} >= {T:g}")
-            # 4. commit the best move
-            options: list[tuple[float, tuple[str, ...], Trial, str]] = []
-            for t in adm:
-                e = new_of[id(t)]
-                t = cache.get(_key(t.effects), t)  # its best fit (a refit from a pair may have found a better one)
-                if e in blocked or gain(t) <= T or t.own_flags([e]):
-                    continue
-                options.append((gain(t), (e,), t, ""))
-            for p, q, t in pair_info:
-                e_p, e_q = new_of[id(p)], new_of[id(q)]
-                if not t.ok:
-                    continue
-                if t.own_flags([e_p, e_q]):
-                    step_notes.append(f"pair {e_p} + {e_q}: not admitted ({'; '.join(t.own_flags([e_p, e_q]))})")
-                    continue
-                g_pair, g_best = gain(t), max(gain(p), gain(q))
-                if g_pair - g_best > T and not ({e_p, e_q} & blocked and _generic_removable(problem, p, q, t, T, fit)):
-                    options.append((g_pair, (e_p, e_q) if gain(p) >= gain(q) else (e_q, e_p), t,
-                                    f"entered jointly: the pair gains {g_pair:.4g}, {g_pair - g_best:.4g} more than "
-                                    f"its better member alone (> {T:g})"))
-                else:
-                    step_notes.append(f"pair {e_p} + {e_q}: gains {g_pair:.4g}, {g_pair - g_best:+.4g} against its "
-                                      f"better member alone (needs > {T:g})")
-            options = [o for o in options if _key(o[2].effects) not in visited]
+            blocked = _block_generic(problem, pair_info, new_of, cache, fit, T, step_notes)
+            options, option_notes = _options(problem, adm, pair_info, new_of, blocked, cache, gain, T, fit, visited)
+            if verdict and wide and options and len(max(options, key=lambda o: o[0])[1]) == 2:
+                # 2c. the move about to be committed is a pair (within the noise): its second member was chosen
+                # among the best singles only, so the best single is refitted beside every other one first
+                say(f"step {step}: a pair would enter: {new_of[id(best1)]} refitted beside every other "
+                    "admissible candidate")
+                n_done = len(pair_info)
+                _fit_pairs(wide, cur, step, new_of, gain, applicable, fit, say, pairs, pair_info, step_notes)
+                blocked |= _block_generic(problem, pair_info[n_done:], new_of, cache, fit, T, step_notes)
+                options, option_notes = _options(problem, adm, pair_info, new_of, blocked, cache, gain, T, fit,
+                                                 visited)
+            pairs_by_step.append(pairs)
+            step_notes += option_notes
             if not options:
                 stop = ("the gain is not significant: every effect that gains more than the threshold is held back "
                         "(" + "; ".join(step_notes[-3:]) + ")" if step_notes else "no admissible move is left")
@@ -499,6 +455,89 @@ def _pair_removal(cur: Trial, costs: list[tuple[float, str, Trial]], T: float, c
     if one not in single:
         return None
     return (one, single[one][1], single[one][0]), (two, w, cost)
+
+
+def _fit_pairs(batch: list[tuple[Trial, Trial]], cur: Trial, step: int, new_of: dict[int, str],
+               gain: Callable[[Trial], float], applicable: Callable[..., str | None] | None,
+               fit: Callable[..., Trial], say: Callable[[str], Any], pairs: list[Trial],
+               pair_info: list[tuple[Trial, Trial, Trial]], step_notes: list[str]) -> None:
+    """Rule 2: each pair of ``batch`` refitted jointly, warm-started at its better member's single fit; appended
+    to ``pairs`` and ``pair_info`` (a pair that cannot be combined is noted, not fitted)."""
+    for p, q in batch:
+        e_p, e_q = new_of[id(p)], new_of[id(q)]
+        why_not = applicable is not None and (applicable(cur.effects + (e_p,), e_q)
+                                              or applicable(cur.effects + (e_q,), e_p))
+        if why_not:
+            step_notes.append(f"pair {e_p} + {e_q}: not tried (they cannot be combined: {why_not})")
+            continue
+        warm = p if gain(p) >= gain(q) else q
+        other = e_q if warm is p else e_p
+        say(f"step {step}: refitting {e_p} and {e_q} jointly")
+        t = fit(warm.effects + (other,), warm)
+        pairs.append(t)
+        pair_info.append((p, q, t))
+
+
+def _block_generic(problem: SearchProblem, pair_info: list[tuple[Trial, Trial, Trial]], new_of: dict[int, str],
+                   cache: dict[frozenset, Trial], fit: Callable[..., Trial], T: float,
+                   step_notes: list[str]) -> set[str]:
+    """Rule 3: the generic effects that may not enter, judged on the joint refits of ``pair_info``."""
+    blocked: set[str] = set()
+    for p, q, t in pair_info:
+        if not t.ok:
+            continue
+        for g, s in ((p, q), (q, p)):
+            eg, es = new_of[id(g)], new_of[id(s)]
+            if problem.generic(eg) and not problem.generic(es):
+                s = fit(s.effects, t, refresh=True)  # the specific one alone, refitted from the pair as well
+                g_alone = cache.get(_key(g.effects), g)
+                cost = s.bic - t.bic  # taking the generic one out of the joint refit
+                behind = s.bic - g_alone.bic  # the specific one alone against the generic one alone
+                if cost < T and behind < T:
+                    blocked.add(eg)
+                    step_notes.append(f"{eg} (generic) does not enter: on the joint refit with {es} taking "
+                                      f"{eg} out costs {cost:.4g} < {T:g} ({es} explains its residual)")
+                elif cost < T:
+                    step_notes.append(f"{eg} (generic) stays in the running beside {es}: {es} explains its "
+                                      f"residual on their joint refit (taking {eg} out costs {cost:.4g}), but "
+                                      f"alone {es} is {behind:.4g} behind {eg} in BIC (>= {T:g}): the data "
+                                      f"prefer {eg}")
+                else:
+                    step_notes.append(f"{eg} (generic) beside {es} on their joint refit: taking {eg} out "
+                                      f"costs {cost:.4g} >= {T:g}")
+    return blocked
+
+
+def _options(problem: SearchProblem, adm: list[Trial], pair_info: list[tuple[Trial, Trial, Trial]],
+             new_of: dict[int, str], blocked: set[str], cache: dict[frozenset, Trial],
+             gain: Callable[[Trial], float], T: float, fit: Callable[..., Trial],
+             visited: set[frozenset]) -> tuple[list[tuple[float, tuple[str, ...], Trial, str]], list[str]]:
+    """Rule 4: the moves that may be committed (gain, effects added, their fit, why) to sets not visited, and
+    the notes on the pairs held back."""
+    notes: list[str] = []
+    options: list[tuple[float, tuple[str, ...], Trial, str]] = []
+    for t in adm:
+        e = new_of[id(t)]
+        t = cache.get(_key(t.effects), t)  # its best fit (a refit from a pair may have found a better one)
+        if e in blocked or gain(t) <= T or t.own_flags([e]):
+            continue
+        options.append((gain(t), (e,), t, ""))
+    for p, q, t in pair_info:
+        e_p, e_q = new_of[id(p)], new_of[id(q)]
+        if not t.ok:
+            continue
+        if t.own_flags([e_p, e_q]):
+            notes.append(f"pair {e_p} + {e_q}: not admitted ({'; '.join(t.own_flags([e_p, e_q]))})")
+            continue
+        g_pair, g_best = gain(t), max(gain(p), gain(q))
+        if g_pair - g_best > T and not ({e_p, e_q} & blocked and _generic_removable(problem, p, q, t, T, fit)):
+            options.append((g_pair, (e_p, e_q) if gain(p) >= gain(q) else (e_q, e_p), t,
+                            f"entered jointly: the pair gains {g_pair:.4g}, {g_pair - g_best:.4g} more than "
+                            f"its better member alone (> {T:g})"))
+        else:
+            notes.append(f"pair {e_p} + {e_q}: gains {g_pair:.4g}, {g_pair - g_best:+.4g} against its "
+                         f"better member alone (needs > {T:g})")
+    return [o for o in options if _key(o[2].effects) not in visited], notes
 
 
 def _generic_removable(problem: SearchProblem, p: Trial, q: Trial, t: Trial, T: float, fit: Callable[..., Trial]) -> bool:

@@ -150,7 +150,7 @@ def test_the_search_stops_within_the_noise_and_at_max_steps():
     assert len(r.final.effects) == 1 and r.stop_reason == "max_steps = 1 reached"
 
 
-def test_the_best_single_is_paired_with_every_candidate_while_the_fit_is_not_within_the_noise():
+def test_the_best_single_is_paired_with_every_candidate_when_a_pair_enters_or_the_fit_is_not_within_the_noise():
     # a dominates; c adds little on the base (5) but 65 beside a, and is not among the three best singles
     gains, bonus = {"a": 1500.0, "b": 30.0, "d": 25.0, "c": 5.0}, {("a", "c"): 60.0}
     r = search(Table(gains, bonus=bonus, base_bic=2000.0, noise=1.0), bic_threshold=T, max_steps=1, pair_top=3)
@@ -159,10 +159,26 @@ def test_the_best_single_is_paired_with_every_candidate_while_the_fit_is_not_wit
     # without a noise level (data without uncertainties) only the three best are paired: a + b enters
     r = search(Table(gains, bonus=bonus, base_bic=2000.0), bic_threshold=T, max_steps=1, pair_top=3)
     assert r.moves[0].effects == ("a", "b") and ("a", "c") not in {t.effects for t in r.pairs[0]}
-    # within the noise after the best pair: nothing more is refitted
+    # within the noise, but the move about to be committed is the pair a + b (it beats a by 30): the partner of
+    # a is sought among every candidate first, and a + c enters
     p = Table(gains, bonus=bonus, base_bic=2000.0, noise=4.75)
     r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
-    assert r.moves[0].effects == ("a", "b") and ("a", "c") not in p.calls
+    assert r.moves[0].effects == ("a", "c") and r.moves[0].gain == pytest.approx(1565.0)
+    # within the noise and a single about to be committed: nothing more is refitted, a enters alone
+    p = Table({"a": 1500.0, "b": 8.0, "d": 5.0, "c": 5.0}, bonus=bonus, base_bic=2000.0, noise=5.0)
+    r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
+    assert r.moves[0].effects == ("a",) and ("a", "c") not in p.calls
+
+
+def test_a_pair_that_rule_three_holds_back_does_not_widen_the_pairs():
+    # as on the shipped example: s + g gains far more than s alone from the base, but s alone refitted from the
+    # pair is as good (g costs 2 < T): the single s is committed, so within the noise nothing more is refitted
+    gains = {"g": 300.0, "s": 898.0, "b": 20.0, "c": 15.0, "x": 12.0}
+    p = StuckFromBase(gains, generic=("g",), sets={frozenset({"g", "s"}): 100.0}, noise=1.1)
+    r = search(p, bic_threshold=T, max_steps=1, pair_top=2)
+    assert r.moves[0].effects == ("s",) and r.moves[0].trial.bic == pytest.approx(102.0)
+    fitted_pairs = {frozenset(c) for c in p.calls if len(c) == 2}
+    assert fitted_pairs == {frozenset({"g", "s"})}  # the two best singles only: no partner sought for g
 
 
 class StuckFromBase(Table):
