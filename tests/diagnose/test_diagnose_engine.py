@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import re
 import textwrap
 from pathlib import Path
@@ -519,3 +520,55 @@ def test_model_weighted_blocks_take_the_noise_at_the_model_not_at_the_reading():
     table, _ = _table(bj.Model(terms=LOBE))
     tst = _with_context(_fit_state(bj.Model(terms=LOBE), [table], dict(START), {}, ()))
     assert model_weighted_blocks(tst) is None
+
+
+def _fake_fit(m2ll: float, k: int = 3, n: int = 1000, params: dict | None = None):
+    """The parts of a FitResult that the ranking reads (gap_measures, the effect's parameters)."""
+    import types
+
+    p = {name: types.SimpleNamespace(natural=lambda v=v: {"value": v}) for name, v in (params or {}).items()}
+    return types.SimpleNamespace(blocks=[types.SimpleNamespace(n_points=n, log_rms=0.1)], free_names=["x"] * k,
+                                 m2ll=m2ll, sigma_estimated=False, noise={}, n_points=n, dof=n - k,
+                                 chi2_reduced=m2ll / (n - k), parameters=p)
+
+
+def test_a_candidate_is_ranked_by_the_best_fit_of_its_set_the_search_found():
+    """As on the shipped example: diffraction refitted from the base sits in a poor optimum (behind a floor);
+    taken out of its joint fit with the floor it reaches the final model's chi^2: it ranks first, with that
+    fit's figures, and its note says where the fit came from."""
+    import types
+
+    from brdfjax.diagnose.engine import _candidates_of, _Fitted
+    from brdfjax.diagnose.refits import _rank
+    from brdfjax.diagnose.results import Candidate
+    from brdfjax.diagnose.search import Trial
+
+    def trial(effects, m2ll, cand=None, k=3, params=None):
+        r = _fake_fit(m2ll, k=k, params=params)
+        st = types.SimpleNamespace(result=r, effects=tuple(effects), blocks=[])
+        bic = m2ll + k * math.log(1000)
+        return Trial(tuple(effects), True, None, bic, m2ll / 997, k, None, {e: [] for e in effects},
+                     _Fitted(st, cand))
+
+    base = trial((), 1.9e7)
+    cands = {}
+    for e, m2ll in (("diffraction", 5.0e6), ("lambertian", 3.0e6)):
+        cands[e] = Candidate(e, e, "ranked", signature={"score": 5.0}, delta_bic=base.bic - m2ll,
+                             delta_chi2=1.9e7 - m2ll, gap_after={"chi2": m2ll}, parameters={f"{e}.w": 1.0})
+    singles = [trial(("diffraction",), 5.0e6, cands["diffraction"], k=4, params={"diffraction.w": 1.0}),
+               trial(("lambertian",), 3.0e6, cands["lambertian"], k=4, params={"lambertian.w": 1.0})]
+    # the search's later refit of {diffraction}, from {diffraction, lambertian} with the floor taken out
+    better = trial(("diffraction",), 1030.0, None, k=4, params={"diffraction.w": 2.0})
+    best_of = {frozenset(("diffraction",)): better, frozenset(("lambertian",)): singles[1]}
+
+    plain, _ = _rank(_candidates_of(singles, base))
+    assert [c.effect for c in plain] == ["lambertian", "diffraction"]  # by the refits from the base alone
+
+    ranked, _ = _rank(_candidates_of(singles, base, best_of))
+    assert [c.effect for c in ranked] == ["diffraction", "lambertian"]
+    top = ranked[0]
+    assert top.delta_bic == pytest.approx(base.bic - better.bic)
+    assert top.gap_after["chi2"] == pytest.approx(1030.0) and top.parameters == {"diffraction.w": {"value": 2.0}}
+    assert top.delta_chi2 == pytest.approx(1.9e7 - 1030.0)
+    assert top.note.startswith("ranked by its best fit, reached from a larger fit with another effect taken out")
+    assert cands["diffraction"].delta_bic == pytest.approx(base.bic - singles[0].bic)  # the single refit itself kept
