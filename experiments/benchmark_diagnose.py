@@ -8,7 +8,7 @@ child's CPU seconds (user + system: comparable across loads), its peak resident 
 peak RSS on an idle 2-core box.
 
     python3 experiments/benchmark_diagnose.py [--config configs/diagnose_withheld_diffraction.toml]
-        [--out experiments/results/benchmark_diagnose.json] [--warm]
+        [--out experiments/results/benchmark_diagnose.json] [--cache-dir DIR] [--diagnosis-out FILE]
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ def main(argv=None) -> int:
     p.add_argument("--config", default=str(ROOT / "configs" / "diagnose_withheld_diffraction.toml"))
     p.add_argument("--out", default=str(ROOT / "experiments" / "results" / "benchmark_diagnose.json"))
     p.add_argument("--cache-dir", default=None, help="reuse this cache folder (a warm run) instead of a fresh one")
+    p.add_argument("--diagnosis-out", default=None,
+                   help="also keep the run's diagnosis.json here (experiments/results/diagnose_shipped_example.json)")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         env = dict(os.environ)
@@ -53,11 +55,14 @@ def main(argv=None) -> int:
                "cpu_s": cpu, "peak_rss_mb": rss_mb, "load_before": load0, "load_after": load1, "cpus": os.cpu_count()}
         if proc.returncode == 0:
             d = json.loads((out / "diagnosis.json").read_text())
+            if args.diagnosis_out:
+                write_json_atomic(args.diagnosis_out, d)
             rec.update({
                 "path": [(s["action"], s["effect"], s["chi2_reduced"], s["heldout_rms_log10"]) for s in d["path"]],
                 "explained_by": d["explained_by"], "truth": d.get("truth"),
                 "failed_refits": d["settings"].get("failed_refits"),
                 "final_model_toml": (out / "final_model.toml").is_file(),
+                "ranking": [(c["effect"], c["delta_bic"], c["ranked_by"]) for c in d["ranking"][:3]],
                 "timings_s": d.get("timings_s"),
             })
         else:
@@ -69,6 +74,7 @@ def main(argv=None) -> int:
         print("path:", " -> ".join(f"{'-' if a == 'remove' else ('+' if a == 'add' else '')}{e} ({c:.4g}; held-out "
                                     f"{'-' if h is None else format(h, '.3g')})" for a, e, c, h in rec["path"]))
         print("explained by:", rec["explained_by"], " failed refits:", rec["failed_refits"])
+        print("ranked first:", ", ".join(f"{e} (delta BIC {g:.4g})" for e, g, _ in rec["ranking"]))
     return proc.returncode
 
 
