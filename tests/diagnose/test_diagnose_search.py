@@ -248,6 +248,32 @@ def test_a_generic_effect_is_exchanged_for_another_that_the_data_prefer_once_the
     assert set(r.final.effects) == {"lobe", "S"} and [m.action for m in r.moves] == ["add"]
 
 
+class StuckUnlessFromPnl(Table):
+    """``S`` alone is stuck (600) unless refitted from a fit that holds ``pnl`` (then 460, its optimum)."""
+
+    def refit(self, effects, warm):
+        t = super().refit(effects, warm)
+        if tuple(effects) == ("S",):
+            b = 460.0 if warm is not None and "pnl" in warm.effects else 600.0
+            return Trial(t.effects, True, None, b, b / 100, t.n_params, None, t.flags)
+        return t
+
+
+def test_an_effect_exchanged_in_must_pass_the_removal_test_to_stay():
+    """As on the reference generator with diffraction and a floor withheld (seed 9634): a second lobe entered
+    with the specific effects and was exchanged for a pixel non-linearity (BIC -12.5) that the search never
+    tried to take out; the final set held a generic term the truth lacks at the truth's chi^2."""
+    sets = {frozenset({"lobe"}): 700.0, frozenset({"pnl"}): 800.0, frozenset({"lobe", "S"}): 480.0,
+            frozenset({"pnl", "S"}): 467.0, frozenset({"lobe", "pnl"}): 650.0}
+    p = StuckUnlessFromPnl({"S": 0.0, "lobe": 0.0, "pnl": 0.0}, generic=("lobe", "pnl"), sets=sets)
+    r = search(p, bic_threshold=T, max_steps=1, pair_top=2)
+    actions = [(m.action, m.effects) for m in r.moves]
+    assert actions == [("add", ("S", "lobe")), ("remove", ("lobe",)), ("add", ("pnl",)), ("remove", ("pnl",))]
+    assert r.final.effects == ("S",) and r.final.bic == pytest.approx(460.0)
+    assert "exchanged for pnl" in r.moves[1].notes[0] and any("exchanged" in n for n in r.moves[2].notes)
+    assert any("less than the 10" in n for n in r.moves[3].notes)
+
+
 class StuckAfterRemoval(Table):
     """``{off, fp}`` refitted from a larger fit that held ``mis`` stays where ``off`` traded with ``mis`` (a BIC
     6,701 worse); fitted forward, ``fp`` added to ``{off}``, it reaches its optimum (seed 9613's trial with an
