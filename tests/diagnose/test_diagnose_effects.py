@@ -509,3 +509,24 @@ def test_a_failed_refit_gets_a_third_start_near_the_effects_null():
     assert out["lobe2.rho_s"].lower == 0.0 and params["lobe2.rho_s"].value == 0.004  # the input is not modified
     # a swap of the centre's distribution has no strength of its own: no third start
     assert _near_null_start({"center.gamma": Param(value=2.0)}, ["center.gamma"], model, ()) is None
+
+
+def test_the_bars_orientation_is_fitted_as_an_angle_without_bounds():
+    """The bars' orientation repeats every 180 deg: it has no bound to end on.  Started 30 deg off (past the
+    +-20 deg bounds it once had: the band search on bars blurred by a footprint started 20 deg off, the joint
+    refit ended on the bound and the pair was refused), the refit turns it back to the extension's own."""
+    import dataclasses
+
+    name = "diffraction"
+    sc, sc_fx = _scenario(name, SEEDS[name])
+    blocks, res, ctx = _base(sc_fx, SEEDS[name])
+    ext = E.EFFECT_LIBRARY[name].extend(ctx)
+    key = next(k for k in ext.params if k.endswith(".psi"))
+    p = ext.params[key]
+    assert p.lower is None and p.upper is None
+    good = fit(ext.model, blocks, ext.params, **ext.fit_kwargs)
+    off = {**ext.params, key: dataclasses.replace(p, value=float(p.value) + np.radians(30.0))}
+    r = fit(ext.model, blocks, off, **ext.fit_kwargs)
+    d = (float(r.parameters[key].value) - float(good.parameters[key].value) + np.pi / 2) % np.pi - np.pi / 2
+    assert abs(np.degrees(d)) < 1.0, np.degrees(d)
+    assert r.chi2_reduced == pytest.approx(good.chi2_reduced, rel=0.02)
