@@ -476,9 +476,10 @@ def _candidates_of(trials: list[Trial], before: Trial, best_of: Mapping[frozense
                 st = best.state.state
                 c = copy.copy(c)
                 g = gap_measures(st.result)
-                c.note = (f"ranked by its best fit, reached from a larger fit with another effect taken out: delta "
-                          f"BIC {before.bic - best.bic:.6g} (refitted from {' + '.join(before.effects) or 'the base'}"
-                          f": {before.bic - t.bic:.6g}); {c.note}")
+                c.note = (f"ranked by its best fit, which the search reached from another start (a larger fit with "
+                          f"an effect taken out, or a smaller one fitted forward): delta BIC {before.bic - best.bic:.6g}"
+                          f" (refitted from {' + '.join(before.effects) or 'the base'}: {before.bic - t.bic:.6g}); "
+                          f"{c.note}")
                 c.delta_chi2 = c.delta_chi2 + (c.gap_after.get("chi2", g["chi2"]) - g["chi2"])
                 c.gap_after = g
                 c.parameters = {k: p.natural() for k, p in st.result.parameters.items()

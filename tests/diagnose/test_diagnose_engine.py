@@ -570,5 +570,6 @@ def test_a_candidate_is_ranked_by_the_best_fit_of_its_set_the_search_found():
     assert top.delta_bic == pytest.approx(base.bic - better.bic)
     assert top.gap_after["chi2"] == pytest.approx(1030.0) and top.parameters == {"diffraction.w": {"value": 2.0}}
     assert top.delta_chi2 == pytest.approx(1.9e7 - 1030.0)
-    assert top.note.startswith("ranked by its best fit, reached from a larger fit with another effect taken out")
+    assert top.note.startswith("ranked by its best fit, which the search reached from another start")
+    assert "refitted from the base: 1.4e+07" in top.note
     assert cands["diffraction"].delta_bic == pytest.approx(base.bic - singles[0].bic)  # the single refit itself kept
