@@ -30,15 +30,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_no_figures(p, "report.html without figures (faster)")
 
 
+_SAME_MOMENT_S = 0.05  # refits started together (a parallel step's first ones): no interval between them
 _REFIT = re.compile(r"^step (\d+): refitting with (\S+) \((\d+)/(\d+)")
 
 
 class _CandidateProgress:
     """The engine's progress lines, each refit with ``i/n`` of its step and an estimate of the time left.
 
-    The estimate is the mean wall time of the refits finished so far (over
-    every step) times the refits left in this step; later steps, whose
-    candidates are not known yet, are not in it (the line says so).
+    The estimate is the mean wall time between the starts of the refits so
+    far (over every step; refits run side by side start as others finish, so
+    this is the time per refit the run achieves) times the refits left in this
+    step; starts at the same moment (the first refits of a parallel step) are
+    not intervals.  Later steps, whose candidates are not known yet, are not
+    in it (the line says so).
     """
 
     def __init__(self, console: Any):
@@ -50,13 +54,14 @@ class _CandidateProgress:
         now = time.perf_counter()
         m = _REFIT.match(msg)
         if self._t_last is not None:
-            self.t_refits.append(now - self._t_last)
+            if now - self._t_last > _SAME_MOMENT_S:
+                self.t_refits.append(now - self._t_last)
             self._t_last = None
         if m is not None:
             i, n = int(m.group(3)), int(m.group(4))
             if self.t_refits:
-                left = (n - i + 1) * sum(self.t_refits) / len(self.t_refits)
-                msg += f"; ~{left:.0f} s left in this step (mean refit {sum(self.t_refits) / len(self.t_refits):.0f} s)"
+                per = sum(self.t_refits) / len(self.t_refits)
+                msg += f"; ~{(n - i + 1) * per:.0f} s left in this step (a refit every {per:.0f} s)"
             self._t_last = now
         self.console.print(msg, markup=False)
 

@@ -36,7 +36,7 @@ def diagnose(
     refit's); ``effects``: candidate names (default: the whole library); ``heldout``: frames or tables
     predicted, never fitted; ``options``: the search's settings (``bic_threshold``, ``max_steps``,
     ``pair_top``, ``fresh_top``, ``threshold``, ``smooth``, ``presence``, ``noise_stop``, ``library``,
-    ``progress``; see :func:`brdfjax.diagnose.engine.diagnose`).
+    ``progress``, ``workers``; see :func:`brdfjax.diagnose.engine.diagnose`).
     ``diagnose(base_model, blocks, params, fit_kwargs=...)`` is the older spelling (``fit_kwargs``
     deprecated).
     """

@@ -43,8 +43,11 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import os
+import threading
 import time
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,7 +56,7 @@ import numpy as np
 from ..core.terms import Model
 from ..fit import FitInputError, FrameData, TableData
 from ..runtime.choices import check_choices
-from ..runtime.compile_cache import release_compiled
+from ..runtime.compile_cache import maps_near_limit, release_compiled, resident_mb
 from ..runtime.errors import InputError
 from .admission import _WEAK, effect_flags
 from .context import build_context, gap_measures, residual_maps
@@ -102,6 +105,29 @@ __all__ = ["DiagnoseInputError", "diagnose", "final_model_config", "model_terms_
 #: from disk (measured on the shipped withheld-diffraction example: 2.04 GB peak without, 0.74 GB with a drop
 #: after every refit).
 RELEASE_ABOVE_MB = 450.0
+
+#: Refits side by side (:class:`_ReleaseGate`) pause to drop compiled programs once the process holds more than
+#: this many MB: each drop waits for the refits in flight, so it is set above :data:`RELEASE_ABOVE_MB`, where one
+#: refit after another drops them.
+PARALLEL_RELEASE_ABOVE_MB = 650.0
+
+#: The most refits run at once by default (:meth:`FrameProblem.refit_many`): each refit in flight holds its own
+#: model's programs (about 100 MB each on the shipped example).
+MAX_WORKERS = 4
+
+
+def default_workers() -> int:
+    """Half the cores this process may use (at least 1, at most :data:`MAX_WORKERS`).
+
+    One refit already keeps about 1.4 cores busy (XLA compiles on threads of its own: 215 s of CPU in 160 s
+    wall on the shipped example, one refit after another); on 2 cores two refits side by side took 131-146 s
+    against 160 s but peaked at 1.09-1.47 GB against 0.78 GB (``experiments/benchmark_diagnose.py --workers
+    1,2``), above the 1 GB target, so a 2-core machine refits one after another unless asked."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    return max(1, min(n // 2, MAX_WORKERS))
 
 
 class DiagnoseInputError(InputError):
@@ -175,6 +201,39 @@ class _Fitted:
     polish_failed: bool = False
 
 
+class _ReleaseGate:
+    """Refits in flight side by side, and the release of their compiled programs between them.
+
+    Each refit holds its own model's programs (about 100 MB on the shipped example), and
+    :func:`~brdfjax.runtime.compile_cache.release_compiled` may only run where no other thread is tracing or
+    compiling.  Once a refit ends with the process above :data:`PARALLEL_RELEASE_ABOVE_MB`, no new refit starts until
+    those in flight end; the last of them releases the programs, and the refits go on.  (Holding every
+    program until the step's last refit measured 1,467 MB peak on the shipped example, against 778 MB one
+    refit after another.)"""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._in = 0
+        self._drain = False
+
+    def enter(self) -> None:
+        with self._cond:
+            while self._drain:
+                self._cond.wait()
+            self._in += 1
+
+    def leave(self) -> None:
+        with self._cond:
+            self._in -= 1
+            if not self._drain:
+                mb = resident_mb()
+                self._drain = maps_near_limit() or (mb is not None and mb > PARALLEL_RELEASE_ABOVE_MB)
+            if self._drain and self._in == 0:
+                release_compiled(above_mb=RELEASE_ABOVE_MB)
+                self._drain = False
+                self._cond.notify_all()
+
+
 class FrameProblem:
     """The frame/table diagnosis as a :class:`~brdfjax.diagnose.search.SearchProblem`.
 
@@ -187,10 +246,10 @@ class FrameProblem:
 
     def __init__(self, base: _State, names: list[str], library: Mapping[str, Any], params0: Mapping[str, Any],
                  zones: Any, has_tables: bool, *, fresh: bool, presence: bool, noise: float | None,
-                 bic_threshold: float, say: Any):
+                 bic_threshold: float, say: Any, workers: int = 1):
         self._base, self._names, self._lib, self._params0 = base, list(names), library, params0
         self._zones, self._tables, self._fresh, self._presence = zones, has_tables, fresh, presence
-        self._noise, self._T, self._say = noise, bic_threshold, say
+        self._noise, self._T, self._say, self._workers = noise, bic_threshold, say, max(int(workers), 1)
         self._checks: dict[tuple[frozenset, str], Candidate] = {}
         self._starts: dict[frozenset, Any] = {}
         self._known: dict[frozenset, Trial] = {}
@@ -273,6 +332,59 @@ class FrameProblem:
             # the same set needs them) once they pass RELEASE_ABOVE_MB, so the memory stays that of a few refits,
             # not of every refit so far
             release_compiled(above_mb=RELEASE_ABOVE_MB)
+
+    def refit_many(self, requests: Sequence[tuple[tuple[str, ...], Trial | None]],
+                   labels: Sequence[str] | None = None) -> list[Trial]:
+        """The refits of ``requests`` (effects, warm start), in threads (``workers`` at a time), in their order.
+
+        Each refit is independent of the others (its own model, its own fit from its own warm start), so they
+        run side by side: much of a refit's time is XLA's compilation of the new model's programs, which runs
+        outside Python's lock.  What the refits share is prepared first, in this thread (the warm fits'
+        contexts, the fresh starts, the signature checks); compiled programs are released only while no refit
+        is in flight (:class:`_ReleaseGate`).  The numbers are those of the refits one after another
+        (``tests/diagnose/test_diagnose_engine.py`` compares them)."""
+        labels = list(labels) if labels is not None else [None] * len(requests)
+        if self._workers <= 1 or len(requests) <= 1:
+            out = []
+            for (effects, warm), label in zip(requests, labels):
+                if label:
+                    self._say(label)
+                out.append(self.refit(effects, warm))
+            return out
+        for effects, warm in requests:
+            w = warm if warm is not None and warm.ok else self.base_trial
+            st = self._ctx(w.state.state)
+            add = [e for e in effects if e not in w.effects]
+            if len(add) == 1 and not [e for e in w.effects if e not in effects]:
+                known = self._known.get(_key(st.effects))
+                if known is not None and known.state is not None and known.state.state is st:
+                    self.check(st.effects, add[0])
+                if self._fresh:
+                    self._start(st)
+        gate = _ReleaseGate()
+
+        def one(i: int) -> Trial:
+            gate.enter()
+            try:
+                if labels[i]:
+                    self._say(labels[i])
+                effects, warm = requests[i]
+                return self._refit(effects, warm)
+            finally:
+                gate.leave()
+
+        known = set(self._known)
+        with ThreadPoolExecutor(max_workers=min(self._workers, len(requests)), thread_name_prefix="brdfjax-refit") as pool:
+            out = list(pool.map(one, range(len(requests))))
+        release_compiled(above_mb=RELEASE_ABOVE_MB)
+        # a set first fitted here is known by its first fit in the requests' order (not the first to finish),
+        # as one refit after another would leave it
+        for t in out:
+            k = _key(t.effects)
+            if t.ok and k not in known:
+                self._known[k] = t
+                known.add(k)
+        return out
 
     def _refit(self, effects: tuple[str, ...], warm: Trial | None) -> Trial:
         warm = warm if warm is not None and warm.ok else self.base_trial
@@ -511,6 +623,7 @@ def diagnose(
     noise_stop: bool = True,
     library: Mapping[str, Any] | None = None,
     progress: Any = None,
+    workers: int | None = None,
     path_pool: int | None = None,
     refit_top: int | None = None,
 ) -> Diagnosis:
@@ -529,7 +642,9 @@ def diagnose(
     (default False: the signature orders the refits and is reported, it never excludes); ``noise_stop``: stop
     once the reduced chi^2 is within one standard deviation of the noise's (``1 + sqrt(2/dof)``,
     :data:`~brdfjax.diagnose.refits.STOP_SIGMAS`; data with sigma only); ``library``: the
-    effect library; ``progress``: a callable taking a message string.  ``path_pool`` and ``refit_top`` belonged
+    effect library; ``progress``: a callable taking a message string; ``workers``: how many of a step's
+    independent refits (its singles, its pairs) run at once, in threads (default :func:`default_workers`: half
+    the cores this process may use, at most :data:`MAX_WORKERS`; 1: one after another; the numbers are the same).  ``path_pool`` and ``refit_top`` belonged
     to the earlier greedy path and are refused (every candidate is refitted at every step now).
     """
     t_start = time.perf_counter()
@@ -552,6 +667,10 @@ def diagnose(
         raise DiagnoseInputError(f"fresh_top must be a non-negative integer, got {fresh_top!r}")
     if not (isinstance(pair_top, int) and pair_top >= 1):
         raise DiagnoseInputError(f"pair_top must be a positive integer, got {pair_top!r}")
+    if workers is None:
+        workers = default_workers()
+    if not (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1):
+        raise DiagnoseInputError(f"workers must be a positive integer, got {workers!r}")
     has_tables = any(isinstance(b, TableData) for b in blocks)
     notes: list[str] = []
 
@@ -581,7 +700,7 @@ def diagnose(
     noise = _noise_level(base_gap, blocks, STOP_SIGMAS) if noise_stop else None
     consistent = _noise_level(base_gap, blocks)  # what pure noise stays below (3 sigma): the final fit's verdict
     problem = FrameProblem(base, names, library, params, zones, has_tables, fresh=fresh_top > 0, presence=presence,
-                           noise=noise, bic_threshold=bic_threshold, say=say)
+                           noise=noise, bic_threshold=bic_threshold, say=say, workers=workers)
     base_trial = problem.base()
     # the search's moves update which fit a set's applicability is judged on
     real_polish = problem.polish
@@ -698,6 +817,7 @@ def diagnose(
                       "backward elimination with the same threshold",
             "pair_top": pair_top,
             "fresh_top": fresh_top,
+            "workers": workers,
             "presence_threshold": presence,
             "noise_stop": noise_stop,
             "bic_threshold": bic_threshold,

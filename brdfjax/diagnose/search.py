@@ -104,7 +104,9 @@ class SearchProblem(Protocol):
     not yet, rule 2's pairs widen; None: it cannot tell), ``order(current:
     Trial, effects: list[str]) -> list[str]`` (the order in which to refit, e.g. by a residual signature; it
     must return every effect it is given), ``polish(trial: Trial) -> Trial`` (a committed set refitted once
-    more, e.g. from fresh starts; it returns the better of the two).
+    more, e.g. from fresh starts; it returns the better of the two), ``refit_many(requests, labels) ->
+    list[Trial]`` (the refits of several (effects, warm) requests, e.g. side by side; the same trials, in order,
+    as ``refit`` one after another; ``labels``: a progress message per request, said as each starts).
     """
 
     def candidates(self) -> list[str]: ...
@@ -178,14 +180,23 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
         taken out) is refitted from that fit as well and the better of the two kept: a set first fitted from a
         smaller one can sit in a poorer optimum than the larger fit leads to (measured on the shipped example:
         diffraction alone 5044 from the base, 1.02 from diffraction + floor with the floor taken out)."""
+        if cached(effects, warm, refresh):
+            return cache[_key(effects)]
+        if refresh and warm is not None:
+            refreshed.add((_key(effects), id(warm)))
+        return record(effects, problem.refit(tuple(effects), warm))
+
+    def cached(effects: tuple[str, ...], warm: Trial | None, refresh: bool) -> bool:
+        """Whether ``fit(effects, warm, refresh)`` answers from the cache, without a refit."""
         k = _key(effects)
         if k in cache and not (refresh and warm is not None and k != _key(warm.effects) and k != _key(())):
-            return cache[k]
-        if refresh and warm is not None:
-            if k in cache and (k, id(warm)) in refreshed:
-                return cache[k]  # refitted from this very fit already (rules 3 and 4 ask for the same refit)
-            refreshed.add((k, id(warm)))
-        t = problem.refit(tuple(effects), warm)
+            return True
+        # refitted from this very fit already (rules 3 and 4 ask for the same refit)
+        return bool(refresh and warm is not None and k in cache and (k, id(warm)) in refreshed)
+
+    def record(effects: tuple[str, ...], t: Trial) -> Trial:
+        """``t`` (the refit of ``effects``) recorded and cached: the set's better fit is returned."""
+        k = _key(effects)
         trials.append(t)
         if t.ok:
             first.setdefault(k, t)
@@ -196,6 +207,31 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
         if not t.ok:
             say(f"refit of {' + '.join(effects) or 'the base'} failed: {t.failure}")
         return t
+
+    refit_many = getattr(problem, "refit_many", None)
+
+    def fit_many(requests: list[tuple[tuple[str, ...], Trial | None, str]], refresh: bool = False) -> list[Trial]:
+        """``fit(effects, warm, refresh)`` of each (effects, warm, progress message), in the order given: the
+        refits not cached run by the problem's ``refit_many`` (side by side) where it has one, and are recorded
+        in the order given, as one ``fit`` after another would record them."""
+        todo: dict[tuple, tuple[tuple[str, ...], Trial | None, str]] = {}
+        for effects, warm, msg in requests:
+            ident = (_key(effects), id(warm) if refresh else None)
+            if ident not in todo and not cached(effects, warm, refresh):
+                todo[ident] = (tuple(effects), warm, msg)
+        run = list(todo.values())
+        if refit_many is not None and len(run) > 1:
+            done = list(refit_many([(e, w) for e, w, _m in run], [m for _e, _w, m in run]))
+        else:
+            done = []
+            for e, w, m in run:
+                say(m)
+                done.append(problem.refit(e, w))
+        for (e, w, _m), t in zip(run, done):
+            if refresh and w is not None:
+                refreshed.add((_key(e), id(w)))
+            record(e, t)
+        return [fit(e, w, refresh) for e, w, _m in requests]
 
     base = problem.base()
     trials.append(base)
@@ -225,10 +261,8 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                 todo.append(c)
             if order is not None:
                 todo = list(order(cur, todo))
-            singles: list[Trial] = []
-            for i, c in enumerate(todo):
-                say(f"step {step}: refitting with {c} ({i + 1}/{len(todo)})")
-                singles.append(fit(cur.effects + (c,), cur))
+            singles = fit_many([(cur.effects + (c,), cur, f"step {step}: refitting with {c} ({i + 1}/{len(todo)})")
+                                for i, c in enumerate(todo)])
             singles_by_step.append(singles)
 
             def gain(t: Trial, cur: Trial = cur) -> float:
@@ -261,7 +295,7 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
             pairs: list[Trial] = []
             pair_info: list[tuple[Trial, Trial, Trial]] = []
             step_notes: list[str] = []
-            _fit_pairs(pair_list, cur, step, new_of, gain, applicable, fit, say, pairs, pair_info, step_notes)
+            _fit_pairs(pair_list, cur, step, new_of, gain, applicable, fit_many, pairs, pair_info, step_notes)
             tried = {frozenset((id(p), id(q))) for p, q in pair_list}
             wide = [(best1, t) for t in adm[1:] if frozenset((id(best1), id(t))) not in tried]
             # 2b. where the step's best fit so far is not within the noise, the best single is also refitted beside
@@ -271,10 +305,10 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
             if verdict is False and wide:
                 say(f"step {step}: the best fit so far is not within the noise: {new_of[id(best1)]} refitted "
                     "beside every other admissible candidate")
-                _fit_pairs(wide, cur, step, new_of, gain, applicable, fit, say, pairs, pair_info, step_notes)
+                _fit_pairs(wide, cur, step, new_of, gain, applicable, fit_many, pairs, pair_info, step_notes)
                 wide = []
             # 3. a generic effect does not enter where a specific one explains its residual on the joint refit
-            blocked = _block_generic(problem, pair_info, new_of, cache, fit, T, step_notes)
+            blocked = _block_generic(problem, pair_info, new_of, cache, fit, fit_many, T, step_notes)
             options, option_notes = _options(problem, adm, pair_info, new_of, blocked, cache, gain, T, fit, visited)
             if verdict and wide and options and len(max(options, key=lambda o: o[0])[1]) == 2:
                 # 2c. the move about to be committed is a pair (within the noise): its second member was chosen
@@ -282,8 +316,8 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                 say(f"step {step}: a pair would enter: {new_of[id(best1)]} refitted beside every other "
                     "admissible candidate")
                 n_done = len(pair_info)
-                _fit_pairs(wide, cur, step, new_of, gain, applicable, fit, say, pairs, pair_info, step_notes)
-                blocked |= _block_generic(problem, pair_info[n_done:], new_of, cache, fit, T, step_notes)
+                _fit_pairs(wide, cur, step, new_of, gain, applicable, fit_many, pairs, pair_info, step_notes)
+                blocked |= _block_generic(problem, pair_info[n_done:], new_of, cache, fit, fit_many, T, step_notes)
                 options, option_notes = _options(problem, adm, pair_info, new_of, blocked, cache, gain, T, fit,
                                                  visited)
             pairs_by_step.append(pairs)
@@ -467,10 +501,11 @@ def _pair_removal(cur: Trial, costs: list[tuple[float, str, Trial]], T: float, c
 
 def _fit_pairs(batch: list[tuple[Trial, Trial]], cur: Trial, step: int, new_of: dict[int, str],
                gain: Callable[[Trial], float], applicable: Callable[..., str | None] | None,
-               fit: Callable[..., Trial], say: Callable[[str], Any], pairs: list[Trial],
+               fit_many: Callable[..., list[Trial]], pairs: list[Trial],
                pair_info: list[tuple[Trial, Trial, Trial]], step_notes: list[str]) -> None:
     """Rule 2: each pair of ``batch`` refitted jointly, warm-started at its better member's single fit; appended
     to ``pairs`` and ``pair_info`` (a pair that cannot be combined is noted, not fitted)."""
+    todo, requests = [], []
     for p, q in batch:
         e_p, e_q = new_of[id(p)], new_of[id(q)]
         why_not = applicable is not None and (applicable(cur.effects + (e_p,), e_q)
@@ -480,17 +515,23 @@ def _fit_pairs(batch: list[tuple[Trial, Trial]], cur: Trial, step: int, new_of: 
             continue
         warm = p if gain(p) >= gain(q) else q
         other = e_q if warm is p else e_p
-        say(f"step {step}: refitting {e_p} and {e_q} jointly")
-        t = fit(warm.effects + (other,), warm)
+        todo.append((p, q))
+        requests.append((warm.effects + (other,), warm, f"step {step}: refitting {e_p} and {e_q} jointly"))
+    for (p, q), t in zip(todo, fit_many(requests)):
         pairs.append(t)
         pair_info.append((p, q, t))
 
 
 def _block_generic(problem: SearchProblem, pair_info: list[tuple[Trial, Trial, Trial]], new_of: dict[int, str],
-                   cache: dict[frozenset, Trial], fit: Callable[..., Trial], T: float,
+                   cache: dict[frozenset, Trial], fit: Callable[..., Trial], fit_many: Callable[..., list[Trial]],
+                   T: float,
                    step_notes: list[str]) -> set[str]:
     """Rule 3: the generic effects that may not enter, judged on the joint refits of ``pair_info``."""
     blocked: set[str] = set()
+    # the specific members refitted from their pairs (independent refits: side by side where the problem can)
+    fit_many([(s.effects, t, f"refitting {new_of[id(s)]} from its joint refit with {new_of[id(g)]}")
+              for p, q, t in pair_info if t.ok for g, s in ((p, q), (q, p))
+              if problem.generic(new_of[id(g)]) and not problem.generic(new_of[id(s)])], refresh=True)
     for p, q, t in pair_info:
         if not t.ok:
             continue

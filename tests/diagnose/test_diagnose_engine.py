@@ -573,3 +573,43 @@ def test_a_candidate_is_ranked_by_the_best_fit_of_its_set_the_search_found():
     assert top.note.startswith("ranked by its best fit, which the search reached from another start")
     assert "refitted from the base: 1.4e+07" in top.note
     assert cands["diffraction"].delta_bic == pytest.approx(base.bic - singles[0].bic)  # the single refit itself kept
+
+
+def test_refits_side_by_side_give_the_numbers_of_refits_one_after_another(monkeypatch):
+    """``workers``: a step's singles and pairs are refitted in threads; every trial (its set, BIC, reduced chi^2,
+    order) and the path are those of the refits one after another."""
+    import threading
+
+    from brdfjax.diagnose import DiagnoseInputError
+    from brdfjax.diagnose.engine import FrameProblem
+
+    names: list[str] = []
+    real = FrameProblem._refit
+
+    def refit(self, effects, warm):
+        names.append(threading.current_thread().name)
+        return real(self, effects, warm)
+
+    monkeypatch.setattr(FrameProblem, "_refit", refit)
+    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.3)})
+    table, _ = _table(truth, seed=11)
+    lib = {"lambertian": EFFECT_LIBRARY["lambertian"], "wide_lobe": _WideLobe(), "fixed_floor": _FixedFloor()}
+    docs = {}
+    for workers in (1, 2):
+        names.clear()
+        d = diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, max_steps=3,
+                     workers=workers)
+        docs[workers] = d.to_dict()
+        threaded = sum(n.startswith("brdfjax-refit") for n in names)
+        assert (threaded == 0) if workers == 1 else (threaded >= 3), (workers, names)
+    one, two = (docs[w]["settings"]["trials"] for w in (1, 2))
+    assert len(one) == len(two) >= 6
+    for a, b in zip(one, two):
+        assert (a["effects"], a["ok"]) == (b["effects"], b["ok"])
+        for k in ("bic", "chi2_reduced"):
+            assert (a[k] is None and b[k] is None) or a[k] == pytest.approx(b[k], rel=1e-9, abs=0.0), (a, b)
+    assert [(s["action"], s["effect"]) for s in docs[1]["path"]] == [(s["action"], s["effect"]) for s in docs[2]["path"]]
+    assert docs[1]["explained_by"] == docs[2]["explained_by"] == ["lambertian"]
+    assert docs[2]["settings"]["workers"] == 2
+    with pytest.raises(DiagnoseInputError, match="workers must be a positive integer, got 0"):
+        diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, workers=0)

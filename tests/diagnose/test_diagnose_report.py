@@ -106,7 +106,7 @@ def test_truth_outside_its_interval_is_a_warning():
     assert w.startswith("the truth of 'm1' (0.000196 1) lies +4.0 sigma")
 
 
-def test_candidate_progress_estimates_the_time_left_and_progress_lines_are_plain_off_a_terminal():
+def test_candidate_progress_estimates_the_time_left_and_progress_lines_are_plain_off_a_terminal(monkeypatch):
     import io
 
     from rich.console import Console
@@ -117,13 +117,18 @@ def test_candidate_progress_estimates_the_time_left_and_progress_lines_are_plain
     buf = io.StringIO()
     con = Console(file=buf, force_terminal=False, width=200)
     p = _CandidateProgress(con)
+    clock = iter([0.0, 10.0, 10.01, 14.0])  # base; two refits started together (a parallel step); a third 4 s on
+    monkeypatch.setattr("brdfjax.cli.diagnose.time.perf_counter", lambda: next(clock))
     p("fitting the base model")
-    p("step 1: refitting with diffraction (1/3, signature 4.72)")
-    p("step 1: refitting with lambertian (2/3, signature 363)")
+    p("step 1: refitting with diffraction (1/4, signature 4.72)")
+    p("step 1: refitting with lambertian (2/4, signature 363)")
+    p("step 1: refitting with misalignment (3/4, signature 2.5)")
     lines = buf.getvalue().splitlines()
-    assert lines[1] == "step 1: refitting with diffraction (1/3, signature 4.72)"  # nothing measured yet
-    assert lines[2].startswith("step 1: refitting with lambertian (2/3, signature 363); ~") and "s left in this step" in lines[2]
-    assert len(p.t_refits) == 1
+    assert lines[1] == "step 1: refitting with diffraction (1/4, signature 4.72)"  # nothing measured yet
+    assert lines[2] == "step 1: refitting with lambertian (2/4, signature 363)"  # started with the first: no interval
+    assert lines[3] == "step 1: refitting with misalignment (3/4, signature 2.5); ~8 s left in this step (a refit every 4 s)"
+    assert p.t_refits == pytest.approx([3.99])
+    monkeypatch.undo()  # (the clock patched is the time module's own)
     # plain lines off a terminal (no bar), each with the count and an estimate; nothing when quiet
     buf = io.StringIO()
     bar = ProgressLine(Console(file=buf, force_terminal=False), "reduce", 4, unit="sample(s)", min_interval_s=0.0)
