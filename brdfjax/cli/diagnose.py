@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -49,8 +50,13 @@ class _CandidateProgress:
         self.console = console
         self.t_refits: list[float] = []
         self._t_last: float | None = None
+        self._lock = threading.Lock()
 
     def __call__(self, msg: str) -> None:
+        with self._lock:  # refits side by side ([diagnose] workers) report from their own threads
+            self._say(msg)
+
+    def _say(self, msg: str) -> None:
         now = time.perf_counter()
         m = _REFIT.match(msg)
         if self._t_last is not None:

@@ -352,10 +352,8 @@ class FrameProblem:
                 out.append(self.refit(effects, warm))
             return out
         for effects, warm in requests:
-            w = warm if warm is not None and warm.ok else self.base_trial
-            st = self._ctx(w.state.state)
-            add = [e for e in effects if e not in w.effects]
-            if len(add) == 1 and not [e for e in w.effects if e not in effects]:
+            st, add, drop = self._start_of(effects, warm)
+            if len(add) == 1 and not drop:
                 known = self._known.get(_key(st.effects))
                 if known is not None and known.state is not None and known.state.state is st:
                     self.check(st.effects, add[0])
@@ -386,11 +384,16 @@ class FrameProblem:
                 known.add(k)
         return out
 
-    def _refit(self, effects: tuple[str, ...], warm: Trial | None) -> Trial:
+    def _start_of(self, effects: tuple[str, ...], warm: Trial | None) -> tuple[_State, list[str], list[str]]:
+        """Where the refit of ``effects`` from ``warm`` starts (the base where ``warm`` failed): the warm fit's
+        state (its context built), the effects to add and those to take out."""
         warm = warm if warm is not None and warm.ok else self.base_trial
-        st = self._ctx(warm.state.state)
         add = [e for e in effects if e not in warm.effects]
         drop = [e for e in warm.effects if e not in effects]
+        return self._ctx(warm.state.state), add, drop
+
+    def _refit(self, effects: tuple[str, ...], warm: Trial | None) -> Trial:
+        st, add, drop = self._start_of(effects, warm)
         try:
             for e in drop:
                 st = _without(st, e, self._base, self._lib)

@@ -613,3 +613,35 @@ def test_refits_side_by_side_give_the_numbers_of_refits_one_after_another(monkey
     assert docs[2]["settings"]["workers"] == 2
     with pytest.raises(DiagnoseInputError, match="workers must be a positive integer, got 0"):
         diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, workers=0)
+
+
+def test_the_release_gate_drops_programs_only_when_no_refit_is_in_flight(monkeypatch):
+    """Above the memory level a refit's end stops new refits from starting; the last one in flight releases the
+    compiled programs (never while another refit traces or compiles), then the refits go on."""
+    import threading
+
+    from brdfjax.diagnose import engine
+
+    released: list[int] = []
+    gate = engine._ReleaseGate()
+    monkeypatch.setattr(engine, "resident_mb", lambda: engine.PARALLEL_RELEASE_ABOVE_MB + 1.0)
+    monkeypatch.setattr(engine, "maps_near_limit", lambda: False)
+    monkeypatch.setattr(engine, "release_compiled", lambda **kw: released.append(gate._in) or True)
+    gate.enter()
+    gate.enter()  # two refits in flight
+    gate.leave()  # the first ends above the level: nothing released while the second runs
+    assert released == [] and gate._drain
+    started = threading.Event()
+
+    def third():
+        gate.enter()
+        started.set()
+        gate.leave()
+
+    t = threading.Thread(target=third)
+    t.start()
+    assert not started.wait(0.2)  # a new refit waits for the release
+    gate.leave()  # the last in flight ends: released with nothing in flight, and the waiting refit starts
+    assert started.wait(5.0)
+    t.join(5.0)
+    assert released[:2] == [0, 0] and not gate._drain and gate._in == 0
