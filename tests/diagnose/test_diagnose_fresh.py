@@ -46,3 +46,32 @@ def test_fresh_start_puts_diffraction_first_where_the_truth_has_no_floor(tmp_pat
     assert d.truth_gap["within_20pct"] and abs(d.truth_gap["final_over_truth"] - 1.0) <= 0.2
     assert "truth" in d.to_dict() and d.to_dict()["truth"]["final_over_truth"] == d.truth_gap["final_over_truth"]
     assert "truth's own reduced chi^2 on these frames" in d.summary()
+
+
+#: The NumPy reference's diffraction + floor trial of evaluation seed 9634 (``experiments/withheld_effects.py
+#: --generator reference``): bars of 300 sr^-1 and a floor of 29.4 sr^-1, both withheld from the base.
+TRUTH_FLOOR = {"a": 6.604981934504948e-4, "rho_s3": 300.0, "rho_s2": 0.7, "m1": 1.6002118443885288e-4,
+               "m2": 1.608970691462175e-4}
+
+
+def test_bars_spacing_found_beside_a_floor_the_base_lacks(tmp_path):
+    """The spacing grid scores each spacing with the data's floor level added to the base: without it, bars
+    whose fringe period exceeds the frame fill the floor as a flat band (measured on these frames: start
+    a = 6.26e-5 m for a true 6.60e-4, the refit ran a onto its bound and the candidate was refused)."""
+    from brdfjax.diagnose.effects import reference_frames
+
+    paths, _ = reference_frames(tmp_path, [35.53855151496669], phi_ref_deg=58.04240025980559, truth=TRUTH_FLOOR,
+                                floor=np.pi * 29.425873436258787, step=8, seed=798197552)
+    blocks = [read_frame_data(p, sigma="total") for p in paths]
+    model = bj.solar_cell()
+    base = bj.Model(terms={k: v for k, v in model.terms.items() if k != "bars"},
+                    aliases=tuple(a for a in model.aliases if not a[1].startswith("bars.")))
+    starts = {"m1": 1.4015e-4, "rho_s1": 0.011523, "m2": 1.4700e-4, "rho_s2": 0.83660}
+    d = diagnose(base, blocks, starts, effects=["diffraction"], max_steps=1, noise_stop=False)
+
+    top = d.ranking[0]
+    assert top.effect == "diffraction" and not top.flags, top.flags
+    a = top.parameters["bars.a"]
+    assert abs(a["initial"] / TRUTH_FLOOR["a"] - 1.0) < 0.02, a
+    assert abs(a["value"] / TRUTH_FLOOR["a"] - 1.0) < 0.02, a
+    assert d.explained_by == ["diffraction"]
