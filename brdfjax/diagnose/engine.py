@@ -417,7 +417,8 @@ class FrameProblem:
                 if started is not None:
                     fctx, moved = started
                     self._say(f"refitting with {e} from the fresh start as well (the fit moved far from its starts)")
-                    _refit_fresh(c, self._lib[e], fctx, moved, st, self._zones, gap0, self._T)
+                    _refit_fresh(c, self._lib[e], fctx, moved, st, self._zones, gap0, self._T,
+                                 lambda s, e=e, st=st: effect_flags(s, e, st, None))
             if c.status != "ranked" and self._fresh and len(add) == 1:
                 # the warm refit failed twice (warm start, second start): a third start, from the fresh starts,
                 # where the fit it extends moved far from them

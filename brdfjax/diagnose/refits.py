@@ -576,11 +576,17 @@ def _start_context(state: _State, params0: Mapping[str, Any], base_result: FitRe
 
 
 def _refit_fresh(c: Candidate, eff: Any, fctx: Any, moved: list[str], state: _State, zones: Mapping[str, list[np.ndarray]],
-                 state_gap: dict, bic_threshold: float) -> None:
+                 state_gap: dict, bic_threshold: float, flags_of: Callable[[_State], list[str]] | None = None) -> None:
     """``c`` refitted from the fresh start as well (the effect initialised on the fresh start's residual); the
     better refit is kept.
 
-    Kept when it ends lower than the warm refit by more than ``bic_threshold``; the candidate's signature is then
+    Kept when it ends lower than the warm refit by more than ``bic_threshold``, or, with ``flags_of`` (the
+    admission flags of the effect in a fitted state), when the warm refit's own terms are flagged (on a bound,
+    undetermined, dead) and the fresh one's are not while it still gains more than the threshold: a flagged
+    refit never enters, so its lower chi^2 says nothing about the effect.  (Measured on the NumPy reference with
+    diffraction and a floor withheld, seed 9639: the warm bars turned into a floor, band width c -> 1.6e14 m
+    without a sigma, chi^2 1.99e7, and were refused; the fresh bars ended unflagged at 5.14e7 against the
+    base's 2.2e8.)  The candidate's signature is then
     the stronger of the warm one and the one on the fresh start's residual (the evidence around the model its
     refit started from: measured on reference frames, diffraction withheld, 2.10 around the contaminated base
     optimum and 4.55 at the fresh start, whose bars refit reached the truth's structure at reduced chi^2 1.333
@@ -590,8 +596,21 @@ def _refit_fresh(c: Candidate, eff: Any, fctx: Any, moved: list[str], state: _St
     alt = Candidate(c.effect, c.title, "ranked")
     _refit_effect(alt, eff, fctx, state, zones, state_gap)
     warm_chi2 = c.gap_after.get("chi2", math.nan)
+    admissible_only = False
+    if alt.status == "ranked" and flags_of is not None and alt.delta_chi2 <= c.delta_chi2 + bic_threshold:
+        warm_flags = flags_of(c.state) if c.state is not None else []
+        if warm_flags and alt.state is not None and not flags_of(alt.state) and alt.delta_bic > bic_threshold:
+            admissible_only = True
+            why = "; ".join(warm_flags)[:200]
     if alt.status != "ranked":
         c.note += f"; the refit from the fresh start failed ({alt.note[:160]})"
+    elif admissible_only:
+        for f in ("n_new", "gap_after", "delta_chi2", "delta_bic", "parameters", "zones_after", "state"):
+            setattr(c, f, getattr(alt, f))
+        c.refit_start = "fresh"
+        c.note = (f"refitted from the fresh start (the fit had moved far: {', '.join(moved[:3])}): chi2 "
+                  f"{alt.gap_after['chi2']:.6g}, above the warm refit's {warm_chi2:.6g}, kept because the warm "
+                  f"refit's own terms are flagged ({why}) and these are not; {alt.note}")
     elif alt.delta_chi2 > c.delta_chi2 + bic_threshold:
         sig = ""
         try:
