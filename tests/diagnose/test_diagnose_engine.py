@@ -645,3 +645,43 @@ def test_the_release_gate_drops_programs_only_when_no_refit_is_in_flight(monkeyp
     assert started.wait(5.0)
     t.join(5.0)
     assert released[:2] == [0, 0] and not gate._drain and gate._in == 0
+
+
+def _fake_fresh_refit(monkeypatch, delta_chi2, delta_bic):
+    """``_refit_effect`` replaced by one that gives the refit from the fresh start these gains and a state."""
+    from brdfjax.diagnose import refits
+
+    def fake(alt, eff, ctx, state, zones, gap):
+        alt.delta_chi2, alt.delta_bic, alt.state = delta_chi2, delta_bic, "fresh state"
+        alt.gap_after, alt.parameters, alt.note = {"chi2": 5.0e7}, {"bars.a": {"value": 8.2e-4}}, "fresh bars"
+
+    monkeypatch.setattr(refits, "_refit_effect", fake)
+    return refits
+
+
+def test_a_fresh_refit_is_kept_over_a_lower_warm_one_only_when_the_warm_ones_own_terms_are_flagged(monkeypatch):
+    from brdfjax.diagnose.results import Candidate
+
+    refits = _fake_fresh_refit(monkeypatch, delta_chi2=1.6e8, delta_bic=1.6e8)
+    flags = {"warm state": ["its parameter bars.c is not determined by the data (no finite sigma)"], "fresh state": []}
+
+    def warm():
+        return Candidate("diffraction", "bars", "ranked", delta_chi2=1.9e8, delta_bic=1.9e8, state="warm state",
+                         gap_after={"chi2": 2.0e7})
+
+    c = warm()
+    refits._refit_fresh(c, None, None, ["m1 1e-4 -> 9e-4"], None, {}, {}, 10.0, flags_of=flags.get)
+    assert c.refit_start == "fresh" and c.state == "fresh state" and c.delta_bic == 1.6e8
+    assert "kept because the warm refit's own terms are flagged" in c.note and "bars.c" in c.note
+    # without the flags (or with both flagged) the lower warm refit stays, as before
+    c = warm()
+    refits._refit_fresh(c, None, None, ["m1"], None, {}, {}, 10.0)
+    assert c.refit_start == "warm" and c.state == "warm state" and "warm 2e+07, kept" in c.note
+    c = warm()
+    refits._refit_fresh(c, None, None, ["m1"], None, {}, {}, 10.0, flags_of=lambda s: ["on its bound"])
+    assert c.refit_start == "warm" and c.state == "warm state"
+    # a fresh refit that gains no more than the threshold is not kept, flagged warm or not
+    refits = _fake_fresh_refit(monkeypatch, delta_chi2=5.0, delta_bic=5.0)
+    c = warm()
+    refits._refit_fresh(c, None, None, ["m1"], None, {}, {}, 10.0, flags_of=flags.get)
+    assert c.refit_start == "warm" and c.state == "warm state"
