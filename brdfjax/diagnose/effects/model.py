@@ -206,10 +206,16 @@ class DiffractionEffect(Effect):
                 hx, hy = self._rot(c, psi)
                 sel = c["ok"]
                 u = hy[sel] * 2 * c["ci"] / c["wl"]
-                B = np.cos(np.pi * a_values[:, None] * u[None, :]) ** 2 * np.exp(-((distance * hx[sel] / c0) ** 2))[None, :]
-                m = (c["f"][sel] + kappa)[None, None, :] + rhos[:, None, None] * B[None, :, :]
-                res = (np.log(np.maximum(m, 1e-300)) - np.log(c["d"][sel])[None, None, :]) / c["s"][sel][None, None, :]
-                tot += np.sum(np.minimum(res**2, 1e4), axis=2)
+                band = np.exp(-((distance * hx[sel] / c0) ** 2))
+                f, ld, s = c["f"][sel] + kappa, np.log(c["d"][sel]), c["s"][sel]
+                # spacings in chunks: the (rho, spacing, pixel) array of all 240 spacings held 0.7 GB on frames of
+                # 14,641 pixels; a chunk's sums are the same numbers
+                step = max(1, int(2e7 // max(len(rhos) * f.size, 1)))
+                for j in range(0, len(a_values), step):
+                    B = np.cos(np.pi * a_values[j:j + step, None] * u[None, :]) ** 2 * band[None, :]
+                    m = f[None, None, :] + rhos[:, None, None] * B[None, :, :]
+                    res = (np.log(np.maximum(m, 1e-300)) - ld[None, None, :]) / s[None, None, :]
+                    tot[:, j:j + step] += np.sum(np.minimum(res**2, 1e4), axis=2)
             best = np.minimum(best, tot)
         i = np.argmin(best, axis=0)
         return [(float(best[i[j], j]), float(a_values[j]), float(rhos[i[j]])) for j in range(len(a_values))]
