@@ -685,3 +685,46 @@ def test_a_fresh_refit_is_kept_over_a_lower_warm_one_only_when_the_warm_ones_own
     c = warm()
     refits._refit_fresh(c, None, None, ["m1"], None, {}, {}, 10.0, flags_of=flags.get)
     assert c.refit_start == "warm" and c.state == "warm state"
+
+
+def test_a_data_side_change_whose_retry_converges_above_the_model_is_rejected_not_failed(monkeypatch):
+    """A fixed data-side change (a footprint at its scanned width: no free parameter of its own) cannot return
+    to the model it extends.  Its first attempt ran out of steps and a retry converged above the model: the data
+    reject it (ranked with its negative gain), as when the first attempt converges there; not a failed refit.
+    Where no attempt converges it stays failed."""
+    import types
+
+    from brdfjax.diagnose import refits
+    from brdfjax.diagnose.results import Candidate
+
+    def fit_state(chi2, converged):
+        return types.SimpleNamespace(result=types.SimpleNamespace(chi2=chi2, converged=converged, parameters={},
+                                                                  message="converged" if converged else "max_steps"),
+                                     blocks=[], starts={}, params={})
+
+    def run(outcomes):
+        fits = iter(outcomes)
+        monkeypatch.setattr(refits, "_fit_state", lambda *a, **k: next(fits))
+        monkeypatch.setattr(refits, "gap_measures", lambda r: {"chi2": r.chi2, "bic": r.chi2 + 10.0})
+        monkeypatch.setattr(refits, "_revive", lambda new, state, attempt, gap: (new, ""))
+        monkeypatch.setattr(refits, "_zone_stats", lambda *a: {})
+        monkeypatch.setattr(refits, "residual_maps", lambda *a: None)
+        monkeypatch.setattr(refits, "_near_null_start", lambda *a: None)  # a footprint has no strength of its own
+        model = types.SimpleNamespace(terms={"center": object()})
+        ext = types.SimpleNamespace(model=model, blocks=["blurred"], fit_kwargs={}, params={}, n_new=0,
+                                    note="footprint 0.357 grid pixels")
+        eff = types.SimpleNamespace(side="instrument", nested=True, extend=lambda ctx: ext)
+        state = types.SimpleNamespace(blocks=["frame"], fit_kwargs={}, params={}, effects=("diffraction",),
+                                      starts={}, added_terms={}, model=model)
+        c = Candidate("instrument_function", "footprint", "ranked")
+        return refits._refit_effect(c, eff, types.SimpleNamespace(model=model), state, {},
+                                    {"chi2": 192.5, "bic": 202.5})
+
+    # out of steps, then converged above the model without the first stage, then out of steps again
+    c = run([fit_state(4421.96, False), fit_state(4421.82, True), fit_state(158223.0, False)])
+    assert c.status == "ranked" and c.retried
+    assert c.note.startswith("the data reject it: retried") and "no free parameter of its own" in c.note
+    assert c.delta_chi2 == pytest.approx(192.5 - 4421.82)
+    # no attempt converged: failed, as before
+    c = run([fit_state(4421.96, False), fit_state(4421.9, False), fit_state(158223.0, False)])
+    assert c.status == "failed" and "retried without the first stage" in c.note
