@@ -362,6 +362,8 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     rejected = ""
     fixed_data_side = ext.blocks is not None and not any(as_param(k, v).free for k, v in new_params.items())
     swap = not getattr(eff, "nested", True)
+    rejects = ("replaces (a swap, not an extension)" if swap else
+               "extends, and no free parameter of its own can take it back to its null")
     if (why is not None and err is None and (fixed_data_side or swap) and new.result.converged
             and math.isfinite(float(new.result.chi2))):
         # the refit cannot return to the model it extends: a data-side change with no free parameter of its own
@@ -369,9 +371,7 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
         # it (a distribution family).  A converged refit above that model is the data rejecting the effect, not
         # a failed refit: ranked with its negative gain.  (Measured: in every benchmark file of the project these
         # two were most of the "failed" refits, converged and above the base.)
-        why, rejected = None, ("the data reject it: the converged refit ends above the model it "
-                               + ("replaces (a swap, not an extension); " if swap else
-                                  "extends, and no free parameter of its own can take it back to its null; "))
+        why, rejected = None, f"the data reject it: the converged refit ends above the model it {rejects}; "
     if why is not None:
         opts = dict(kw.get("solver_options") or {})
         solver = kw.get("solver", "levenberg_marquardt")
@@ -414,10 +414,8 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
             ext_note = f"retried, converged {how} (the first {why[:200]}); {ext.note}"
             new, why = new2, None
         elif back is None and converged:
-            ext_note = ("the data reject it: retried, the converged refit ends above the model it "
-                        + ("replaces (a swap, not an extension)" if swap else
-                           "extends, and no free parameter of its own can take it back to its null")
-                        + f" (the first {why[:200]}); {ext.note}")
+            ext_note = (f"the data reject it: retried, the converged refit ends above the model it {rejects} "
+                        f"(the first {why[:200]}); {ext.note}")
             new, why = min(converged, key=lambda x: float(x.result.chi2)), None
         elif back is not None:
             # every start came back to the model it extends (within AT_BASE_CHI2) without converging: the effect
@@ -591,6 +589,13 @@ def _start_context(state: _State, params0: Mapping[str, Any], base_result: FitRe
     return ctx, moved
 
 
+def _take_fresh(c: Candidate, alt: Candidate) -> None:
+    """The refit from the fresh start ``alt`` becomes ``c``'s refit (its gains, parameters, zones and state)."""
+    for f in ("n_new", "gap_after", "delta_chi2", "delta_bic", "parameters", "zones_after", "state"):
+        setattr(c, f, getattr(alt, f))
+    c.refit_start = "fresh"
+
+
 def _refit_fresh(c: Candidate, eff: Any, fctx: Any, moved: list[str], state: _State, zones: Mapping[str, list[np.ndarray]],
                  state_gap: dict, bic_threshold: float, flags_of: Callable[[_State], list[str]] | None = None) -> None:
     """``c`` refitted from the fresh start as well (the effect initialised on the fresh start's residual); the
@@ -621,9 +626,7 @@ def _refit_fresh(c: Candidate, eff: Any, fctx: Any, moved: list[str], state: _St
     if alt.status != "ranked":
         c.note += f"; the refit from the fresh start failed ({alt.note[:160]})"
     elif admissible_only:
-        for f in ("n_new", "gap_after", "delta_chi2", "delta_bic", "parameters", "zones_after", "state"):
-            setattr(c, f, getattr(alt, f))
-        c.refit_start = "fresh"
+        _take_fresh(c, alt)
         c.note = (f"refitted from the fresh start (the fit had moved far: {', '.join(moved[:3])}): chi2 "
                   f"{alt.gap_after['chi2']:.6g}, above the warm refit's {warm_chi2:.6g}, kept because the warm "
                   f"refit's own terms are flagged ({why}) and these are not; {alt.note}")
@@ -638,9 +641,7 @@ def _refit_fresh(c: Candidate, eff: Any, fctx: Any, moved: list[str], state: _St
                 sig = f"; its signature at the fresh start {s.score:.3g}"
         except Exception:  # noqa: BLE001 - the warm signature stands
             pass
-        for f in ("n_new", "gap_after", "delta_chi2", "delta_bic", "parameters", "zones_after", "state"):
-            setattr(c, f, getattr(alt, f))
-        c.refit_start = "fresh"
+        _take_fresh(c, alt)
         c.note = (f"refitted from the fresh start (the fit had moved far: {', '.join(moved[:3])}): chi2 "
                   f"{alt.gap_after['chi2']:.6g} below the warm refit's {warm_chi2:.6g}{sig}; {alt.note}")
     else:

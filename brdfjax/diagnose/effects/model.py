@@ -174,13 +174,12 @@ class DiffractionEffect(Effect):
             stat += np.abs(np.exp(1j * freq * hy[sel][None, :]) @ gv) ** 2 / n
         return stat
 
-    @staticmethod
-    def _floor_level(cache, rot, psi, vm):
+    def _floor_level(self, cache, psi, vm):
         """The data's level above the model outside the band, ``median(d - f)`` over the pixels farther than
         3 half-widths from it, clipped at 0 (sr^-1): the floor a spacing grid must not fill with bars."""
         gaps = []
         for c in cache:
-            hx, _ = rot(c, psi)
+            hx, _ = self._rot(c, psi)
             out = c["ok"] & (np.abs(hx) > 3.0 * vm)
             gaps.append((c["d"] - c["f"])[out])
         gaps = np.concatenate(gaps) if gaps else np.zeros(0)
@@ -198,7 +197,7 @@ class DiffractionEffect(Effect):
         c0 = 0.8 * distance * vm
         rhos = np.geomspace(1e-2, 1e4, 25)
         a_values = np.asarray(a_values, float)
-        level = self._floor_level(cache, self._rot, psi, vm)
+        level = self._floor_level(cache, psi, vm)
         best = np.full((len(rhos), len(a_values)), np.inf)
         for kappa in (0.0, level) if level > 0 else (0.0,):
             tot = np.zeros((len(rhos), len(a_values)))
