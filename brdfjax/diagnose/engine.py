@@ -644,6 +644,7 @@ def _specific_first(ranked: list[Candidate], before: Trial, best_of: Mapping[fro
         return ranked
     need.sort(key=lambda x: x[0])
     for _, c, beside in need:
+        c.ranked_by = "specific"
         c.note = (f"ranked before {g.effect} (generic, delta BIC {g.delta_bic:.4g}): on their joint refit "
                   f"{c.effect} still gains {beside:.4g} > {T:g} beside it, so the data require it whatever "
                   f"{g.effect} absorbs" + (f"; {c.note}" if c.note else ""))

@@ -73,10 +73,12 @@ def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
     out.append(
         (
             "Which: candidate effects ranked by BIC gain (decreases: positive = explains part of the gap); "
-            "a detection (an unresolved peak, marked 'detected') comes first by its own signature",
+            "a detection (an unresolved peak, marked 'detected') comes first by its own signature; a specific effect "
+            "that still gains more than the threshold beside the generic effect ranked first, on their joint refit, "
+            "is ranked before it (marked 'required')",
             ["rank", "effect", "delta BIC", "delta chi2", "new params", "chi2_reduced after", "signature score", "signature"],
             [
-                [str(i + 1) + (" (detected)" if c.ranked_by == "detection" else ""), c.effect, _f(c.delta_bic, ".1f"), _f(c.delta_chi2, ".1f"), str(c.n_new), _f(c.gap_after.get("chi2_reduced")),
+                [str(i + 1) + {"detection": " (detected)", "specific": " (required)"}.get(c.ranked_by, ""), c.effect, _f(c.delta_bic, ".1f"), _f(c.delta_chi2, ".1f"), str(c.n_new), _f(c.gap_after.get("chi2_reduced")),
                  _f(c.signature.get("score"), ".3g"), str(c.signature.get("detail", ""))]
                 for i, c in enumerate(d.ranking)
             ],

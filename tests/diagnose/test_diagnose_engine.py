@@ -772,7 +772,9 @@ def test_a_specific_effect_required_beside_the_leading_generic_one_is_ranked_bef
     beside = lobe.bic - best_of[frozenset(("second_lobe", "diffraction"))].bic
     assert top.note.startswith(f"ranked before second_lobe (generic, delta BIC {plain[0].delta_bic:.4g}): on "
                                f"their joint refit diffraction still gains {beside:.4g} > 10 beside it")
+    assert top.ranked_by == "specific" and top.to_dict()["ranked_by"] == "specific"
     assert "ranked before" not in ranked[2].note and "ranked before" not in ranked[3].note
+    assert [c.ranked_by for c in ranked[1:]] == ["delta_bic"] * 3
 
     # the joint refit missing, or the leading effect specific: the order stays the BIC order
     del best_of[frozenset(("second_lobe", "diffraction"))]
