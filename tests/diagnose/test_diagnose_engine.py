@@ -733,8 +733,9 @@ def test_a_data_side_change_whose_retry_converges_above_the_model_is_rejected_no
 def test_a_specific_effect_required_beside_the_leading_generic_one_is_ranked_before_it():
     """Diffraction and a floor withheld, the floor the larger part of the gap: a second lobe (generic) gains most
     alone, but on their joint refit diffraction still gains far more than the threshold beside it, so it is
-    ranked first; an offset peak that gains nothing beside the lobe, and a specific effect whose own terms are
-    flagged on the joint refit, keep their places; with no such pair the ranking is the BIC order."""
+    ranked first; a misalignment that also gains beside the lobe, but completes it less well, an offset peak
+    that gains nothing beside it, and a specific effect whose own terms are flagged on the joint refit keep
+    their places; with no such pair the ranking is the BIC order."""
     import types
 
     from brdfjax.diagnose.engine import _candidates_of, _Fitted, _specific_first
@@ -750,7 +751,7 @@ def test_a_specific_effect_required_beside_the_leading_generic_one_is_ranked_bef
     base = trial((), 2.0e5)
     singles, best_of = [], {}
     for e, m2ll in (("second_lobe", 5.0e4), ("diffraction", 9.0e4), ("offset_normal_peak", 1.2e5),
-                    ("stray_light", 1.5e5)):
+                    ("stray_light", 1.5e5), ("misalignment", 1.6e5)):
         c = Candidate(e, e, "ranked", signature={"score": 5.0}, delta_bic=0.0, gap_after={"chi2": m2ll})
         t = trial((e,), m2ll, c, k=5)
         singles.append(t)
@@ -761,23 +762,32 @@ def test_a_specific_effect_required_beside_the_leading_generic_one_is_ranked_bef
                                                                       5.0e4 - 5.0, k=7)
     best_of[frozenset(("second_lobe", "stray_light"))] = trial(("second_lobe", "stray_light"), 2.0e4, k=7,
                                                                flags={"stray_light": ["stray.w: dead"]})
+    # misalignment also gains far more than T beside the lobe, less than diffraction: only the best completion moves
+    best_of[frozenset(("second_lobe", "misalignment"))] = trial(("second_lobe", "misalignment"), 3.0e4, k=7)
     generic = {"second_lobe", "lambertian"}.__contains__
 
     plain, _ = _rank(_candidates_of(singles, base, best_of))
-    assert [c.effect for c in plain] == ["second_lobe", "diffraction", "offset_normal_peak", "stray_light"]
+    order = ["second_lobe", "diffraction", "offset_normal_peak", "stray_light", "misalignment"]
+    assert [c.effect for c in plain] == order
     ranked = _specific_first(plain, base, best_of, generic, 10.0)
-    assert [c.effect for c in ranked] == ["diffraction", "second_lobe", "offset_normal_peak", "stray_light"]
+    assert [c.effect for c in ranked] == ["diffraction", "second_lobe", "offset_normal_peak", "stray_light",
+                                          "misalignment"]
     top = ranked[0]
     assert top.delta_bic == pytest.approx(base.bic - best_of[frozenset(("diffraction",))].bic)  # gains unchanged
     beside = lobe.bic - best_of[frozenset(("second_lobe", "diffraction"))].bic
     assert top.note.startswith(f"ranked before second_lobe (generic, delta BIC {plain[0].delta_bic:.4g}): on "
                                f"their joint refit diffraction still gains {beside:.4g} > 10 beside it")
     assert top.ranked_by == "specific" and top.to_dict()["ranked_by"] == "specific"
-    assert "ranked before" not in ranked[2].note and "ranked before" not in ranked[3].note
-    assert [c.ranked_by for c in ranked[1:]] == ["delta_bic"] * 3
+    assert not any("ranked before" in c.note for c in ranked[1:])
+    assert [c.ranked_by for c in ranked[1:]] == ["delta_bic"] * 4
 
-    # the joint refit missing, or the leading effect specific: the order stays the BIC order
+    # without diffraction's joint refit the misalignment is the best completion; without either, or with the
+    # leading effect specific, the order stays the BIC order
     del best_of[frozenset(("second_lobe", "diffraction"))]
+    plain2, _ = _rank(_candidates_of(singles, base, best_of))
+    assert [c.effect for c in _specific_first(plain2, base, best_of, generic, 10.0)][:2] == \
+        ["misalignment", "second_lobe"]
+    del best_of[frozenset(("second_lobe", "misalignment"))]
     plain2, _ = _rank(_candidates_of(singles, base, best_of))
     assert [c.effect for c in _specific_first(plain2, base, best_of, generic, 10.0)] == [c.effect for c in plain2]
     assert [c.effect for c in _specific_first(plain2, base, best_of, lambda e: False, 10.0)] == \
