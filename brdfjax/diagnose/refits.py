@@ -348,9 +348,10 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     term_only = (bool(added) and ext.blocks is None and type(ext.model) is type(state.model)
                  and all(ext.model.terms.get(n) is t for n, t in old.items()))
 
-    def attempt(params: Mapping[str, Any], kwargs: Mapping[str, Any]) -> tuple[_State | None, str | None]:
+    def attempt(params: Mapping[str, Any], kwargs: Mapping[str, Any],
+                model: Any = None) -> tuple[_State | None, str | None]:
         try:
-            st = _fit_state(ext.model, blocks, params, kwargs, state.effects + (name,),
+            st = _fit_state(ext.model if model is None else model, blocks, params, kwargs, state.effects + (name,),
                             {**state.starts, name: {k: params[k] for k in new_params}},
                             {**state.added_terms, name: added if term_only else None})
         except Exception as e:  # noqa: BLE001 - one failing effect must not stop the diagnosis
@@ -431,9 +432,21 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
             return c
     else:
         ext_note = rejected + ext.note
-    revived, vnote = _revive(new, state, lambda p: attempt(p, kw), base_gap)
+    kept_model, kept_params = ext.model, ext.params  # the start whose refit is kept
+    for alt_model, alt_params, alt_note in ext.alternatives:
+        # another start of the effect (a near-tie of its start search): the lower converged refit is kept
+        alt, alt_err = attempt(alt_params, kw, alt_model)
+        if alt is not None and _refit_failure(alt, base_gap, alt_err) is None \
+                and float(alt.result.chi2) < float(new.result.chi2) - 1e-6 * max(abs(float(new.result.chi2)), 1.0):
+            ext_note = (f"refitted also from its second start ({alt_note}), kept: chi2 {float(alt.result.chi2):.6g} "
+                        f"below {float(new.result.chi2):.6g} from the first ({ext.note})")
+            new, kept_model, kept_params = alt, alt_model, alt_params
+        else:
+            got = f"chi2 {float(alt.result.chi2):.6g}" if alt is not None else (alt_err or "failed")[:120]
+            ext_note = f"{ext_note}; refitted also from its second start ({alt_note}): {got}, not lower"
+    revived, vnote = _revive(new, state, lambda p: attempt(p, kw, kept_model), base_gap)
     if revived is not new:  # the effect's own starts stay those of its extension (the fresh refits start there)
-        revived.starts = {**state.starts, name: {k: ext.params[k] for k in new_params}}
+        revived.starts = {**state.starts, name: {k: kept_params[k] for k in new_params}}
         new = revived
     if vnote:
         ext_note = f"{ext_note}; {vnote}"

@@ -63,6 +63,9 @@ class Extension:
     blocks: list | None = None
     fit_kwargs: dict = field(default_factory=dict)
     note: str = ""
+    #: other starts the refit also tries, ``(model, params, note)`` each: the refit of lowest chi^2 is kept
+    #: (an effect whose start search ends in a near-tie between distinct optima, e.g. a spacing and its alias)
+    alternatives: list = field(default_factory=list)
 
 
 @dataclass
