@@ -433,17 +433,30 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     else:
         ext_note = rejected + ext.note
     kept_model, kept_params = ext.model, ext.params  # the start whose refit is kept
-    for alt_model, alt_params, alt_note in ext.alternatives:
-        # another start of the effect (a near-tie of its start search): the lower converged refit is kept
+    alternatives = list(getattr(ext, "alternatives", ()))
+    if alternatives:
+        from .admission import effect_flags  # admission builds on this module's _State
+
+        def flagged(st: _State) -> bool:
+            return bool(effect_flags(st, name, state))
+
+    for alt_model, alt_params, alt_note in alternatives:
+        # another start of the effect (a near-tie of its start search): the better converged refit is kept, its
+        # own terms sound before a lower chi^2 (measured on the CLI's synthetic-CCD frames: the second start's
+        # bars ended lower, chi2 2.99e5 against 1.85e6, with the spacing on its bound and no sigma)
         alt, alt_err = attempt(alt_params, kw, alt_model)
-        if alt is not None and _refit_failure(alt, base_gap, alt_err) is None \
-                and float(alt.result.chi2) < float(new.result.chi2) - 1e-6 * max(abs(float(new.result.chi2)), 1.0):
+        ok = alt is not None and _refit_failure(alt, base_gap, alt_err) is None
+        f_alt, f_new = (flagged(alt), flagged(new)) if ok else (True, False)
+        lower = ok and float(alt.result.chi2) < float(new.result.chi2) - 1e-6 * max(abs(float(new.result.chi2)), 1.0)
+        if ok and (f_alt, not lower) < (f_new, True):  # sound before flagged, then the lower chi^2
             ext_note = (f"refitted also from its second start ({alt_note}), kept: chi2 {float(alt.result.chi2):.6g} "
-                        f"below {float(new.result.chi2):.6g} from the first ({ext.note})")
+                        f"against {float(new.result.chi2):.6g} from the first"
+                        + (", whose own terms are flagged" if f_new and not f_alt else "") + f" ({ext.note})")
             new, kept_model, kept_params = alt, alt_model, alt_params
         else:
             got = f"chi2 {float(alt.result.chi2):.6g}" if alt is not None else (alt_err or "failed")[:120]
-            ext_note = f"{ext_note}; refitted also from its second start ({alt_note}): {got}, not lower"
+            why_not = "its own terms flagged" if ok and f_alt and not f_new else "not lower"
+            ext_note = f"{ext_note}; refitted also from its second start ({alt_note}): {got}, {why_not}"
     revived, vnote = _revive(new, state, lambda p: attempt(p, kw, kept_model), base_gap)
     if revived is not new:  # the effect's own starts stay those of its extension (the fresh refits start there)
         revived.starts = {**state.starts, name: {k: kept_params[k] for k in new_params}}

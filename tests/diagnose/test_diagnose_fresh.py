@@ -119,5 +119,5 @@ def test_bars_of_a_spacing_the_grid_ties_with_its_alias_are_refitted_from_both()
     a = top.parameters["bars.a"]
     assert abs(a["value"] / truth_a - 1.0) < 0.02, a
     assert abs(a["initial"] / truth_a - 1.0) < 0.1, a
-    assert "refitted also from its second start" in top.note and ", kept: chi2" in top.note
+    assert "refitted also from its second start" in top.note and ", kept: chi2" in top.note and "against" in top.note
     assert top.gap_after["chi2_reduced"] < 160.0
