@@ -411,7 +411,8 @@ class FrameProblem:
             if c.status != "ranked":
                 return self._failed(effects, f"{e} cannot be added to {' + '.join(st.effects) or 'the base'}: {c.note}")
             gap0 = gap_measures(st.result)
-            _refit_effect(c, self._lib[e], st.ctx, st, self._zones, gap0)
+            _refit_effect(c, self._lib[e], st.ctx, st, self._zones, gap0,
+                          lambda s, e=e, st=st: effect_flags(s, e, st, None))
             if c.status == "ranked" and self._fresh and len(add) == 1:
                 started = self._start(st)
                 if started is not None:
@@ -427,7 +428,8 @@ class FrameProblem:
                     fctx, moved = started
                     self._say(f"the refit with {e} failed; refitting from the fresh start")
                     alt = Candidate(e, c.title, "ranked", signature=c.signature)
-                    _refit_effect(alt, self._lib[e], fctx, st, self._zones, gap0)
+                    _refit_effect(alt, self._lib[e], fctx, st, self._zones, gap0,
+                                  lambda s, e=e, st=st: effect_flags(s, e, st, None))
                     if alt.status == "ranked":
                         alt.refit_start, alt.retried = "fresh", True
                         alt.note = (f"the warm refit failed ({c.note[:240]}); refitted from the fresh start (the fit "

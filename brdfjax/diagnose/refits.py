@@ -316,7 +316,8 @@ def _revive(new: _State, state: _State, attempt: Callable[[Mapping[str, Any]], t
                   f"{float(new.result.chi2):.6g} -> {float(best.result.chi2):.6g}")
 
 
-def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mapping[str, list[np.ndarray]], base_gap: dict) -> Candidate:
+def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mapping[str, list[np.ndarray]], base_gap: dict,
+                  flags_of: Callable[[_State], list[str]] | None = None) -> Candidate:
     """The refit with the effect added (warm start); fills the candidate's gap, BIC and per-zone measures.
 
     A refit that raises, gives a non-finite chi^2 or ends above the model it
@@ -329,7 +330,9 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
     data take nothing from the effect and it is ranked with that gain
     (measured before the retry: ``pixel_nonlinearity`` 1.33e5 -> 8.4e5,
     ``distribution_shape`` 1.033 -> 248.7 and a Jacobian not finite at the
-    start, ``second_lobe`` out of steps).
+    start, ``second_lobe`` out of steps).  An extension's ``alternatives`` (other starts of the effect) are
+    refitted too and the better refit kept: one whose own terms are sound (``flags_of``: the admission flags of
+    the effect in a fitted state) before a flagged one, then the lower chi^2.
     """
     t0 = time.perf_counter()
     name = c.effect
@@ -434,11 +437,10 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
         ext_note = rejected + ext.note
     kept_model, kept_params = ext.model, ext.params  # the start whose refit is kept
     alternatives = list(getattr(ext, "alternatives", ()))
-    if alternatives:
-        from .admission import effect_flags  # admission builds on this module's _State
 
-        def flagged(st: _State) -> bool:
-            return bool(effect_flags(st, name, state))
+    def flagged(st: _State) -> bool:
+        """Whether the effect's own terms are flagged in ``st`` (``flags_of``: the admission test; None: never)."""
+        return bool(flags_of(st)) if flags_of is not None else False
 
     for alt_model, alt_params, alt_note in alternatives:
         # another start of the effect (a near-tie of its start search): the better converged refit is kept, its
@@ -641,7 +643,7 @@ def _refit_fresh(c: Candidate, eff: Any, fctx: Any, moved: list[str], state: _St
     """
     t0 = time.perf_counter()
     alt = Candidate(c.effect, c.title, "ranked")
-    _refit_effect(alt, eff, fctx, state, zones, state_gap)
+    _refit_effect(alt, eff, fctx, state, zones, state_gap, flags_of)
     warm_chi2 = c.gap_after.get("chi2", math.nan)
     admissible_only = False
     if alt.status == "ranked" and flags_of is not None and alt.delta_chi2 <= c.delta_chi2 + bic_threshold:

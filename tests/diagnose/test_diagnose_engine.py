@@ -651,7 +651,7 @@ def _fake_fresh_refit(monkeypatch, delta_chi2, delta_bic):
     """``_refit_effect`` replaced by one that gives the refit from the fresh start these gains and a state."""
     from brdfjax.diagnose import refits
 
-    def fake(alt, eff, ctx, state, zones, gap):
+    def fake(alt, eff, ctx, state, zones, gap, flags_of=None):
         alt.delta_chi2, alt.delta_bic, alt.state = delta_chi2, delta_bic, "fresh state"
         alt.gap_after, alt.parameters, alt.note = {"chi2": 5.0e7}, {"bars.a": {"value": 8.2e-4}}, "fresh bars"
 
