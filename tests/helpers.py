@@ -80,3 +80,14 @@ def write_config(folder: Path, text: str, name: str = "fit.toml", **fmt: object)
 def model_config(text: str) -> ModelConfig:
     """The ``[model]`` table of a TOML snippet (dedented), validated."""
     return ModelConfig.model_validate(tomllib.loads(textwrap.dedent(text))["model"])
+
+
+def withheld_module():
+    """``experiments/withheld_effects.py`` as a module (the benchmark script is not a package)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "withheld_effects.py"
+    spec = importlib.util.spec_from_file_location("withheld", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -411,15 +411,18 @@ class FrameProblem:
             if c.status != "ranked":
                 return self._failed(effects, f"{e} cannot be added to {' + '.join(st.effects) or 'the base'}: {c.note}")
             gap0 = gap_measures(st.result)
-            _refit_effect(c, self._lib[e], st.ctx, st, self._zones, gap0,
-                          lambda s, e=e, st=st: effect_flags(s, e, st, None))
+
+            def own_flags(s: _State, e: str = e, st: _State = st) -> list[str]:
+                """The admission flags of ``e``'s own terms in a refit ``s`` of ``st`` plus ``e``."""
+                return effect_flags(s, e, st, None)
+
+            _refit_effect(c, self._lib[e], st.ctx, st, self._zones, gap0, own_flags)
             if c.status == "ranked" and self._fresh and len(add) == 1:
                 started = self._start(st)
                 if started is not None:
                     fctx, moved = started
                     self._say(f"refitting with {e} from the fresh start as well (the fit moved far from its starts)")
-                    _refit_fresh(c, self._lib[e], fctx, moved, st, self._zones, gap0, self._T,
-                                 lambda s, e=e, st=st: effect_flags(s, e, st, None))
+                    _refit_fresh(c, self._lib[e], fctx, moved, st, self._zones, gap0, self._T, own_flags)
             if c.status != "ranked" and self._fresh and len(add) == 1:
                 # the warm refit failed twice (warm start, second start): a third start, from the fresh starts,
                 # where the fit it extends moved far from them
@@ -428,8 +431,7 @@ class FrameProblem:
                     fctx, moved = started
                     self._say(f"the refit with {e} failed; refitting from the fresh start")
                     alt = Candidate(e, c.title, "ranked", signature=c.signature)
-                    _refit_effect(alt, self._lib[e], fctx, st, self._zones, gap0,
-                                  lambda s, e=e, st=st: effect_flags(s, e, st, None))
+                    _refit_effect(alt, self._lib[e], fctx, st, self._zones, gap0, own_flags)
                     if alt.status == "ranked":
                         alt.refit_start, alt.retried = "fresh", True
                         alt.note = (f"the warm refit failed ({c.note[:240]}); refitted from the fresh start (the fit "
@@ -613,15 +615,19 @@ def _candidates_of(trials: list[Trial], before: Trial, best_of: Mapping[frozense
 
 def _specific_first(ranked: list[Candidate], before: Trial, best_of: Mapping[frozenset, Trial],
                     generic: Callable[[str], bool], T: float) -> list[Candidate]:
-    """The ranking with the specific effects that the data require beside a leading generic one moved before it.
+    """The ranking with the specific effect that the data require beside a leading generic one moved before it.
 
-    A generic effect (a floor, a second lobe, a distribution swap) ranked first takes, alone, what it absorbs of
-    every signature on top of its own; where a specific candidate S (admissible, gaining more than ``T`` alone)
-    still gains more than ``T`` beside the leading generic effect G on their joint refit (the best fit of
-    ``before + {G, S}`` the search found, S's own terms sound there), the data require S whatever G takes, and S
-    names the cause: the S whose joint fit with G is lowest (the one that best completes G) is ranked before G.  Measured before this rule on the withheld-effect benchmark (seeds 9608-9640): with
-    diffraction and a floor withheld a second lobe or a distribution swap ranked first in 4 of the 8 trials.  Gains stay those of the single refits; only the order moves,
-    and each moved candidate's note says why.  Candidates ranked by a detection stay first.
+    A generic effect G (a floor, a second lobe, a distribution swap) ranked first takes, alone, what it absorbs
+    of every signature on top of its own.  A specific candidate S (admissible, gaining more than ``T`` alone)
+    that still gains more than ``T`` beside G on their joint refit (the best fit of ``before + {G, S}`` the
+    search found, S's own terms sound there) is required by the data whatever G takes, and names the cause:
+    the S whose joint fit with G is lowest (the one that best completes G) is ranked before G.  Only that one:
+    where G alone is far from the data every specific effect gains more than ``T`` beside it (measured on the
+    NumPy reference, diffraction and a floor withheld, seed 9641: stray light and a misalignment, 7.6e6 and
+    2.0e5 alone, gained beside a second lobe too), and their order then says nothing their gains do not.
+    Measured on the withheld-effect benchmark, seeds 9608-9640: with diffraction and a floor withheld a second
+    lobe or a distribution swap ranked first in 4 of the 8 trials.  Gains stay those of the single refits; only
+    the order moves, and the moved candidate's note says why.  Candidates ranked by a detection stay first.
     """
     lead = [c for c in ranked if c.ranked_by == "detection"]
     rest = [c for c in ranked if c.ranked_by != "detection"]
@@ -631,30 +637,21 @@ def _specific_first(ranked: list[Candidate], before: Trial, best_of: Mapping[fro
     g_fit = best_of.get(_key(before.effects + (g.effect,)))
     if g_fit is None or not g_fit.ok:
         return ranked
-    need: list[tuple[float, Candidate, float]] = []
+    need: list[tuple[float, Candidate]] = []  # (the joint fit's BIC, S)
     for c in rest[1:]:
         if generic(c.effect) or c.flags or not c.delta_bic > T:
             continue
         pair = best_of.get(_key(before.effects + (g.effect, c.effect)))
-        if pair is None or not pair.ok or pair.own_flags([c.effect]):
-            continue
-        beside = g_fit.bic - pair.bic
-        if beside > T:
-            need.append((pair.bic, c, beside))
+        if pair is not None and pair.ok and not pair.own_flags([c.effect]) and g_fit.bic - pair.bic > T:
+            need.append((pair.bic, c))
     if not need:
         return ranked
-    # only the one that best completes G: where G alone is far from the data every specific effect gains more
-    # than T beside it (measured on the NumPy reference, diffraction and a floor withheld, seed 9641: stray
-    # light and a misalignment, 7.6e6 and 2.0e5 alone, gained beside a second lobe too), and their order
-    # then says nothing that their BIC gains do not
-    need = sorted(need, key=lambda x: x[0])[:1]
-    for _, c, beside in need:
-        c.ranked_by = "specific"
-        c.note = (f"ranked before {g.effect} (generic, delta BIC {g.delta_bic:.4g}): on their joint refit "
-                  f"{c.effect} still gains {beside:.4g} > {T:g} beside it, so the data require it whatever "
-                  f"{g.effect} absorbs" + (f"; {c.note}" if c.note else ""))
-    moved = {id(c) for _, c, _ in need}
-    return lead + [c for _, c, _ in need] + [c for c in rest if id(c) not in moved]
+    pair_bic, s = min(need, key=lambda x: x[0])
+    s.ranked_by = "specific"
+    s.note = (f"ranked before {g.effect} (generic, delta BIC {g.delta_bic:.4g}): on their joint refit "
+              f"{s.effect} still gains {g_fit.bic - pair_bic:.4g} > {T:g} beside it, so the data require it whatever "
+              f"{g.effect} absorbs" + (f"; {s.note}" if s.note else ""))
+    return lead + [s] + [c for c in rest if c is not s]
 
 
 def diagnose(

@@ -450,7 +450,7 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
         ok = alt is not None and _refit_failure(alt, base_gap, alt_err) is None
         f_alt, f_new = (flagged(alt), flagged(new)) if ok else (True, False)
         lower = ok and float(alt.result.chi2) < float(new.result.chi2) - 1e-6 * max(abs(float(new.result.chi2)), 1.0)
-        if ok and (f_alt, not lower) < (f_new, True):  # sound before flagged, then the lower chi^2
+        if ok and ((f_new and not f_alt) or (f_alt == f_new and lower)):  # sound before flagged, then chi^2
             ext_note = (f"refitted also from its second start ({alt_note}), kept: chi2 {float(alt.result.chi2):.6g} "
                         f"against {float(new.result.chi2):.6g} from the first"
                         + (", whose own terms are flagged" if f_new and not f_alt else "") + f" ({ext.note})")

@@ -9,7 +9,6 @@ Budget: measured 300 s at load average 9-12 on the shared 2-core box (not measur
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import re
@@ -18,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import withheld_module
 
 import brdfjax as bj
 from brdfjax.core.geometry import Directions
@@ -31,12 +31,6 @@ README = Path(__file__).resolve().parents[2] / "README.md"
 FORMATS = README.parent / "docs" / "reference" / "formats.md"
 
 
-def _withheld_module():
-    """``experiments/withheld_effects.py`` as a module (the benchmark script is not a package)."""
-    spec = importlib.util.spec_from_file_location("withheld", README.parent / "experiments" / "withheld_effects.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 LOBE = {"spec": Specular(bj.GGX(0.08), rho_s=1.0, n=1.5, **bj.SEED_FORM)}
 START = {"spec.alpha": 0.1, "spec.rho_s": 0.8}
@@ -273,7 +267,7 @@ def test_reference_withheld_diffraction_quick(tmp_path):
     """One small reference trial: diffraction withheld from the two-peak base, no floor in the truth."""
     import types
 
-    mod = _withheld_module()
+    mod = withheld_module()
     args = types.SimpleNamespace(seed=2026, step=16, max_steps=2, pair_top=3, verbose=False,
                                  candidates="diffraction,lambertian")
     (t,) = [t for t in mod.reference_trial_list(types.SimpleNamespace(quick=True, trials=1, effects="diffraction"))]
@@ -286,7 +280,7 @@ def test_reference_cases_withhold_what_they_name(tmp_path):
     """The reference benchmark's base lacks the withheld effect (a withheld offset peak was left in the base: the
     trial withheld nothing) and keeps what the truth has and nobody withholds."""
 
-    mod = _withheld_module()
+    mod = withheld_module()
     want = {"offset_normal_peak": ["center"], "lambertian": ["center", "offset"], "diffraction": ["center", "offset"]}
     for kind, terms in want.items():
         *_, base, starts, info = mod.reference_case(kind, np.random.default_rng(1), tmp_path / kind, 64, 1)
@@ -305,7 +299,7 @@ def test_benchmark_keeps_frame_invisible_effects_off_frames():
 
     from brdfjax.diagnose import effects as E
 
-    mod = _withheld_module()
+    mod = withheld_module()
     trials = mod.trial_list(types.SimpleNamespace(quick=False, trials=1, null=0, two=25, seed=2026), list(EFFECT_LIBRARY))
     two = [t["effects"] for t in trials if t["kind"] == "two"]
     assert len(two) == 25 and not any(e in mod.WIDE_TABLE or e in mod.TABLE_ONLY for p in two for e in p)
@@ -329,7 +323,7 @@ def test_benchmark_keeps_frame_invisible_effects_off_frames():
 def test_benchmark_output_keeps_the_trials_a_run_did_not_reach():
     """A resumed benchmark run that reruns or selects some trials keeps the other finished ones in its file."""
 
-    mod = _withheld_module()
+    mod = withheld_module()
     done = {"a": {"id": "a", "run": "old"}, "b": {"id": "b", "run": "old"}}
     assert mod._with_done([{"id": "a", "run": "new"}], done) == [{"id": "a", "run": "new"}, {"id": "b", "run": "old"}]
 
@@ -339,7 +333,7 @@ def test_benchmark_summary_of_shards_counts_a_shared_trial_once(tmp_path):
     trial seed)."""
     import json
 
-    mod = _withheld_module()
+    mod = withheld_module()
 
     def null(i, significant):
         return {"id": f"null:{i}", "kind": "null", "effects": [], "significant": significant, "wall_s": 1.0}

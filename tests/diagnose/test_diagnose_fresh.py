@@ -103,13 +103,10 @@ def test_bars_of_a_spacing_the_grid_ties_with_its_alias_are_refitted_from_both()
     spacing, 1.12e-3 m, beats the true 6.24e-4 m by 1 % in the grid's chi^2; refitted from both, the true one
     ends lower (measured: reduced chi^2 156.4 against 171.8) and is kept."""
     import argparse
-    import importlib.util
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "experiments" / "withheld_effects.py"
-    spec = importlib.util.spec_from_file_location("withheld", path)
-    W = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(W)
+    from helpers import withheld_module
+
+    W = withheld_module()
     args = argparse.Namespace(seed=9641, frames=2, step=16, path="render")
     sc, _, fitted, held, params, _ = W.trial_case({"id": "two:diffraction+lambertian:0",
                                                    "effects": ["diffraction", "lambertian"]}, args)
