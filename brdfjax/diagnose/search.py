@@ -50,6 +50,9 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    effects that stood in for one another hold each other in; recorded as two removals), the two cheapest pairs
    refined the same way first.
    An effect stays only if removing it costs more than T: the test it passed to enter.
+   5b. Where the set (two effects or more) is not within the noise, each of its effects is then started again
+   from the fit of the set without it (its start read from the residual the others leave) and the set refitted
+   from there; a fit lower by more than T replaces the set's, and the removals run again.
 6. Exchange among generic effects, after the elimination: each generic effect G of the set is replaced in turn
    by each generic candidate G' outside it (the set without G, plus G', refitted); the replacement of lowest
    BIC is made when it is admissible and its BIC is below the set's.  Generic effects stand in for one

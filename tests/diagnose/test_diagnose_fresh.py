@@ -118,3 +118,28 @@ def test_bars_of_a_spacing_the_grid_ties_with_its_alias_are_refitted_from_both()
     assert abs(a["initial"] / truth_a - 1.0) < 0.1, a
     assert "refitted also from its second start" in top.note and ", kept: chi2" in top.note and "against" in top.note
     assert top.gap_after["chi2_reduced"] < 160.0
+
+
+def test_the_bars_other_multiple_is_a_second_start_where_it_nearly_ties_on_the_grid():
+    """Library trial of seed 9644 (stray light and diffraction withheld; frames of 8 x 11 pixels): with the ghost
+    unmodelled a third of the true spacing (1.107e-3 m) wins the base's grid; the true multiple nearly ties there
+    and is kept as a second start (the search's restart from the ghost's fit then reaches it)."""
+    import argparse
+
+    from helpers import withheld_module
+
+    from brdfjax.diagnose.context import build_context
+    from brdfjax.diagnose.effects import EFFECT_LIBRARY
+    from brdfjax.fit import fit
+
+    W = withheld_module()
+    args = argparse.Namespace(seed=9644, frames=2, step=16, path="render")
+    sc, _, fitted, _, params, _ = W.trial_case({"id": "two:stray_light+diffraction:0",
+                                                "effects": ["stray_light", "diffraction"]}, args)
+    truth_a = float(sc.truth["bars.a"])
+    res = fit(sc.base_model, fitted, params)
+    ext = EFFECT_LIBRARY["diffraction"].extend(build_context(sc.base_model, params, res, fitted))
+    a_main = float(ext.params["bars.a"].value)
+    a_alt = [float(p["bars.a"].value) for _m, p, _n in ext.alternatives]
+    assert abs(3.0 * a_main / truth_a - 1.0) < 0.05, (a_main, truth_a)
+    assert any(abs(a / truth_a - 1.0) < 0.03 for a in a_alt), (a_alt, truth_a)
