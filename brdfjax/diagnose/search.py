@@ -672,6 +672,9 @@ def _exchange(problem: SearchProblem, cur: Trial, cands: list[str], visited: set
                 continue
             say(f"step {step}: exchanging {g} for {c}")
             t = fit(rest + (c,), cur)
+            if t.ok and t.bic < cur.bic and t.own_flags([c]) and moves:
+                moves[-1].notes.append(f"{g} exchanged for {c}: BIC {t.bic - cur.bic:+.4g}, not admitted "
+                                       f"({'; '.join(t.own_flags([c]))[:300]})")
             if t.ok and not t.own_flags([c]) and t.bic < cur.bic and (best is None or t.bic < best[0].bic):
                 best = (t, g, c, rest)
     if best is None:

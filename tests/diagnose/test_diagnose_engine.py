@@ -786,3 +786,27 @@ def test_a_specific_effect_required_beside_the_leading_generic_one_is_ranked_bef
     assert [c.effect for c in _specific_first(plain2, base, best_of, generic, 10.0)] == [c.effect for c in plain2]
     assert [c.effect for c in _specific_first(plain2, base, best_of, lambda e: False, 10.0)] == \
         [c.effect for c in plain2]
+
+
+def test_a_term_is_driven_to_zero_only_against_the_weight_its_fit_started_from():
+    """The admission flag "drives the term to zero" compares a weight with the smaller of its value in the fit
+    the effect extends and that fit's start: a fit that ran the weight off (reference seed 9645: rho_s1 to
+    4e296 from 0.015 with a second lobe dropped) did not give it that value."""
+    from types import SimpleNamespace
+
+    from brdfjax.diagnose.admission import effect_flags
+
+    def est(value, initial):
+        return SimpleNamespace(value=value, initial=initial, sigma=1e-4, unit="1", free=True)
+
+    def state(values, initials):
+        pars = {k: est(values[k], initials[k]) for k in values}
+        res = SimpleNamespace(free_names=list(pars), parameters=pars, value=lambda k: pars[k].value)
+        return SimpleNamespace(result=res, starts={}, params={}, added_terms={}, model=bj.solar_cell(), blocks=[])
+
+    after = state({"rho_s1": 0.015}, {"rho_s1": 0.014})
+    ran_off = state({"rho_s1": 4e296}, {"rho_s1": 0.015})
+    assert effect_flags(after, "lambertian", ran_off) == []
+    killed = state({"rho_s1": 1e-9}, {"rho_s1": 0.014})
+    sane = state({"rho_s1": 0.015}, {"rho_s1": 0.015})
+    assert effect_flags(killed, "lambertian", sane) == ["it drives the term 'center' to zero (rho_s1 0.015 -> 1e-09)"]
