@@ -121,7 +121,7 @@ def effect_flags(state: _State, effect: str, before: _State | None, presence_fla
             # diffraction and a floor withheld: the set without a second lobe refitted rho_s1 to 4e296 from 0.015,
             # and the floor exchanged for the lobe, 33 lower in BIC at 0.995, was flagged for "driving" it to 0.015)
             est0 = before.result.parameters[w]
-            v0, v1 = min(before.result.value(w), float(est0.initial)), res.value(w)
+            v0, v1 = min(float(est0.value), float(est0.initial)), res.value(w)
             if v0 > 0 and v1 < 1e-6 * v0:
                 out.append(f"it drives the term '{tname}' to zero ({w} {v0:.3g} -> {v1:.3g})")
     return list(dict.fromkeys(out))

@@ -398,10 +398,9 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
                                              "it needed to enter (the model refitted)"]))
                 # 5b. each effect of the set started again from the fit of the set without it
                 better, note = _restart_members(cur, cache, fit, within_noise, T, say, step)
-                if better is not cur:
-                    if _key(moves[-1].trial.effects) == _key(cur.effects):
-                        moves[-1].gain += cur.bic - better.bic
-                        moves[-1].trial = better
+                if better is not cur:  # the last move is the one that left ``cur``: it now leaves the better fit
+                    moves[-1].gain += cur.bic - better.bic
+                    moves[-1].trial = better
                     moves[-1].notes.append(note)
                     cur = better
                     continue  # the better fit may let an effect go: rule 5 again
