@@ -442,7 +442,11 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
         """Whether the effect's own terms are flagged in ``st`` (``flags_of``: the admission test; None: never)."""
         return bool(flags_of(st)) if flags_of is not None else False
 
-    for alt_model, alt_params, alt_note in alternatives:
+    ordinal = {2: "second", 3: "third", 4: "fourth", 5: "fifth"}
+    kept_at = "the first"  # which start the kept refit came from
+    parts = []  # what each further start gave, in the order tried (the first start's note stays first)
+    for i, (alt_model, alt_params, alt_note) in enumerate(alternatives, start=2):
+        nth = f"its {ordinal.get(i, f'{i}th')} start"
         # another start of the effect (a near-tie of its start search): the better converged refit is kept, its
         # own terms sound before a lower chi^2 (measured on the CLI's synthetic-CCD frames: the second start's
         # bars ended lower, chi2 2.99e5 against 1.85e6, with the spacing on its bound and no sigma)
@@ -451,14 +455,17 @@ def _refit_effect(c: Candidate, eff: Any, ctx: Any, state: _State, zones: Mappin
         f_alt, f_new = (flagged(alt), flagged(new)) if ok else (True, False)
         lower = ok and float(alt.result.chi2) < float(new.result.chi2) - 1e-6 * max(abs(float(new.result.chi2)), 1.0)
         if ok and ((f_new and not f_alt) or (f_alt == f_new and lower)):  # sound before flagged, then chi^2
-            ext_note = (f"refitted also from its second start ({alt_note}), kept: chi2 {float(alt.result.chi2):.6g} "
-                        f"against {float(new.result.chi2):.6g} from the first"
-                        + (", whose own terms are flagged" if f_new and not f_alt else "") + f" ({ext.note})")
+            parts.append(f"refitted also from {nth} ({alt_note}), kept: chi2 {float(alt.result.chi2):.6g} "
+                         f"against {float(new.result.chi2):.6g} from {kept_at}"
+                         + (", whose own terms are flagged" if f_new and not f_alt else ""))
             new, kept_model, kept_params = alt, alt_model, alt_params
+            kept_at = nth
         else:
             got = f"chi2 {float(alt.result.chi2):.6g}" if alt is not None else (alt_err or "failed")[:120]
             why_not = "its own terms flagged" if ok and f_alt and not f_new else "not lower"
-            ext_note = f"{ext_note}; refitted also from its second start ({alt_note}): {got}, {why_not}"
+            parts.append(f"refitted also from {nth} ({alt_note}): {got}, {why_not}")
+    if parts:
+        ext_note = "; ".join([ext_note, *parts])
     revived, vnote = _revive(new, state, lambda p: attempt(p, kw, kept_model), base_gap)
     if revived is not new:  # the effect's own starts stay those of its extension (the fresh refits start there)
         revived.starts = {**state.starts, name: {k: kept_params[k] for k in new_params}}
