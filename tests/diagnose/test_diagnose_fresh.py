@@ -146,3 +146,48 @@ def test_the_bars_other_multiple_is_a_second_start_where_it_nearly_ties_on_the_g
     a_alt = [float(p["bars.a"].value) for _m, p, _n in ext.alternatives]
     assert abs(3.0 * a_main / truth_a - 1.0) < 0.05, (a_main, truth_a)
     assert any(abs(a / truth_a - 1.0) < 0.03 for a in a_alt), (a_alt, truth_a)
+
+
+def test_the_grids_optima_rescored_with_the_lobe_profiled_choose_a_further_start(monkeypatch):
+    """The grid's lowest local optima other than the chosen spacing, its multiples and the second start are scored
+    by the profiled chi^2 (here a stand-in that reads the bars' spacing and level); the best is a start only where
+    it beats the chosen spacing scored the same way, at the level that scored best."""
+    from brdfjax.diagnose.effects import model as M
+
+    a = np.geomspace(1e-4, 3e-3, 200)
+
+    def rows(dips):  # (chi2, a, rho, psi): a flat no-bars level of 1000 with Gaussian dips in log a
+        chi = 1000.0 - sum(g * np.exp(-0.5 * (np.log(a / a0) / 0.02) ** 2) for a0, g in dips)
+        return [(float(c), float(x), 5.0, 0.3) for c, x in zip(chi, a)]
+
+    def nearest(v):
+        return float(a[np.argmin(np.abs(a - v))])
+
+    best, third, alias, true = nearest(1.1e-4), nearest(3.3e-4), nearest(2.0e-4), nearest(8.0e-4)
+    grid = rows([(best, 500.0), (third, 400.0), (alias, 300.0), (true, 200.0)])
+    seen = []
+
+    def fake_profiled(ctx, transform, blocks, **_kw):
+        class _M:
+            terms: dict = {}
+        bars = transform(_M())
+        term = bars.terms["_bars"].term
+        seen.append(float(term.a))
+        # the stand-in profile: the true spacing at 3x the grid's level scores lowest
+        return abs(np.log(float(term.a) / true)) * 100.0 + abs(np.log(float(term.rho) / 15.0))
+
+    monkeypatch.setattr(M, "profiled_chi2", fake_profiled)
+    monkeypatch.setattr(M, "with_terms", lambda m, terms: type("W", (), {"terms": terms})())
+
+    class _Ctx:
+        def frames(self):
+            return [0]
+
+    eff = M.DiffractionEffect()
+    got = eff._profiled_spacing(_Ctx(), grid, best, 2e-4, 5.2e-5, 0.325, skip=[alias])
+    assert got is not None and got[0] == true and got[1] == 0.3 and got[2] == 15.0
+    # the chosen spacing, its multiple 3a and the skipped second start are not candidates
+    assert all(abs(s / third - 1.0) > 0.05 and abs(s / alias - 1.0) > 0.05 for s in seen[3:])
+    # where the chosen spacing scores best, no further start
+    seen.clear()
+    assert eff._profiled_spacing(_Ctx(), grid, true, 2e-4, 5.2e-5, 0.325) is None
