@@ -405,9 +405,9 @@ def golden(fn, lo: float, hi: float, n: int) -> tuple[float, float]:
 
 
 def profiled_chi2(ctx: Context, transform: Callable[[Model], Model], blocks: Sequence[int],
-                   data_blocks: Sequence[Any] | None = None, lo: float = 0.15, hi: float = 1.3) -> float:
+                   data_blocks: Sequence[Any] | None = None, lo: float = 0.15, hi: float = 1.3, n: int = 22) -> float:
     """chi^2 of the fitted base with an extension applied, profiled over the main lobe's width (golden-section
-    search of its scale in [lo, hi]) and a global log scale (closed form), on ``blocks``."""
+    search of its scale in [lo, hi], ``n`` evaluations) and a global log scale (closed form), on ``blocks``."""
     main = main_specular(ctx.model)
     data = ctx.blocks if data_blocks is None else data_blocks
 
@@ -432,7 +432,7 @@ def profiled_chi2(ctx: Context, transform: Callable[[Model], Model], blocks: Seq
 
     if not main:
         return chi2(1.0)
-    return golden(lambda x: chi2(math.exp(x)), math.log(lo), math.log(hi), 22)[1]
+    return golden(lambda x: chi2(math.exp(x)), math.log(lo), math.log(hi), n)[1]
 
 
 def gaussianise(r: np.ndarray) -> np.ndarray:
