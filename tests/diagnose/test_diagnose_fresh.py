@@ -184,10 +184,10 @@ def test_the_grids_optima_rescored_with_the_lobe_profiled_choose_a_further_start
             return [0]
 
     eff = M.DiffractionEffect()
-    got = eff._profiled_spacing(_Ctx(), grid, best, 2e-4, 5.2e-5, 0.325, skip=[alias])
+    got = eff._profiled_spacing(_Ctx(), [], grid, best, 2e-4, 5.2e-5, 0.325, skip=[alias])
     assert got is not None and got[0] == true and got[1] == 0.3 and got[2] == 15.0
     # the chosen spacing, its multiple 3a and the skipped second start are not candidates
     assert all(abs(s / third - 1.0) > 0.05 and abs(s / alias - 1.0) > 0.05 for s in seen[3:])
     # where the chosen spacing scores best, no further start
     seen.clear()
-    assert eff._profiled_spacing(_Ctx(), grid, true, 2e-4, 5.2e-5, 0.325) is None
+    assert eff._profiled_spacing(_Ctx(), [], grid, true, 2e-4, 5.2e-5, 0.325) is None
