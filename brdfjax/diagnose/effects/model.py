@@ -277,10 +277,11 @@ class DiffractionEffect(Effect):
         footprint = any(isinstance(b, FrameData) and b.footprint is not None for b in ctx.blocks)
         name = unique_name(ctx.model, "bars")
 
-        def refine(a_seed, psi_seed):
-            """A grid optimum and its harmonics 2a, 3a refined locally: the best row (chi2, a, rho, psi) of each."""
+        def refine(a_seed, psi_seed, mults=(1.0, 2.0, 3.0)):
+            """A grid optimum and its harmonics (2a, 3a by default) refined locally: the best row (chi2, a, rho, psi)
+            of each, sorted."""
             best = []
-            for mult in (1.0, 2.0, 3.0):
+            for mult in mults:
                 rows = []
                 for dpsi in np.deg2rad(np.arange(-1.5, 1.6, 0.5)):
                     rows += [(*row, psi_seed + dpsi) for row in
@@ -330,11 +331,7 @@ class DiffractionEffect(Effect):
         prof = self._profiled_spacing(ctx, cache, grid_rows, a1, vm, c0, distance, skip=[other[0]] if other else [])
         if prof is not None:
             a_p, psi_p, rho_p = prof
-            local = []
-            for dpsi in np.deg2rad(np.arange(-1.5, 1.6, 0.5)):
-                local += [(*row, psi_p + dpsi) for row in
-                          self._chi2_a(cache, psi_p + dpsi, vm, a_p * np.linspace(0.98, 1.02, 21))]
-            chi_l, a_l, _, psi_l = min(local)
+            chi_l, a_l, _, psi_l = refine(a_p, psi_p, mults=(1.0,))[0]
             m_p, p_p, n_p = start((chi_l, a_l, rho_p, psi_l), a_p)  # at the profiled level of the bars
             alternatives.append((m_p, p_p, f"the grid's optima scored with the lobe profiled: {n_p}"))
         return Extension(model, params, 4, note=note, alternatives=alternatives)
@@ -346,12 +343,22 @@ class DiffractionEffect(Effect):
 
     @staticmethod
     def _profile(rows):
-        """The grid's chi^2 profile over the spacing: ``{a: (chi2, psi, rho)}``, the lowest over orientations."""
+        """The grid's chi^2 profile over the spacing and its local optima: ``(by_a, a_s, chi, minima)`` with
+        ``by_a = {a: (chi2, psi, rho)}`` the lowest over orientations, ``a_s`` the sorted spacings, ``chi`` their
+        chi^2 and ``minima`` the indices of the local minima of ``chi``, lowest first."""
         by_a: dict[float, tuple[float, float, float]] = {}
         for chi, a, rho, psi in rows:
             if a not in by_a or chi < by_a[a][0]:
                 by_a[a] = (chi, psi, rho)
-        return by_a
+        a_s = np.array(sorted(by_a))
+        chi = np.array([by_a[a][0] for a in a_s])
+        minima = [j for j in range(len(a_s)) if (j == 0 or chi[j] < chi[j - 1]) and (j == len(a_s) - 1 or chi[j] <= chi[j + 1])]
+        return by_a, a_s, chi, sorted(minima, key=lambda j: chi[j])
+
+    @staticmethod
+    def _multiple(a, a1):
+        """Whether ``a`` is within 5 % of a/3, a/2, a, 2a or 3a of ``a1`` (a harmonic searched with it)."""
+        return any(abs(a / (m * a1) - 1.0) < 0.05 for m in (1 / 3, 1 / 2, 1.0, 2.0, 3.0))
 
     def _profiled_spacing(self, ctx, cache, rows, a1, vm, c0, distance, skip=()):
         """``(a, psi, rho)`` of the best of the grid's :data:`PROFILE_TOP` lowest local optima (other than the chosen
@@ -371,16 +378,11 @@ class DiffractionEffect(Effect):
         From 9.06e-5 the refit ended at delta BIC 1.92e7; the truth's optimum is 2.61e7.  The grid's own chi^2
         caps each pixel's term (a few pixels far off do not decide a spacing); the profile does not, and it is
         computed only for these few optima."""
-        by_a = self._profile(rows)
-        a_s = np.array(sorted(by_a))
+        by_a, a_s, _chi, minima = self._profile(rows)
         if len(a_s) < 3 or a1 not in by_a:
             return None
-        chi = np.array([by_a[a][0] for a in a_s])
-        minima = [j for j in range(len(a_s)) if (j == 0 or chi[j] < chi[j - 1]) and (j == len(a_s) - 1 or chi[j] <= chi[j + 1])]
-        near = lambda a, b: abs(a / b - 1.0) < 0.05  # noqa: E731
-        minima = [j for j in sorted(minima, key=lambda j: chi[j])
-                  if not any(near(a_s[j], m * a1) for m in (1 / 3, 1 / 2, 1.0, 2.0, 3.0))
-                  and not any(near(a_s[j], b) for b in skip)][:self.PROFILE_TOP]
+        minima = [j for j in minima if not self._multiple(a_s[j], a1)
+                  and not any(abs(a_s[j] / b - 1.0) < 0.05 for b in skip)][:self.PROFILE_TOP]
         if not minima:
             return None
 
@@ -418,21 +420,17 @@ class DiffractionEffect(Effect):
         against 6.38e-4 (gain 0.96 of the best's) refitted to reduced chi^2 171.8 and 156.4, and the path
         from the first ended on {diffraction, offset peak, floor, anisotropy} at 2.58 against the truth's 0.81.
         """
-        by_a = cls._profile(rows)
-        a_s = np.array(sorted(by_a))
-        chi = np.array([by_a[a][0] for a in a_s])
+        by_a, a_s, chi, minima = cls._profile(rows)
         if len(a_s) < 3:
             return None
         top, best = float(np.max(chi)), float(np.min(chi))
         gain = top - best
         if not gain > 0:
             return None
-        minima = [j for j in range(len(a_s)) if (j == 0 or chi[j] < chi[j - 1]) and (j == len(a_s) - 1 or chi[j] <= chi[j + 1])]
-        harmonic = lambda a: any(abs(a / (m * a1) - 1.0) < 0.05 for m in (1 / 3, 1 / 2, 1.0, 2.0, 3.0))  # noqa: E731
-        keep = [j for j in minima if not harmonic(a_s[j]) and top - chi[j] >= cls.NEAR_TIE * gain]
+        keep = [j for j in minima if not cls._multiple(a_s[j], a1) and top - chi[j] >= cls.NEAR_TIE * gain]
         if not keep:
             return None
-        j = min(keep, key=lambda j: chi[j])
+        j = keep[0]  # the minima come lowest first
         return float(a_s[j]), float(by_a[a_s[j]][1])
 
 
