@@ -24,7 +24,10 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    single refit failed, or its own terms ended flagged) beside the best single, from that single's fit: its
    start is then read from the residual the best one leaves (seed 9644, stray light and diffraction withheld:
    the ghost's start, read from a residual the diffraction bands dominated, ended undetermined, was never
-   paired, and an offset peak took the ghost).  Where the best fit is within the noise but the move rule 4 is about to commit (after
+   paired, and an offset peak took the ghost).  Where the best single is generic, the best specific single is
+   widened the same way, beside every other admissible single (measured on the NumPy reference, seed 9647,
+   diffraction and a floor withheld: a distribution swap led the singles, diffraction was not among the three
+   best, and diffraction + floor was never fitted).  Where the best fit is within the noise but the move rule 4 is about to commit (after
    rule 3) is a pair, the same widening runs first and rules 3 and 4 are judged again with the new pairs: the
    pair's second member was chosen among the best singles only (seed 9630, stray light and a floor withheld:
    stray light + offset peak entered at 0.955, within the noise, 39 in BIC above stray light + floor, which
@@ -326,11 +329,19 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
             # every other admissible one: a dominant effect's single gain swamps the others', which then measure
             # how well each mimics it on the base, not what it adds beside it
             verdict = within_noise(min([adm[0]] + [t for t in pairs if t.ok], key=lambda t: t.bic))
-            if verdict is False and (wide or unstarted):
+            # where the best single is generic, the best specific one is widened the same way: a generic effect
+            # that mimics several (a distribution swap for bars and a floor) leads the singles, and the specific
+            # one's partner is then sought among the best singles only
+            best_spec = spec[0] if spec and problem.generic(new_of[id(best1)]) else None
+            near = tried | {frozenset((id(p), id(q))) for p, q in wide}
+            spec_wide = [] if best_spec is None else [
+                (best_spec, t) for t in adm if t is not best_spec and frozenset((id(best_spec), id(t))) not in near]
+            if verdict is False and (wide or unstarted or spec_wide):
                 say(f"step {step}: the best fit so far is not within the noise: {new_of[id(best1)]} refitted "
-                    "beside every other admissible candidate")
-                _fit_pairs(wide, cur, step, new_of, gain, applicable, fit_many, pairs, pair_info, step_notes,
-                           warm_of=warm_of)
+                    "beside every other admissible candidate"
+                    + (f", and {new_of[id(best_spec)]}, the best specific one, as well" if spec_wide else ""))
+                _fit_pairs(wide + spec_wide, cur, step, new_of, gain, applicable, fit_many, pairs, pair_info,
+                           step_notes, warm_of=warm_of)
                 _fit_pairs(unstarted, cur, step, new_of, gain, applicable, fit_many, pairs, pair_info, step_notes,
                            warm_first=True)
                 wide = unstarted = []

@@ -497,3 +497,26 @@ def test_the_best_pairs_not_within_the_noise_are_refitted_in_the_other_order():
     p = OrderMatters(gains, generic=("g",), sets={frozenset({"d", "g"}): 50.0}, base_bic=3000.0, noise=1.0)
     r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
     assert [w for s, w in p.starts if s == {"d", "g"}] == [("d",)] and r.moves[0].trial.bic == pytest.approx(50.0)
+
+
+def test_where_a_generic_effect_leads_the_best_specific_one_is_paired_with_every_candidate():
+    # a distribution swap (generic) leads the singles and mimics both withheld effects; diffraction (specific) is
+    # fourth, so diffraction + floor is not among the pairs of the three best, nor beside the best single (as on
+    # the NumPy reference, seed 9647, diffraction and a floor withheld)
+    gains = {"swap": 2000.0, "lobe": 1900.0, "floor": 1800.0, "bars": 1700.0, "ghost": 1000.0}
+    p = Table(gains, generic=("swap", "lobe", "floor"), bonus={("bars", "floor"): 1500.0}, base_bic=10000.0,
+              noise=1.0)
+    r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
+    assert set(r.moves[0].effects) == {"bars", "floor"} and r.moves[0].trial.bic == pytest.approx(5000.0)
+    assert {frozenset(c) for c in p.calls if len(c) == 2} >= {frozenset({"bars", "lobe"}),
+                                                              frozenset({"bars", "ghost"})}
+    # without a noise level nothing widens: the pair is never fitted
+    p = Table(gains, generic=("swap", "lobe", "floor"), bonus={("bars", "floor"): 1500.0}, base_bic=10000.0)
+    r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
+    assert frozenset({"bars", "floor"}) not in {frozenset(c) for c in p.calls}
+    # a specific effect leading the singles: only it is widened
+    p = Table({**gains, "bars": 2100.0}, generic=("swap", "lobe", "floor"), bonus={("bars", "floor"): 1500.0},
+              base_bic=10000.0, noise=1.0)
+    r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
+    assert set(r.moves[0].effects) == {"bars", "floor"}
+    assert frozenset({"swap", "ghost"}) not in {frozenset(c) for c in p.calls}
