@@ -268,10 +268,11 @@ PATH_RULES = (
     "narrower than half the angular sampling, and it does not drive a term of the model to zero.  An inadmissible "
     "effect never enters, whatever its BIC gain.",
     "The best admissible candidates are also refitted in pairs, each warm-started at its better member's fit; where "
-    "the step's best fit is not within the noise, the best single (and, where it is generic, the best specific one) is "
-    "also paired with every other candidate and the three lowest pairs are refitted in the other order too (started at the other member's fit), the better fit "
-    "kept.  The single or pair with the largest BIC gain enters when the gain exceeds the threshold; a pair only "
-    "when it beats its better member alone by more than the threshold.",
+    "the step's best fit is not within the noise, the best single (and, where it is generic, the best specific one) "
+    "is also paired with every other candidate and the three lowest pairs are refitted in the other order too "
+    "(started at the other member's fit), the better fit kept.  The single or pair with the largest BIC gain enters "
+    "when the gain exceeds the threshold; a pair only when it beats its better member alone by more than the "
+    "threshold.",
     "A generic effect (a floor, a response curve) does not enter where a specific candidate explains its residual: "
     "on their joint refit, taking the generic effect out costs less than the threshold.",
     "Every effect must pass the same test to stay: after every step each effect is taken out in turn (the model "

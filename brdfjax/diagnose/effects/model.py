@@ -190,6 +190,12 @@ class DiffractionEffect(Effect):
         gaps = np.concatenate(gaps) if gaps else np.zeros(0)
         return max(float(np.median(gaps)), 0.0) if gaps.size >= 20 else 0.0
 
+    def _levels(self, cache, psi, vm):
+        """The flat levels a spacing is scored with: none, and the data's floor level (:meth:`_floor_level`) where
+        there is one."""
+        level = self._floor_level(cache, psi, vm)
+        return (0.0, level) if level > 0 else (0.0,)
+
     def _chi2_a(self, cache, psi, vm, a_values, distance=0.325):
         """chi^2 of the base plus bars of spacing a (rho on a log grid, c from the band width): [(chi2, a, rho)].
 
@@ -202,9 +208,8 @@ class DiffractionEffect(Effect):
         c0 = 0.8 * distance * vm
         rhos = np.geomspace(1e-2, 1e4, 25)
         a_values = np.asarray(a_values, float)
-        level = self._floor_level(cache, psi, vm)
         best = np.full((len(rhos), len(a_values)), np.inf)
-        for kappa in (0.0, level) if level > 0 else (0.0,):
+        for kappa in self._levels(cache, psi, vm):
             tot = np.zeros((len(rhos), len(a_values)))
             for c in cache:
                 hx, hy = self._rot(c, psi)
@@ -389,8 +394,7 @@ class DiffractionEffect(Effect):
         def score(a):
             _, psi, rho = by_a[a]
             best = (math.inf, rho)
-            level = self._floor_level(cache, psi, vm)
-            for kappa in (0.0, level) if level > 0 else (0.0,):
+            for kappa in self._levels(cache, psi, vm):
                 extra = {"_level": Lambertian(rho_d=np.pi * kappa)} if kappa > 0 else {}
                 for m in self.PROFILE_RHO:
                     term = Oriented(Diffraction(rho=rho * m, a=a, b=a / 80.0, c=c0, distance=distance), psi=psi)
