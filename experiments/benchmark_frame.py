@@ -89,12 +89,12 @@ RELATIVE_FLOOR = 1e-3  # compare where BRDF > RELATIVE_FLOOR * max
 
 
 def render_default_chunk() -> int:
-    """``brdfjax.core.render``'s default ``chunk_pixels``, read from its signature so the table cannot drift."""
+    """``brdfjax.render``'s default ``chunk_pixels``, read from its signature so the table cannot drift."""
     import inspect
 
-    import brdfjax
+    from brdfjax.core.render import render
 
-    return int(inspect.signature(brdfjax.core.render).parameters["chunk_pixels"].default)
+    return int(inspect.signature(render).parameters["chunk_pixels"].default)
 
 
 # --- memory helpers (worker side) -----------------------------------------------------------

@@ -11,6 +11,7 @@ The config is a fit config (:mod:`brdfjax.fit.config`: ``[data]``,
     pair_top = 3                               # the best admissible singles also refitted in pairs at each step
     fresh_top = 3                              # 0: no refits from the fresh starts (else: where a fit moved far)
     workers = 2                                # refits of a step run at once, in threads (default: half the cores, at most 4)
+    fast_compile = true                        # CPU: compile the fits' programs for a short compile (false: XLA's defaults)
     threshold_sigma = 4.0                      # smoothed |residual| that makes a region significant
     smooth = 3                                 # box size (points) of that smoothing
     figures = true                             # embed figures in report.html
@@ -56,6 +57,7 @@ class DiagnoseSection(StrictModel):
     max_steps: int = Field(4, ge=0, le=12, description="the most effects the greedy path adds (0-12)")
     pair_top: int = Field(3, ge=1, description="at each step the best admissible single effects are also refitted in pairs, jointly")
     workers: int | None = Field(None, ge=1, description="how many of a step's independent refits run at once, in threads (default: half the cores available, at most 4; 1: one after another; the numbers are the same)")
+    fast_compile: bool = Field(True, description="on the CPU, compile the fits' programs with XLA's older emitters (brdfjax.runtime.export_cache.FAST_COMPILE_CPU): shorter compiles, slower runs; false: XLA's defaults")
     fresh_top: int = Field(3, ge=0, description="0: warm refits only; otherwise, where the fit a candidate extends moved far from its starts, the candidate is refitted from the fresh start too")
     path_pool: int | None = Field(None, description="no longer used (refused): every candidate is refitted at every step")
     refit_top: int | None = Field(None, description="no longer used (refused): every candidate is refitted at every step")
@@ -117,6 +119,7 @@ def run_diagnose(config: str | Path, out: str | Path, *, effects: list[str] | No
         pair_top=sec.pair_top,
         fresh_top=sec.fresh_top,
         workers=sec.workers,
+        fast_compile=sec.fast_compile,
         threshold=sec.threshold_sigma,
         smooth=sec.smooth,
         progress=progress,

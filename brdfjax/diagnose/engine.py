@@ -51,10 +51,12 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
+import jax
 import numpy as np
 
 from ..core.terms import Model
 from ..fit import FitInputError, FrameData, TableData
+from ..runtime import export_cache
 from ..runtime.choices import check_choices
 from ..runtime.compile_cache import maps_near_limit, release_compiled, resident_mb
 from ..runtime.errors import InputError
@@ -673,6 +675,7 @@ def diagnose(
     library: Mapping[str, Any] | None = None,
     progress: Any = None,
     workers: int | None = None,
+    fast_compile: bool = True,
     path_pool: int | None = None,
     refit_top: int | None = None,
 ) -> Diagnosis:
@@ -693,9 +696,28 @@ def diagnose(
     :data:`~brdfjax.diagnose.refits.STOP_SIGMAS`; data with sigma only); ``library``: the
     effect library; ``progress``: a callable taking a message string; ``workers``: how many of a step's
     independent refits (its singles, its pairs) run at once, in threads (default :func:`default_workers`: half
-    the cores this process may use, at most :data:`MAX_WORKERS`; 1: one after another; the numbers are the same).  ``path_pool`` and ``refit_top`` belonged
+    the cores this process may use, at most :data:`MAX_WORKERS`; 1: one after another; the numbers are the same);
+    ``fast_compile``: on the CPU, compile the fits' exported programs with
+    :data:`~brdfjax.runtime.export_cache.FAST_COMPILE_CPU` (every candidate model is a program of its own, compiled
+    for a few solves: compiling dominates a diagnosis; False: XLA's defaults; the numbers agree to about 1e-13
+    relative).  ``path_pool`` and ``refit_top`` belonged
     to the earlier greedy path and are refused (every candidate is refitted at every step now).
     """
+    if not isinstance(fast_compile, bool):
+        raise DiagnoseInputError(f"fast_compile must be true or false, got {fast_compile!r}")
+    options = export_cache.FAST_COMPILE_CPU if fast_compile and jax.default_backend() == "cpu" else None
+    with export_cache.compiler_options(options):
+        return _diagnose(base_model, blocks, params, effects=effects, heldout_blocks=heldout_blocks,
+                         fit_kwargs=fit_kwargs, bic_threshold=bic_threshold, max_steps=max_steps, pair_top=pair_top,
+                         fresh_top=fresh_top, threshold=threshold, smooth=smooth, presence=presence,
+                         noise_stop=noise_stop, library=library, progress=progress, workers=workers,
+                         path_pool=path_pool, refit_top=refit_top)
+
+
+def _diagnose(base_model, blocks, params, *, effects, heldout_blocks, fit_kwargs, bic_threshold, max_steps, pair_top,
+              fresh_top, threshold, smooth, presence, noise_stop, library, progress, workers, path_pool,
+              refit_top) -> Diagnosis:
+    """:func:`diagnose`'s body, under the compiler options it chose."""
     t_start = time.perf_counter()
     say = progress or (lambda msg: None)
     if refit_top is not None or path_pool is not None:
@@ -868,6 +890,7 @@ def diagnose(
             "pair_top": pair_top,
             "fresh_top": fresh_top,
             "workers": workers,
+            "compiler_options": dict(export_cache.current_compiler_options() or {}),
             "presence_threshold": presence,
             "noise_stop": noise_stop,
             "bic_threshold": bic_threshold,

@@ -36,6 +36,7 @@ the plain call (``tests/runtime/test_export_cache.py`` checks a fit to every bit
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
 import functools
@@ -44,7 +45,7 @@ import importlib.metadata
 import os
 import re
 import types
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -62,11 +63,22 @@ except ImportError:
 else:
     _SERIALISABLE = True
 
-__all__ = ["activate", "deactivate", "exportable", "exported_call", "stats", "clear"]
+__all__ = ["activate", "deactivate", "exportable", "exported_call", "stats", "clear", "compiler_options",
+           "current_compiler_options", "FAST_COMPILE_CPU"]
 
 _FOLDER: Path | None = None
 _MEM: dict[str, Callable[..., Any]] = {}
 _STATS = {"loaded": 0, "exported": 0, "reused": 0, "plain": 0}
+#: XLA options the exported programs are compiled with (None: XLA's defaults); set by :func:`compiler_options`.
+_COMPILER: dict[str, Any] | None = None
+
+#: XLA's CPU options for programs that are compiled once and run briefly (:func:`compiler_options`): XLA's
+#: older elemental emitters instead of its fusion emitters.  Measured on the 2-core CPU
+#: (``experiments/benchmark_fast_compile.py``, ``experiments/results/fast_compile_cpu.json``): the shipped
+#: diagnosis's solve programs compile in 0.69 of the time, the whole cold diagnosis takes 0.83 of the wall time
+#: (101 s against 121 s, the same final chi^2), while a full-frame render runs 1.34 times slower: worth it where
+#: every model is compiled for a few solves, not where one program runs many times (sampling, rendering).
+FAST_COMPILE_CPU: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 _OPTIONS = (
     "jax_enable_x64",
     "jax_default_matmul_precision",
@@ -108,6 +120,31 @@ def deactivate() -> None:
 def clear() -> None:
     """Forget the deserialised programs held in this process (the files stay)."""
     _MEM.clear()
+
+
+@contextlib.contextmanager
+def compiler_options(options: Mapping[str, Any] | None) -> Iterator[None]:
+    """Compile the exported programs first called inside with these XLA ``options`` (``jax.jit``'s
+    ``compiler_options``; None: XLA's defaults); the previous options come back on exit.
+
+    Process-wide, not per thread (a diagnosis's refits run in threads of their own): two calls side by side in
+    different threads would see each other's options.  A program compiled with other options is another
+    program (its own entry here and in JAX's persistent cache, whose key holds the options); the numbers can
+    differ in the last bits, so a run is reproducible under the same options.  Without a folder
+    (:func:`activate`) the programs are exported in memory only, for this process; calls that cannot be exported
+    (an argument that cannot be written out, several devices) go the plain way with XLA's defaults."""
+    global _COMPILER
+    before = _COMPILER
+    _COMPILER = None if options is None else dict(options)
+    try:
+        yield
+    finally:
+        _COMPILER = before
+
+
+def current_compiler_options() -> dict[str, Any] | None:
+    """The XLA options exported programs are compiled with now (:func:`compiler_options`; None: XLA's defaults)."""
+    return None if _COMPILER is None else dict(_COMPILER)
 
 
 def stats() -> dict[str, int]:
@@ -255,13 +292,15 @@ def _export(raw: Callable[..., Any], leaves: list[Any], treedef: Any, dyn: list[
 
 
 def exported_call(name: str, raw: Callable[..., Any], plain: Callable[..., Any], args: tuple, switches: tuple = ()) -> Any:
-    """``raw(*args)`` through its exported program when the cache is on, else ``plain(*args)``.
+    """``raw(*args)`` through its exported program when the cache is on or compiler options are set
+    (:func:`compiler_options`), else ``plain(*args)``.
 
     ``raw``: the unjitted function (it must return arrays in tuples, lists or dicts: the exported program's
     output); ``plain``: its jitted form, used when nothing is exported; ``switches``: module-level values
     that ``raw`` reads while it is traced (part of the key).
     """
-    if _FOLDER is None:
+    opts = _COMPILER
+    if _FOLDER is None and opts is None:
         return plain(*args)
     leaves, treedef = jax.tree_util.tree_flatten(args)
     if jax.device_count() != 1 or not all(_single_device(x) for x in leaves):
@@ -272,11 +311,14 @@ def exported_call(name: str, raw: Callable[..., Any], plain: Callable[..., Any],
     except _Uncacheable:
         _STATS["plain"] += 1
         return plain(*args)
-    call = _MEM.get(key)
+    mem_key = key if opts is None else f"{key}|{sorted(opts.items())!r}"
+    call = _MEM.get(mem_key)
     if call is None:
-        path = _FOLDER / f"{name}-{key}.jaxexport"
+        # without a folder (compiler options set, no cache) the program is exported in memory only: jax.jit takes
+        # compiler options, equinox's filter_jit (the plain way) does not
+        path = None if _FOLDER is None else _FOLDER / f"{name}-{key}.jaxexport"
         exp = None
-        if path.is_file():
+        if path is not None and path.is_file():
             try:
                 exp = export.deserialize(bytearray(path.read_bytes()))
                 # (JAX's canonical dtypes: float64 data are float32 arrays without 64-bit mode)
@@ -289,13 +331,14 @@ def exported_call(name: str, raw: Callable[..., Any], plain: Callable[..., Any],
         if exp is None:
             exp = _export(raw, leaves, treedef, dyn)
             try:
-                with atomic_output(path) as tmp:
-                    tmp.write_bytes(exp.serialize())
+                if path is not None:
+                    with atomic_output(path) as tmp:
+                        tmp.write_bytes(exp.serialize())
             except OSError:
                 pass  # a read-only cache: this process still uses the program
             _STATS["exported"] += 1
-        call = jax.jit(exp.call)
-        _MEM[key] = call
+        call = jax.jit(exp.call, compiler_options=opts)
+        _MEM[mem_key] = call
     else:
         _STATS["reused"] += 1
     return call(*(leaves[i] for i in dyn))

@@ -234,6 +234,10 @@ def test_cli_bad_input(tmp_path, capsys):
     bad.write_text(CONFIG.replace("EFFECTS", "[]").replace("max_steps = 1", "max_steps = -1"))
     assert main(["diagnose", str(bad), "--out", str(out)]) == 2
     assert "diagnose.max_steps" in capsys.readouterr().err
+    bad.write_text(CONFIG.replace("EFFECTS", "[]").replace("max_steps = 1", "max_steps = 1\nfast_compile = \"sometimes\""))
+    assert main(["diagnose", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "diagnose.fast_compile" in err and "sometimes" in err, err
     assert not (out / "diagnosis.json").exists()
 
 

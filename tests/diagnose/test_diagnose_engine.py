@@ -609,6 +609,36 @@ def test_refits_side_by_side_give_the_numbers_of_refits_one_after_another(monkey
         diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, workers=0)
 
 
+def test_fast_compile_compiles_the_fits_programs_with_the_fast_options_and_gives_the_same_numbers(tmp_path):
+    """``fast_compile`` (the default): the fits' programs are exported (in memory: no cache folder here) and
+    compiled with ``export_cache.FAST_COMPILE_CPU`` on the CPU (recorded in the settings); the trials and the
+    path are those of XLA's defaults to 1e-9; a value that is not a bool is refused by name."""
+    from brdfjax.diagnose import DiagnoseInputError
+    from brdfjax.runtime import export_cache
+
+    truth = bj.Model(terms={**LOBE, "floor": Lambertian(0.3)})
+    table, _ = _table(truth, seed=12)
+    lib = {"lambertian": EFFECT_LIBRARY["lambertian"], "wide_lobe": _WideLobe()}
+    docs = {}
+    for fast in (True, False):
+        export_cache.clear()
+        d = diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, max_steps=1,
+                     fast_compile=fast, workers=1)
+        docs[fast] = d.to_dict()
+        tagged = [k for k in export_cache._MEM if "xla_cpu_use_fusion_emitters" in k]
+        assert (len(tagged) == len(export_cache._MEM) >= 3) if fast else not export_cache._MEM
+    assert not list(tmp_path.iterdir())  # nothing written: the programs were exported in memory
+    assert docs[True]["settings"]["compiler_options"] == {"xla_cpu_use_fusion_emitters": False}
+    assert docs[False]["settings"]["compiler_options"] == {}
+    fast, plain = (docs[f]["settings"]["trials"] for f in (True, False))
+    assert [t["effects"] for t in fast] == [t["effects"] for t in plain] and len(fast) >= 3
+    for a, b in zip(fast, plain):
+        assert a["bic"] == pytest.approx(b["bic"], rel=1e-9, abs=0.0), (a, b)
+    assert docs[True]["explained_by"] == docs[False]["explained_by"] == ["lambertian"]
+    with pytest.raises(DiagnoseInputError, match="fast_compile must be true or false, got 'yes'"):
+        diagnose(bj.Model(terms=dict(LOBE)), [table], START, effects=list(lib), library=lib, fast_compile="yes")
+
+
 def test_the_release_gate_drops_programs_only_when_no_refit_is_in_flight(monkeypatch):
     """Above the memory level a refit's end stops new refits from starting; the last one in flight releases the
     compiled programs (never while another refit traces or compiles), then the refits go on."""

@@ -173,6 +173,30 @@ def test_values_that_cannot_be_written_out_go_the_plain_way(export_dir):
     assert not list(export_dir.glob("*.jaxexport"))
 
 
+def test_compiler_options_reach_xla_and_make_another_program(export_dir):
+    """brdfjax.runtime.export_cache.compiler_options: programs first called inside are compiled with the options
+    (an unknown option is XLA's error), held apart from those compiled with XLA's defaults, with the same numbers
+    here; the previous options come back on exit."""
+    x = jnp.linspace(0.1, 2.0, 7)
+    args = (_Toy(x, 3), 0.25)
+    assert export_cache.current_compiler_options() is None
+    (a,) = exported_call("toy", _toy, _toy_plain, args)
+    with export_cache.compiler_options(export_cache.FAST_COMPILE_CPU):
+        assert export_cache.current_compiler_options() == {"xla_cpu_use_fusion_emitters": False}
+        before = export_cache.stats()
+        (b,) = exported_call("toy", _toy, _toy_plain, args)
+        assert export_cache.stats()["reused"] == before["reused"]  # not the program compiled with the defaults
+        with export_cache.compiler_options({"xla_no_such_option_here": True}):
+            with pytest.raises(Exception, match="xla_no_such_option_here"):
+                exported_call("toy", _toy, _toy_plain, args)
+        assert export_cache.current_compiler_options() == {"xla_cpu_use_fusion_emitters": False}
+    assert export_cache.current_compiler_options() is None
+    np.testing.assert_allclose(b, a, rtol=1e-15)
+    keys = list(export_cache._MEM)  # one program, held three times: XLA's defaults, the fast options, the bad one
+    assert len(keys) == 3 and len({k.split("|")[0] for k in keys}) == 1
+    assert sum("xla_cpu_use_fusion_emitters" in k for k in keys) == 1
+
+
 def _strip_timings(doc):
     if isinstance(doc, dict):
         return {k: _strip_timings(v) for k, v in doc.items() if not k.endswith("_s") and k not in ("versions", "config")}
