@@ -121,10 +121,11 @@ MAX_WORKERS = 4
 def default_workers() -> int:
     """Half the cores this process may use (at least 1, at most :data:`MAX_WORKERS`).
 
-    One refit already keeps about 1.4 cores busy (XLA compiles on threads of its own: 215 s of CPU in 160 s
-    wall on the shipped example, one refit after another); on 2 cores two refits side by side took 131-146 s
-    against 160 s but peaked at 1.09-1.47 GB against 0.78 GB (``experiments/benchmark_diagnose.py --workers
-    1,2``), above the 1 GB target, so a 2-core machine refits one after another unless asked."""
+    One refit already keeps about 1.3 cores busy (XLA compiles on threads of its own: 126 s of CPU in 101 s
+    wall on the shipped example, one refit after another); on 2 cores two refits side by side took 89 s against
+    101 s but peaked at 0.79 GB against 0.62 GB (``experiments/benchmark_diagnose.py --workers 1,2``,
+    ``experiments/results/benchmark_diagnose_workers.json``), so a 2-core machine refits one after another
+    unless asked."""
     try:
         n = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
