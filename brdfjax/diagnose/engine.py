@@ -799,7 +799,7 @@ def _diagnose(base_model, blocks, params, *, effects, heldout_blocks, fit_kwargs
     singles = list(result.singles)
     extra_trials: list[Trial] = []
     if not singles:
-        # nothing refitted (max_steps = 0, or the base within the noise): step 1's candidates are still ranked
+        # nothing refitted (max_steps = 0, or the base fit failed): step 1's candidates are still ranked
         extra_trials = [problem.refit((n,), base_trial) for n in names if problem.applicable((), n) is None]
         singles = [extra_trials]
     for k, trials_k in enumerate(singles, start=1):

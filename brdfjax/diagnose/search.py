@@ -75,8 +75,9 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    pass the same removal test as every other effect (measured on the reference generator, seed 9634,
    diffraction and a floor withheld: a lobe was exchanged for a pixel non-linearity at BIC -12.5, never tested
    for removal, and the final set held it at the truth's chi^2).
-7. Stop when nothing passes the threshold, when the problem says the fit is within the noise, when a move
-   would return to a set already visited, or after ``max_steps`` steps.
+7. Stop when nothing passes the threshold, when the problem says the fit is within the noise after a move (the
+   base is always taken through step 1: its singles are refitted for the ranking anyway), when a move would
+   return to a set already visited, or after ``max_steps`` steps.
 
 Trials are cached by their set of effects.  A set reached again by taking an effect out of a larger fit (rules 3
 and 5) is refitted from that larger fit as well (once per larger fit), and the better of its two fits kept: the
@@ -262,9 +263,12 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
     notes: list[str] = []
     cands = list(problem.candidates())
     stop = f"max_steps = {max_steps} reached"
-    if within_noise(base):
-        stop = f"the base's reduced chi^2 {base.chi2_reduced:.4g} is within the noise"
-    elif not base.ok:
+    # (no stop within the noise at the base: step 1's singles are refitted for the ranking anyway, so the stop
+    # would save nothing there, and a single that gains more than T is evidence the noise level misses: seed
+    # 9653, a weak floor withheld, the base 1.021 within the noise level 1.107 where the truth's own is 0.827,
+    # the floor gaining 30.3 in BIC.  On the 41 null trials of the record whose base was within the noise the
+    # best single gained at most 9.2.)
+    if not base.ok:
         stop = f"the base fit failed: {base.failure}"
     else:
         for step in range(1, max(max_steps, 0) + 1):
