@@ -32,16 +32,17 @@ sys.path.insert(0, str(ROOT))
 from brdfjax.runtime.atomic import write_json_atomic  # noqa: E402
 
 
-def _config_with_workers(config: str, workers: int, folder: Path) -> str:
-    """A copy of ``config`` with ``[diagnose] workers`` set (the shipped example names no file by a relative path)."""
+def _config_with(config: str, key: str, value: str, folder: Path, tag: str) -> str:
+    """A copy of ``config`` with ``[diagnose] key = value`` set (any line of the key replaced; the shipped example
+    names no file by a relative path)."""
     lines = Path(config).read_text(encoding="utf-8").splitlines()
-    out = [ln for ln in lines if not ln.strip().startswith("workers")]
+    out = [ln for ln in lines if not ln.strip().startswith(key)]
     at = next((i for i, ln in enumerate(out) if ln.strip() == "[diagnose]"), None)
     if at is None:
-        out += ["", "[diagnose]", f"workers = {workers}"]
+        out += ["", "[diagnose]", f"{key} = {value}"]
     else:
-        out.insert(at + 1, f"workers = {workers}")
-    path = folder / f"workers{workers}_{Path(config).name}"
+        out.insert(at + 1, f"{key} = {value}")
+    path = folder / f"{tag}_{Path(config).name}"
     path.write_text("\n".join(out) + "\n", encoding="utf-8")
     return str(path)
 
@@ -117,7 +118,7 @@ def main(argv=None) -> int:
         else:
             runs, out = [], None
             for w in workers:
-                rec, o = _run(_config_with_workers(args.config, w, tmp), args.cache_dir, tmp, f"w{w}")
+                rec, o = _run(_config_with(args.config, "workers", str(w), tmp, f"workers{w}"), args.cache_dir, tmp, f"w{w}")
                 runs.append(rec)
                 out = out or o
         if args.diagnosis_out and runs[0]["exit"] == 0:

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "experiments"))
 
-from benchmark_diagnose import _run  # noqa: E402
+from benchmark_diagnose import _config_with, _run  # noqa: E402
 
 from brdfjax.runtime.atomic import write_json_atomic  # noqa: E402
 from brdfjax.runtime.export_cache import FAST_COMPILE_CPU  # noqa: E402
@@ -88,16 +88,6 @@ RENDER = textwrap.dedent(
 )
 
 
-def _config_with(config: str, line: str, folder: Path, tag: str) -> str:
-    """A copy of ``config`` with ``line`` added under ``[diagnose]``."""
-    lines = Path(config).read_text(encoding="utf-8").splitlines()
-    at = next(i for i, ln in enumerate(lines) if ln.strip() == "[diagnose]")
-    lines.insert(at + 1, line)
-    path = folder / f"{tag}_{Path(config).name}"
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return str(path)
-
-
 def _child(code: str, *args: str) -> dict:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + (os.pathsep + os.environ["PYTHONPATH"] if os.environ.get("PYTHONPATH") else ""))
     proc = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True, text=True)
@@ -117,8 +107,8 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         runs = {}
-        for tag, line in (("fast", "fast_compile = true"), ("default", "fast_compile = false")):
-            rec, _ = _run(_config_with(args.config, line, tmp, tag), str(tmp / f"cache_{tag}"), tmp, tag)
+        for tag, value in (("fast", "true"), ("default", "false")):
+            rec, _ = _run(_config_with(args.config, "fast_compile", value, tmp, tag), str(tmp / f"cache_{tag}"), tmp, tag)
             rec["cold"] = True  # a fresh cache folder of its own
             runs[tag] = rec
             print(f"diagnosis, {tag} options: wall {rec['wall_s']:.1f} s, CPU {rec['cpu_s']:.1f} s, peak RSS "

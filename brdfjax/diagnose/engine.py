@@ -693,8 +693,8 @@ def diagnose(
     better refit kept); ``threshold``/``smooth``: the region detection (smoothed ``|z|`` and box size);
     ``presence``: also keep off a candidate whose signature score is below its effect's presence threshold
     (default False: the signature orders the refits and is reported, it never excludes); ``noise_stop``: stop
-    once the reduced chi^2 is within one standard deviation of the noise's (``1 + sqrt(2/dof)``,
-    :data:`~brdfjax.diagnose.refits.STOP_SIGMAS`; data with sigma only); ``library``: the
+    once the reduced chi^2 after a move is within one standard deviation of the noise's (``1 + sqrt(2/dof)``,
+    :data:`~brdfjax.diagnose.refits.STOP_SIGMAS`; data with sigma only; the base is always taken through step 1); ``library``: the
     effect library; ``progress``: a callable taking a message string; ``workers``: how many of a step's
     independent refits (its singles, its pairs) run at once, in threads (default :func:`default_workers`: half
     the cores this process may use, at most :data:`MAX_WORKERS`; 1: one after another; the numbers are the same);

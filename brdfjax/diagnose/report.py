@@ -293,8 +293,9 @@ PATH_RULES = (
     "then with the effect's strength near its null; a refit that fails from every start is reported and counted "
     "(diagnosis.json settings.failed_refits), never ranked, unless a start came back to the model it extends (within "
     "1 in chi^2): the data then take nothing from the effect, and it is ranked with that gain.",
-    "The search stops when no admissible move gains more than the threshold, when the reduced chi^2 is within one "
-    "standard deviation of pure noise's (1 + sqrt(2/dof), data with uncertainties), or at max_steps.",
+    "The search stops when no admissible move gains more than the threshold, when the reduced chi^2 after a move is "
+    "within one standard deviation of pure noise's (1 + sqrt(2/dof), data with uncertainties; the base is always "
+    "taken through step 1), or at max_steps.",
 )
 
 
