@@ -20,11 +20,12 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    measure how well each mimics it on the base, not what each adds beside it (measured on the library
    generator, seed 9626, stray light and diffraction withheld: stray light was not among the three best
    singles, diffraction + offset peak entered at 1.304, and diffraction + stray light, 11.6 lower in BIC, was
-   never fitted).  The same widening refits every specific candidate the current fit could not start (its
-   single refit failed, or its own terms ended flagged) beside the best single, from that single's fit: its
-   start is then read from the residual the best one leaves (seed 9644, stray light and diffraction withheld:
-   the ghost's start, read from a residual the diffraction bands dominated, ended undetermined, was never
-   paired, and an offset peak took the ghost).  Where the best single is generic, the best specific single is
+   never fitted).  The same widening refits every candidate the current fit could not start (its single refit
+   failed, or its own terms ended flagged), specific or generic, beside the best single, from that single's fit:
+   its start is then read from the residual the best one leaves (seed 9644, stray light and diffraction
+   withheld: the ghost's start, read from a residual the diffraction bands dominated, ended undetermined, was
+   never paired, and an offset peak took the ghost; seed 9654, diffraction and a floor withheld: the floor's
+   single refit from the base ended dead, and an offset peak took the floor's place beside diffraction).  Where the best single is generic, the best specific single is
    widened the same way, beside every other admissible single (measured on the NumPy reference, seed 9647,
    diffraction and a floor withheld: a distribution swap led the singles, diffraction was not among the three
    best, and diffraction + floor was never fitted).  Where the best fit is within the noise but the move rule 4 is about to commit (after
@@ -327,8 +328,12 @@ def search(problem: SearchProblem, *, bic_threshold: float, max_steps: int, pair
             # residual the best one leaves): measured on the library generator, seed 9644, stray light and
             # diffraction withheld: the ghost's start, read from a residual the diffraction bands dominate, was a
             # grid pixel off and its refit ended undetermined; never paired, the ghost went to an offset peak
-            unstarted = [(best1, t) for t in singles if t is not best1 and not problem.generic(new_of[id(t)])
-                         and (not t.ok or t.flags.get(new_of[id(t)]))]
+            # ... and so is a generic one (a floor): measured on the library generator, seed 9654, diffraction and a
+            # floor withheld: the base's lobe, widened over the missing bands, lay above the faint data, the floor's
+            # single refit ended dead (rho_d 1.5e-6), and diffraction + offset peak entered at 0.848 against the
+            # truth's 0.835; beside diffraction's fit the floor refits to the truth's rho_d (0.0326 +- 0.0034 against
+            # 0.0324) and reduced chi^2 0.845.  Rule 3 still judges the pair.
+            unstarted = [(best1, t) for t in singles if t is not best1 and (not t.ok or t.flags.get(new_of[id(t)]))]
             # 2b. where the step's best fit so far is not within the noise, the best single is also refitted beside
             # every other admissible one: a dominant effect's single gain swamps the others', which then measure
             # how well each mimics it on the base, not what it adds beside it

@@ -212,10 +212,16 @@ def test_a_specific_candidate_the_base_cannot_start_is_started_again_beside_the_
     r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
     assert r.moves[0].effects == ("d", "s") and r.moves[0].gain == pytest.approx(2198.0)
     assert p.warm_of[frozenset({"d", "s"})] == ("d",)
-    # a generic candidate flagged alone is not started again (generic effects stand in for one another)
+    # a generic candidate flagged alone (a floor whose single refit ended dead) is started again beside d as well
+    # (library seed 9654: diffraction + offset peak entered where the truth is diffraction + floor)
     p = FlaggedAlone({"d": 1500.0, "o": 90.0, "s": -2.0}, generic=("s",), bonus=bonus, base_bic=3000.0, noise=1.0)
     r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
-    assert frozenset({"d", "s"}) not in p.warm_of and r.moves[0].effects == ("d", "o")
+    assert p.warm_of[frozenset({"d", "s"})] == ("d",) and r.moves[0].effects == ("d", "s")
+    # ... and within the noise, where the pair d + o is about to be committed (rule 2c), too
+    p = FlaggedAlone({"d": 2800.0, "o": 90.0, "s": -2.0}, generic=("s",), bonus={("d", "s"): 300.0, ("d", "o"): 100.0},
+                     base_bic=3000.0, noise=1.0)
+    r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
+    assert p.warm_of[frozenset({"d", "s"})] == ("d",) and r.moves[0].effects == ("d", "s")
     # within the noise and a single about to be committed: nothing is started again
     p = FlaggedAlone({"d": 2990.0, "o": 5.0, "s": -2.0}, bonus=bonus, base_bic=3000.0, noise=1.0)
     r = search(p, bic_threshold=T, max_steps=1, pair_top=3)
