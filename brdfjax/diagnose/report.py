@@ -78,7 +78,7 @@ def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
             "is ranked before it (marked 'required')",
             ["rank", "effect", "delta BIC", "delta chi2", "new params", "chi2_reduced after", "signature score", "signature"],
             [
-                [str(i + 1) + {"detection": " (detected)", "specific": " (required)"}.get(c.ranked_by, ""), c.effect, _f(c.delta_bic, ".1f"), _f(c.delta_chi2, ".1f"), str(c.n_new), _f(c.gap_after.get("chi2_reduced")),
+                [str(i + 1) + {"detection": " (detected)", "specific": " (required)", "explanation": " (in the final model)"}.get(c.ranked_by, ""), c.effect, _f(c.delta_bic, ".1f"), _f(c.delta_chi2, ".1f"), str(c.n_new), _f(c.gap_after.get("chi2_reduced")),
                  _f(c.signature.get("score"), ".3g"), str(c.signature.get("detail", ""))]
                 for i, c in enumerate(d.ranking)
             ],
@@ -227,7 +227,9 @@ def _headline(d: Diagnosis) -> str:
     if hv is not None:
         truth += f" The {hv['text']}."
     if d.significant:
-        return (f"The gap is most likely caused by **{d.explained_by[0]}**. Explanation path (reduced chi^2): {p}.{sides}{flags}"
+        # the ranking's first effect that the final model holds (the ranking puts the final explanation first)
+        lead = next((c.effect for c in d.ranking if c.effect in d.explained_by), d.explained_by[0])
+        return (f"The gap is most likely caused by **{lead}**. Explanation path (reduced chi^2): {p}.{sides}{flags}"
                 f"{truth} {noise_line(d.gap)}.")
     return (f"No candidate effect is significant (BIC gain > {d.bic_threshold:g}). Path: {p}.{sides}{flags}{truth} "
             f"{noise_line(d.gap)}.")

@@ -71,7 +71,8 @@ class Candidate:
     gap_after: dict[str, float] = field(default_factory=dict)
     zones_after: dict[str, dict[str, float]] = field(default_factory=dict)
     wall_s: float = 0.0
-    # "delta_bic" (the refit's BIC gain), "detection" (the effect's own detection, e.g. an unresolved peak) or
+    # "delta_bic" (the refit's BIC gain), "detection" (the effect's own detection, e.g. an unresolved peak),
+    # "explanation" (held by the search's final explanation: ranked before the candidates it does without) or
     # "specific" (a specific effect the data require beside the generic one that gains most: ranked before it)
     ranked_by: str = "delta_bic"
     # "warm" (refitted from the model it extends, at its optimum) or "fresh" (from the fresh starts: kept because
@@ -245,7 +246,8 @@ class Diagnosis:
         for c in self.ranking[:6]:
             by = ("  (ranked by its detection: " + str(c.signature.get("detail", "")) + ")" if c.ranked_by == "detection"
                   else "  (required beside the generic effect of larger gain: ranked before it)"
-                  if c.ranked_by == "specific" else "")
+                  if c.ranked_by == "specific" else "  (in the final model: ranked before the effects it does without)"
+                  if c.ranked_by == "explanation" else "")
             lines.append(f"  {c.effect:<22s} dBIC {c.delta_bic:12.1f}  dchi2 {c.delta_chi2:12.1f}  signature {c.signature.get('score', math.nan):.3g}{by}")
         lines.append("path: " + " -> ".join(f"{_step_name(s)} ({s.gap['chi2_reduced']:.3g})" for s in self.path))
         by = self.effects_by_side()

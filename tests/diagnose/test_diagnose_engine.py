@@ -821,6 +821,54 @@ def test_a_specific_effect_required_beside_the_leading_generic_one_is_ranked_bef
         [c.effect for c in plain2]
 
 
+def test_the_final_explanation_is_ranked_before_the_candidates_it_does_without():
+    """Library seed 9656, diffraction and a floor withheld: an offset peak gained most alone (1.70e5), then a
+    floor (1.68e5) and diffraction (5.7e4); the search ended exactly on {floor, diffraction}.  The final
+    explanation's effects come first (their order by gain), and then diffraction, required beside the leading
+    floor, before it: the ranking's first entry is an effect the final model holds, as the headline's is.  With
+    no explanation (nothing significant) the order is the BIC order."""
+    import types
+
+    from brdfjax.diagnose.engine import _candidates_of, _explanation_first, _Fitted, _specific_first
+    from brdfjax.diagnose.refits import _rank
+    from brdfjax.diagnose.results import Candidate
+    from brdfjax.diagnose.search import Trial
+
+    def trial(effects, m2ll, cand=None, k=3):
+        st = types.SimpleNamespace(result=_fake_fit(m2ll, k=k), effects=tuple(effects), blocks=[])
+        return Trial(tuple(effects), True, None, m2ll + k * math.log(1000), m2ll / 997, k, None,
+                     {e: [] for e in effects}, _Fitted(st, cand))
+
+    base = trial((), 2.5e5)
+    singles, best_of = [], {}
+    for e, m2ll in (("offset_normal_peak", 8.0e4), ("second_lobe", 8.1e4), ("lambertian", 8.2e4),
+                    ("diffraction", 1.93e5), ("shadowing", 2.49e5)):
+        c = Candidate(e, e, "ranked", signature={"score": 5.0}, delta_bic=0.0, gap_after={"chi2": m2ll})
+        t = trial((e,), m2ll, c, k=5)
+        singles.append(t)
+        best_of[frozenset((e,))] = t
+    best_of[frozenset(("lambertian", "diffraction"))] = trial(("lambertian", "diffraction"), 200.0, k=7)
+    best_of[frozenset(("lambertian", "offset_normal_peak"))] = trial(("lambertian", "offset_normal_peak"), 100.0, k=9)
+    generic = {"second_lobe", "lambertian"}.__contains__
+    plain, _ = _rank(_candidates_of(singles, base, best_of))
+    assert [c.effect for c in plain] == ["offset_normal_peak", "second_lobe", "lambertian", "diffraction", "shadowing"]
+    explanation = frozenset({"lambertian", "diffraction"})
+    held = _explanation_first(plain, explanation)
+    assert [c.effect for c in held] == ["lambertian", "diffraction", "offset_normal_peak", "second_lobe", "shadowing"]
+    assert [c.ranked_by for c in held[:2]] == ["explanation", "explanation"]
+    assert held[0].note.startswith("ranked before offset_normal_peak, second_lobe (not in the final model")
+    assert held[0].delta_bic == pytest.approx(base.bic - best_of[frozenset(("lambertian",))].bic)  # gains unchanged
+    # the offset peak completes the floor better (its joint fit is lower) but the final model does without it:
+    # the specific effect moved before the floor is diffraction
+    ranked = _specific_first(held, base, best_of, generic, 10.0, explanation)
+    assert [c.effect for c in ranked][:3] == ["diffraction", "lambertian", "offset_normal_peak"]
+    assert ranked[0].ranked_by == "specific" and ranked[0].to_dict()["ranked_by"] == "specific"
+    assert "(not in the final model" in ranked[0].note  # both reasons kept
+    plain, _ = _rank(_candidates_of(singles, base, best_of))
+    assert _explanation_first(plain, frozenset()) == plain
+    assert _explanation_first(plain, frozenset({"offset_normal_peak"})) == plain  # already first: unchanged
+
+
 def test_a_term_is_driven_to_zero_only_against_the_weight_its_fit_started_from():
     """The admission flag "drives the term to zero" compares a weight with the smaller of its value in the fit
     the effect extends and that fit's start: a fit that ran the weight off (reference seed 9645: rho_s1 to
