@@ -73,9 +73,10 @@ def _tables(d: Diagnosis) -> list[tuple[str, list[str], list[list[str]]]]:
     out.append(
         (
             "Which: candidate effects ranked by BIC gain (decreases: positive = explains part of the gap); "
-            "a detection (an unresolved peak, marked 'detected') comes first by its own signature; a specific effect "
-            "that still gains more than the threshold beside the generic effect ranked first, on their joint refit, "
-            "is ranked before it (marked 'required')",
+            "a detection (an unresolved peak, marked 'detected') comes first by its own signature; the effects of the "
+            "final explanation come before the candidates it does without (marked 'in the final model'); a specific "
+            "effect that still gains more than the threshold beside the generic effect ranked first, on their joint "
+            "refit, is ranked before it (marked 'required')",
             ["rank", "effect", "delta BIC", "delta chi2", "new params", "chi2_reduced after", "signature score", "signature"],
             [
                 [str(i + 1) + {"detection": " (detected)", "specific": " (required)", "explanation": " (in the final model)"}.get(c.ranked_by, ""), c.effect, _f(c.delta_bic, ".1f"), _f(c.delta_chi2, ".1f"), str(c.n_new), _f(c.gap_after.get("chi2_reduced")),
@@ -271,7 +272,8 @@ PATH_RULES = (
     "effect never enters, whatever its BIC gain.",
     "The best admissible candidates are also refitted in pairs, each warm-started at its better member's fit; where "
     "the step's best fit is not within the noise, the best single (and, where it is generic, the best specific one) "
-    "is also paired with every other candidate and the three lowest pairs are refitted in the other order too "
+    "is also paired with every other candidate, every candidate whose single refit failed or ended flagged is "
+    "started again from the best single's fit, and the three lowest pairs are refitted in the other order too "
     "(started at the other member's fit), the better fit kept.  The single or pair with the largest BIC gain enters "
     "when the gain exceeds the threshold; a pair only when it beats its better member alone by more than the "
     "threshold.",
