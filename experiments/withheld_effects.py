@@ -25,7 +25,8 @@ whose held-out gap shrank (>= 90 %).
 Results go to ``--out`` (JSON, written atomically after every trial); a
 rerun skips the trials already there (resumable).  ``--quick``: one trial per
 effect, two null and two two-effect trials.  ``--shard i/n`` runs a slice
-(parallel workers), ``--summarize A.json B.json`` merges them.
+(parallel workers), ``--summarize A.json B.json`` merges them (``--by-reference``: the merged file keeps
+keys into its sources instead of copies of their trials, for a running total over many seeds).
 ``--mixed-two``: the two-effect trials pair an instrument effect with a material one.
 ``--runtime``: one diagnosis of a single 4x-decimated frame against the full
 library, timed (target < 10 min on the 2-core CPU).
@@ -391,6 +392,25 @@ def _trial_record(t, seed, d, true, wall, info) -> dict[str, Any]:
     }
 
 
+def load_trials(path: Path) -> list[dict[str, Any]]:
+    """The trial records of a results file: its ``trials``, or for a running total written ``--by-reference``
+    (``trial_keys``: ``[seed, id, file]`` each, the file in the same folder) the records read from its sources."""
+    doc = json.loads(Path(path).read_text())
+    if "trials" in doc:
+        return doc["trials"]
+    if "trial_keys" not in doc:
+        raise ValueError(f"{path}: a results file holds 'trials' or 'trial_keys'; found {sorted(doc)}")
+    sources: dict[str, dict[tuple, dict[str, Any]]] = {}
+    out = []
+    for seed, tid, name in doc["trial_keys"]:
+        if name not in sources:
+            sources[name] = {(r.get("seed"), r["id"]): r for r in load_trials(Path(path).parent / name)}
+        if (seed, tid) not in sources[name]:
+            raise ValueError(f"{path}: trial {tid!r} (seed {seed}) is not in its source {name}")
+        out.append(sources[name][(seed, tid)])
+    return out
+
+
 def _top_by_gain(r: dict[str, Any]) -> str | None:
     """The candidate of largest single gain (BIC) at step 1 of a trial record, whatever the ranking's order."""
     rows = [x for x in r.get("ranking") or [] if x[1] is not None and math.isfinite(x[1])]
@@ -540,6 +560,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mixed-two", action="store_true", help="two-effect trials pair an instrument effect with a material one")
     p.add_argument("--shard", default=None, help="i/n: run every n-th trial starting at i (parallel workers, own --out)")
     p.add_argument("--summarize", nargs="+", default=None, help="print the summary of these result JSONs (shards) and exit")
+    p.add_argument("--by-reference", action="store_true",
+                   help="with --summarize: write the merged file's trials as keys into its sources ([seed, id, file], "
+                        "the sources in --out's folder) instead of copies (a running total over many seeds)")
     p.add_argument("--path", choices=("render", "instrument"), default="render",
                    help="synthesis: 'render' (truth rendered, instrument effects applied on the grid, log-normal noise) "
                         "or 'instrument' (the full synthetic CCD, reduced and read back; slow)")
@@ -563,12 +586,22 @@ def main(argv: list[str] | None = None) -> int:
         # finished trials: each trial counts once, the first file's record kept; the trial's own seed is part of the
         # key (files of different --seed reuse the same trial ids)
         by_id: dict[tuple, dict] = {}
+        origin: dict[tuple, str] = {}
         for f in args.summarize:
-            for r in json.loads(Path(f).read_text())["trials"]:
-                by_id.setdefault((r.get("seed"), r["id"]), r)
+            for r in load_trials(Path(f)):
+                key = (r.get("seed"), r["id"])
+                if key not in by_id:
+                    by_id[key], origin[key] = r, f
         results = list(by_id.values())
         s = summarise(results, names)
-        _atomic_json(out, {"sources": args.summarize, "trials": results, "summary": _clean(s)})
+        if args.by_reference:
+            outside = [f for f in args.summarize if Path(f).resolve().parent != out.resolve().parent]
+            if outside:
+                p.error(f"--by-reference: the sources must be in --out's folder {out.parent}: {outside}")
+            keys = [[k[0], k[1], Path(origin[k]).name] for k in by_id]
+            _atomic_json(out, {"sources": [Path(f).name for f in args.summarize], "trial_keys": keys, "summary": _clean(s)})
+        else:
+            _atomic_json(out, {"sources": args.summarize, "trials": results, "summary": _clean(s)})
         print_summary(s, names)
         return 0
     if args.runtime:

@@ -355,6 +355,24 @@ def test_benchmark_summary_of_shards_counts_a_shared_trial_once(tmp_path):
     assert mod.main(["--summarize", str(tmp_path / "s1.json"), str(tmp_path / "s2.json"), "--out", str(out),
                      "--effects", "lambertian"]) == 0
     assert json.loads(out.read_text())["summary"]["null_nothing_significant_rate"] == [0.5, 2]
+    # a running total written by reference keeps keys into its sources, and merges again like a file of copies
+    total = tmp_path / "total.json"
+    assert mod.main(["--summarize", str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--out", str(total),
+                     "--effects", "lambertian", "--by-reference"]) == 0
+    doc = json.loads(total.read_text())
+    assert "trials" not in doc and doc["trial_keys"] == [[None, "null:0", "a.json"], [None, "null:1", "a.json"],
+                                                         [None, "null:2", "b.json"]]
+    assert doc["summary"] == merged["summary"]
+    assert mod.load_trials(total) == merged["trials"]
+    assert mod.main(["--summarize", str(total), str(tmp_path / "s1.json"), "--out", str(out),
+                     "--effects", "lambertian"]) == 0
+    assert json.loads(out.read_text())["summary"]["n_trials"] == 4
+    (tmp_path / "b.json").write_text(json.dumps({"trials": [shared]}))  # a source that lost a trial
+    with pytest.raises(ValueError, match=r"total.json: trial 'null:2' \(seed None\) is not in its source b.json"):
+        mod.load_trials(total)
+    with pytest.raises(SystemExit):  # sources outside --out's folder
+        mod.main(["--summarize", str(tmp_path / "a.json"), "--out", str(tmp_path / "sub" / "t.json"),
+                  "--effects", "lambertian", "--by-reference"])
 
 
 def test_an_oriented_term_is_written_to_a_config_and_read_back():
