@@ -458,12 +458,12 @@ def summarise(results: list[dict[str, Any]], names: list[str]) -> dict[str, Any]
         "not_identifiable_trials": [r["id"] for r in two if r.get("identifiable") is False],
         "diffraction_first_rate": rate([r["top1"] == "diffraction" and r["significant"]
                                         for r in single + two if "diffraction" in r["effects"]]),
-        # the same split: diffraction the only withheld effect, and paired with another (where the other may be the
-        # larger signal: then whether the first-ranked effect is either withheld one)
         # the same read from the single refits' gains alone, before the ranking puts the final explanation and the
         # specific effect the data require beside a generic one first (for comparison with records before that)
         "diffraction_first_by_gain_rate": rate([_top_by_gain(r) == "diffraction" and r["significant"]
                                                 for r in single + two if "diffraction" in r["effects"]]),
+        # the same split: diffraction the only withheld effect, and paired with another (where the other may be the
+        # larger signal: then whether the first-ranked effect is either withheld one)
         "diffraction_first_alone_rate": rate([r["top1"] == "diffraction" and r["significant"]
                                               for r in single + two if list(r["effects"]) == ["diffraction"]]),
         "diffraction_first_paired_rate": rate([r["top1"] == "diffraction" and r["significant"] for r in single + two

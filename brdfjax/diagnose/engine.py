@@ -621,10 +621,9 @@ def _explanation_first(ranked: list[Candidate], explanation: set[str] | frozense
 
     The ranking answers "which effect"; the search's answer is its final explanation.  A candidate that gains
     most alone but that the final set does without was bettered by that set: alone it stood in for the final
-    set's effects (measured on the withheld-effect benchmark, seeds 9608-9656: with diffraction withheld and the
-    final explanation exactly the withheld set, an offset peak, a second lobe, a distribution swap or stray
-    light that the final model does not hold ranked first in 7 trials, and the report's headline, read from the
-    final model, then named another effect than its own ranking).  Each group keeps its order by gain; gains
+    set's effects (measured on the withheld-effect benchmark, seeds 9608-9655: the first-ranked effect was not in
+    the final model in 27 of 227 trials, 8 of them with diffraction withheld, and the report's headline, read
+    from the final model, then named another effect than its own ranking).  Each group keeps its order by gain; gains
     stay those of the single refits; a moved candidate's note names those it was moved before.  Candidates
     ranked by a detection stay first."""
     lead = [c for c in ranked if c.ranked_by == "detection"]

@@ -25,8 +25,8 @@ The rule (``bic_threshold`` = T; BIC = chi^2 + k ln N, lower is better; "gain" =
    its start is then read from the residual the best one leaves (seed 9644, stray light and diffraction
    withheld: the ghost's start, read from a residual the diffraction bands dominated, ended undetermined, was
    never paired, and an offset peak took the ghost; seed 9654, diffraction and a floor withheld: the floor's
-   single refit from the base ended dead, and an offset peak took the floor's place beside diffraction).  Where the best single is generic, the best specific single is
-   widened the same way, beside every other admissible single (measured on the NumPy reference, seed 9647,
+   single refit from the base ended dead, and an offset peak took the floor's place beside diffraction).
+   Where the best single is generic, the best specific single is widened the same way, beside every other admissible single (measured on the NumPy reference, seed 9647,
    diffraction and a floor withheld: a distribution swap led the singles, diffraction was not among the three
    best, and diffraction + floor was never fitted).  Where the best fit is within the noise but the move rule 4 is about to commit (after
    rule 3) is a pair, the same widening runs first and rules 3 and 4 are judged again with the new pairs: the

@@ -545,6 +545,31 @@ def _fake_fit(m2ll: float, k: int = 3, n: int = 1000, params: dict | None = None
                                  chi2_reduced=m2ll / (n - k), parameters=p)
 
 
+def _ranking_trial(effects, m2ll, cand=None, k=3, flags=None):
+    """A search Trial of ``effects`` at -2lnL ``m2ll`` (k parameters, 1000 points) for the ranking tests."""
+    import types
+
+    from brdfjax.diagnose.engine import _Fitted
+    from brdfjax.diagnose.search import Trial
+
+    st = types.SimpleNamespace(result=_fake_fit(m2ll, k=k), effects=tuple(effects), blocks=[])
+    return Trial(tuple(effects), True, None, m2ll + k * math.log(1000), m2ll / 997, k, None,
+                 {e: list((flags or {}).get(e, [])) for e in effects}, _Fitted(st, cand))
+
+
+def _ranking_singles(rows):
+    """The single-effect trials of ``rows`` (effect, -2lnL; 5 parameters each) and ``best_of`` holding them."""
+    from brdfjax.diagnose.results import Candidate
+
+    singles, best_of = [], {}
+    for e, m2ll in rows:
+        c = Candidate(e, e, "ranked", signature={"score": 5.0}, delta_bic=0.0, gap_after={"chi2": m2ll})
+        t = _ranking_trial((e,), m2ll, c, k=5)
+        singles.append(t)
+        best_of[frozenset((e,))] = t
+    return singles, best_of
+
+
 def test_a_candidate_is_ranked_by_the_best_fit_of_its_set_the_search_found():
     """As on the shipped example: diffraction refitted from the base sits in a poor optimum (behind a floor);
     taken out of its joint fit with the floor it reaches the final model's chi^2: it ranks first, with that
@@ -781,26 +806,13 @@ def test_a_specific_effect_required_beside_the_leading_generic_one_is_ranked_bef
     ranked first; a misalignment that also gains beside the lobe, but completes it less well, an offset peak
     that gains nothing beside it, and a specific effect whose own terms are flagged on the joint refit keep
     their places; with no such pair the ranking is the BIC order."""
-    import types
-
-    from brdfjax.diagnose.engine import _candidates_of, _Fitted, _specific_first
+    from brdfjax.diagnose.engine import _candidates_of, _specific_first
     from brdfjax.diagnose.refits import _rank
-    from brdfjax.diagnose.results import Candidate
-    from brdfjax.diagnose.search import Trial
 
-    def trial(effects, m2ll, cand=None, k=3, flags=None):
-        st = types.SimpleNamespace(result=_fake_fit(m2ll, k=k), effects=tuple(effects), blocks=[])
-        return Trial(tuple(effects), True, None, m2ll + k * math.log(1000), m2ll / 997, k, None,
-                     {e: list((flags or {}).get(e, [])) for e in effects}, _Fitted(st, cand))
-
+    trial = _ranking_trial
     base = trial((), 2.0e5)
-    singles, best_of = [], {}
-    for e, m2ll in (("second_lobe", 5.0e4), ("diffraction", 9.0e4), ("offset_normal_peak", 1.2e5),
-                    ("stray_light", 1.5e5), ("misalignment", 1.6e5)):
-        c = Candidate(e, e, "ranked", signature={"score": 5.0}, delta_bic=0.0, gap_after={"chi2": m2ll})
-        t = trial((e,), m2ll, c, k=5)
-        singles.append(t)
-        best_of[frozenset((e,))] = t
+    singles, best_of = _ranking_singles((("second_lobe", 5.0e4), ("diffraction", 9.0e4), ("offset_normal_peak", 1.2e5),
+                                         ("stray_light", 1.5e5), ("misalignment", 1.6e5)))
     lobe = best_of[frozenset(("second_lobe",))]
     best_of[frozenset(("second_lobe", "diffraction"))] = trial(("second_lobe", "diffraction"), 1.0e3, k=7)
     best_of[frozenset(("second_lobe", "offset_normal_peak"))] = trial(("second_lobe", "offset_normal_peak"),
@@ -845,26 +857,13 @@ def test_the_final_explanation_is_ranked_before_the_candidates_it_does_without()
     explanation's effects come first (their order by gain), and then diffraction, required beside the leading
     floor, before it: the ranking's first entry is an effect the final model holds, as the headline's is.  With
     no explanation (nothing significant) the order is the BIC order."""
-    import types
-
-    from brdfjax.diagnose.engine import _candidates_of, _explanation_first, _Fitted, _specific_first
+    from brdfjax.diagnose.engine import _candidates_of, _explanation_first, _specific_first
     from brdfjax.diagnose.refits import _rank
-    from brdfjax.diagnose.results import Candidate
-    from brdfjax.diagnose.search import Trial
 
-    def trial(effects, m2ll, cand=None, k=3):
-        st = types.SimpleNamespace(result=_fake_fit(m2ll, k=k), effects=tuple(effects), blocks=[])
-        return Trial(tuple(effects), True, None, m2ll + k * math.log(1000), m2ll / 997, k, None,
-                     {e: [] for e in effects}, _Fitted(st, cand))
-
+    trial = _ranking_trial
     base = trial((), 2.5e5)
-    singles, best_of = [], {}
-    for e, m2ll in (("offset_normal_peak", 8.0e4), ("second_lobe", 8.1e4), ("lambertian", 8.2e4),
-                    ("diffraction", 1.93e5), ("shadowing", 2.49e5)):
-        c = Candidate(e, e, "ranked", signature={"score": 5.0}, delta_bic=0.0, gap_after={"chi2": m2ll})
-        t = trial((e,), m2ll, c, k=5)
-        singles.append(t)
-        best_of[frozenset((e,))] = t
+    singles, best_of = _ranking_singles((("offset_normal_peak", 8.0e4), ("second_lobe", 8.1e4), ("lambertian", 8.2e4),
+                                         ("diffraction", 1.93e5), ("shadowing", 2.49e5)))
     best_of[frozenset(("lambertian", "diffraction"))] = trial(("lambertian", "diffraction"), 200.0, k=7)
     best_of[frozenset(("lambertian", "offset_normal_peak"))] = trial(("lambertian", "offset_normal_peak"), 100.0, k=9)
     generic = {"second_lobe", "lambertian"}.__contains__

@@ -446,6 +446,17 @@ N_FREE_SPAN_DEG = 1.0
 N_BOUNDS = (1.05, 4.0)
 
 
+def used_data(ctx, blocks) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per block of ``blocks`` on its used points: ``(k, used, ln d, f, sigma)``, ``f`` the fitted model as the fit
+    compared it (the starts profiled against the held base read these)."""
+    out = []
+    for k in blocks:
+        ok = used_points(ctx, k)
+        out.append((k, ok, np.log(np.maximum(np.asarray(ctx.blocks[k].brdf, float)[ok], 1e-300)),
+                    np.asarray(ctx.model_values[k], float)[ok], ctx.sigma(k)[ok]))
+    return out
+
+
 class OffsetNormalPeakEffect(Effect):
     name = "offset_normal_peak"
     title = "second specular peak about a tilted normal"
@@ -546,12 +557,7 @@ class OffsetNormalPeakEffect(Effect):
     @staticmethod
     def _frame_data(ctx) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """Per frame on its used points: ``(k, used, ln d, f, sigma)`` (shared by every start's profile)."""
-        out = []
-        for k in ctx.frames():
-            ok = used_points(ctx, k)
-            out.append((k, ok, np.log(np.asarray(ctx.blocks[k].brdf, float)[ok]), np.asarray(ctx.model_values[k], float)[ok],
-                        ctx.sigma(k)[ok]))
-        return out
+        return used_data(ctx, ctx.frames())
 
     def _profile(self, ctx, frames, dist, dtheta, dphi0, form) -> tuple[float, float]:
         """``(chi2, rho)``: the chi^2 of ln(f + rho p) over ``frames``, minimised over ln rho (golden section)."""
@@ -661,14 +667,7 @@ class LambertianEffect(Effect):
         block's used points with the fitted base ``f`` held, searched on a log grid from
         :data:`FLOOR_PROFILE_RANGE` times the faint level and refined by golden section; ``interior`` is False
         where the grid's lowest level is best (the held base wants no floor)."""
-        parts = []
-        for k in range(len(ctx.blocks)):
-            ok = used_points(ctx, k)
-            if not ok.any():
-                continue
-            d = np.asarray(ctx.blocks[k].brdf, float)[ok]
-            f = np.asarray(ctx.model_values[k], float)[ok]
-            parts.append((np.log(np.maximum(d, 1e-300)), np.maximum(f, 0.0), ctx.sigma(k)[ok]))
+        parts = [(ld, np.maximum(f, 0.0), sg) for _, ok, ld, f, sg in used_data(ctx, range(len(ctx.blocks))) if ok.any()]
         if not parts or not (faint > 0 and math.isfinite(faint)):
             return faint, math.inf, False
 
@@ -755,6 +754,11 @@ def inner_specular(term: AbstractTerm) -> Specular:
     return term.term if isinstance(term, OffsetNormal | Oriented) else term
 
 
+#: Student-t's shape next to the family it replaces (Beckmann as gamma -> inf, inside the fit's bound of 50; GGX at
+#: gamma = 2): the swap's start where every family refitted from its width-matched start ends above the model
+NEAR_NULL_GAMMA = {"beckmann": 40.0, "ggx": 2.0}
+
+
 class DistributionShapeEffect(Effect):
     generic = True
     #: a swap, not an extension: the refit replaces D and cannot return to the model it changes
@@ -767,7 +771,8 @@ class DistributionShapeEffect(Effect):
         "and Hyper-Cauchy.  One effect: extend() width-matches each alternative family to the fitted D "
         "(least squares of ln D over the bright part; Student-t starts at gamma = 3, Hyper-Cauchy at 2), "
         "refits the model with each family and keeps the lowest chi^2 (the families' chi^2 are in the "
-        "note); the widths (and gamma) are free, n_new counts the added shape "
+        "note); where every family ends above the model it replaces, Student-t is also started next to it "
+        "(gamma 40 for a Beckmann lobe, 2 for GGX); the widths (and gamma) are free, n_new counts the added shape "
         "parameters (0 for GGX <-> Beckmann).  Signature: the wing-vs-core residual pattern, the "
         "difference of the mean residual in the wings (1e-3 to 0.1 of the peak) and in the core (> 0.1), "
         "in units of its standard error."
@@ -891,13 +896,6 @@ class DistributionShapeEffect(Effect):
         others = ", ".join(f"{f} -2lnL={c:.6g}" + ("" if conv else " (not converged)") for c, f, *_, conv in tried)
         return Extension(model, params, n_new,
                          note=f"D -> {fam} for {', '.join(swaps)} (refitted families: {others}{near})")
-
-
-
-
-#: Student-t's shape next to the family it replaces (Beckmann as gamma -> inf, inside the fit's bound of 50; GGX at
-#: gamma = 2): the swap's start where every family refitted from its width-matched start ends above the model
-NEAR_NULL_GAMMA = {"beckmann": 40.0, "ggx": 2.0}
 
 
 #: The anisotropic forms of the isotropic distributions that have one (``cls.anisotropic``).
